@@ -1,0 +1,31 @@
+# midas: `make demo` installs everything and records a short simulated session; `make test` runs the suite.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO_OUT ?= sessions
+
+.PHONY: install demo test test-fast clean
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/midas record --simulate --duration 10 --out $(DEMO_OUT) --subject 1 --task suturing --trial 1 \
+		--no-tui > $(VENV)/demo-path.txt
+	$(BIN)/midas session info "$$(tail -n 1 $(VENV)/demo-path.txt)"
+	$(BIN)/midas session verify "$$(tail -n 1 $(VENV)/demo-path.txt)"
+
+test: install
+	$(BIN)/python -m pytest -q -rs
+
+test-fast: install
+	$(BIN)/python -m pytest -q -m "not slow"
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

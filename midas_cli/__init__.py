@@ -1,0 +1,3 @@
+"""midas: record and analyse multimodal data in robot-assisted surgery (the MiDAS system)."""
+
+__version__ = "0.1.0"

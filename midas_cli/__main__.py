@@ -1,0 +1,3 @@
+from midas_cli.commands.main import run
+
+run()

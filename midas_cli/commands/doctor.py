@@ -1,0 +1,36 @@
+"""`midas doctor`: what this machine offers midas (attach its --json output to bug reports)."""
+
+from __future__ import annotations
+
+import typer
+
+from midas_cli import diagnostics
+from midas_cli.commands.common import JSON_OPTION, out, print_json
+from midas_cli.console import human_bytes
+
+
+def doctor(
+    obs_host: str = typer.Option("localhost", help="Where OBS's websocket server should be."),
+    obs_port: int = typer.Option(4455, help="OBS websocket port."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Report versions, serial ports, OBS reachability, GPU and free disk.
+
+    Example: midas doctor --json > doctor.json
+    """
+    facts = diagnostics.collect(obs_host, obs_port)
+    if as_json:
+        print_json(facts)
+        return
+    out.print(f"midas {facts['midas']}  python {facts['python']}  {facts['platform']}", markup=False)
+    for name, version in facts["packages"].items():
+        out.print(f"  {name:24} {version or 'NOT INSTALLED'}", markup=False)
+    for name, where in facts["tools"].items():
+        out.print(f"  {name:24} {where or 'not found'}", markup=False)
+    ports = facts["serial_ports"]
+    out.print(f"serial ports: {', '.join(p['device'] for p in ports) if ports else 'none'}", markup=False)
+    obs = facts["obs_websocket"]
+    out.print(f"OBS websocket {obs['address']}: {'reachable' if obs['reachable'] else 'unreachable'}", markup=False)
+    gpu = facts["gpu"]
+    out.print(f"GPU: {', '.join(gpu['devices']) if gpu.get('cuda') else 'none (CPU only)'}", markup=False)
+    out.print(f"disk free here: {human_bytes(facts['disk_free_bytes'])}", markup=False)

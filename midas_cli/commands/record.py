@@ -1,0 +1,203 @@
+"""`midas record`: acquire a session with a live device-health display."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.live import Live
+from rich.table import Table
+
+from midas_cli.commands.common import STDERR_LOG, err
+from midas_cli.console import dashboard, is_interactive, status_line
+from midas_cli.errors import ConfigError
+from midas_cli.record.recorder import RecordPlan, Recorder, run_until
+from midas_cli.record.status import RecorderSnapshot
+from midas_cli.devices.base import DeviceUrl
+from midas_cli.rig import DeviceConfig, RigConfig, load_rig, simulated_rig
+from midas_cli.session.writer import SessionMetadata
+
+PLAIN_EVERY_S = 2.0
+STOP_SIGNALS = {
+    signal.SIGINT: ("complete", "stopped by the operator (Ctrl-C / SIGINT)"),
+    signal.SIGTERM: ("interrupted", "terminated (SIGTERM)"),
+    signal.SIGHUP: ("interrupted", "the terminal hung up (SIGHUP, e.g. SSH dropped)"),
+}
+
+
+def record(
+    simulate: bool = typer.Option(False, "--simulate", help="Record from the built-in simulated rig."),
+    rig: Optional[Path] = typer.Option(None, "--rig", help="Rig configuration file (TOML).", dir_okay=False),
+    device: list[str] = typer.Option([], "--device", help="Add or replace a device: NAME=URL (repeatable)."),
+    out: Path = typer.Option(Path("sessions"), "--out", help="Folder that receives the session folder."),
+    subject: Optional[str] = typer.Option(None, help="Subject id."),
+    task: Optional[str] = typer.Option(None, help="Task name, e.g. suturing or peg-transfer."),
+    trial: Optional[int] = typer.Option(None, help="Trial number."),
+    platform: Optional[str] = typer.Option(None, help="Robot platform (default: the rig's)."),
+    note: str = typer.Option("", "--note", help="Operator note stored in the manifest."),
+    master_rate: Optional[float] = typer.Option(None, "--master-rate", help="Master rate in Hz (default: rig's)."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    seed: int = typer.Option(0, "--seed", help="Seed for simulated devices."),
+    no_tui: bool = typer.Option(False, "--no-tui", help="Plain status lines instead of the live screen."),
+    status_json: bool = typer.Option(False, "--status-json", help="One JSON status object per second on stdout."),
+    queue_size: int = typer.Option(4096, "--queue-size", help="Batches the writer queue holds before dropping."),
+) -> None:
+    """Record a session: one worker process per device, host-clock timestamps, crash-safe stream
+    files. Stops on Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line.
+
+    Example: midas record --simulate --duration 10 --out sessions --subject 1 --task suturing --trial 1
+    """
+    rig_config = _choose_rig(simulate, rig, device)
+    plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
+                      rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest())
+    if duration is not None and duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {duration}")
+    if queue_size < 16:
+        raise ConfigError(f"--queue-size must be at least 16, got {queue_size}")
+    recorder = Recorder(plan)
+    stop = _StopFlag()
+    stop.install()
+    recorder.start()
+    mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
+    display = _Display(mode, stop)
+    try:
+        if not recorder.wait_ready():
+            err.print("midas: warning: some devices did not start within 15 s; recording the others")
+        with display:
+            run_until(recorder, duration, lambda: stop.reason is not None, display.update)
+            display.update(recorder.snapshot(duration, stopping=True))
+        status, reason = stop.outcome()
+        manifest = recorder.stop(status, reason)
+    finally:
+        stop.restore()
+    display.final(manifest, recorder.path)
+
+
+def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigConfig:
+    if simulate and rig is not None:
+        raise ConfigError("give either --simulate or --rig, not both")
+    if not (simulate or rig or device):
+        raise ConfigError("nothing to record: give --simulate, --rig FILE or --device NAME=URL")
+    config = load_rig(rig) if rig else simulated_rig()
+    if device and not (simulate or rig):
+        config.devices.clear()
+        config.name, config.platform, config.source = "command-line", "unknown", "--device"
+    for item in device:
+        name, sep, url = item.partition("=")
+        if not sep or not name or not url:
+            raise ConfigError(f"--device expects NAME=URL, got {item!r}")
+        kind = DeviceUrl.parse(url).target.strip("/") if url.startswith("sim://") else name
+        config.devices[name] = DeviceConfig(name, url, kind)
+    return config
+
+
+def _metadata(rig: RigConfig, subject, task, trial, platform, note, master_rate) -> SessionMetadata:
+    defaults = rig.metadata
+    values = {"subject": subject if subject is not None else defaults.get("subject"),
+              "task": task if task is not None else defaults.get("task"),
+              "trial": trial if trial is not None else defaults.get("trial")}
+    missing = [k for k, v in values.items() if v is None]
+    if missing:
+        raise ConfigError(f"missing --{', --'.join(missing)} (or [metadata] in the rig file)")
+    return SessionMetadata(str(values["subject"]), values["task"], int(values["trial"]), platform or rig.platform,
+                           note or defaults.get("operator_note", ""), master_rate or rig.master_rate_hz)
+
+
+class _StopFlag:
+    """Turns SIGINT/SIGTERM/SIGHUP into a stop request (the session is always finalised)."""
+
+    def __init__(self) -> None:
+        self.reason: Optional[signal.Signals] = None
+        self.hung_up = False
+        self._previous: dict = {}
+
+    def install(self) -> None:
+        for sig in STOP_SIGNALS:
+            self._previous[sig] = signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, _frame) -> None:
+        if self.reason is None:
+            self.reason = signal.Signals(signum)
+        if signum == signal.SIGHUP:
+            self.hung_up = True
+
+    def outcome(self) -> tuple[str, str]:
+        if self.reason is None:
+            return "complete", "duration reached"
+        return STOP_SIGNALS[self.reason]
+
+
+class _Display:
+    """Live TUI on a terminal, plain lines otherwise, or JSON lines; silent after a hang-up."""
+
+    def __init__(self, mode: str, stop: _StopFlag) -> None:
+        self.mode = mode
+        self.stop = stop
+        self._live: Optional[Live] = None
+        self._last_plain = 0.0
+        self._last_json = 0.0
+
+    def __enter__(self) -> "_Display":
+        if self.mode == "tui":
+            self._log_level = STDERR_LOG.level
+            STDERR_LOG.setLevel(logging.CRITICAL)  # the screen shows device errors; logs/midas.log keeps them
+            self._live = Live(console=err, refresh_per_second=4, transient=False, redirect_stdout=False,
+                              redirect_stderr=False)
+            self._live.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._live is not None:
+            self._safely(lambda: self._live.__exit__(None, None, None))
+            STDERR_LOG.setLevel(self._log_level)
+
+    def update(self, snapshot: RecorderSnapshot) -> None:
+        if self.stop.hung_up:
+            return
+        now = time.monotonic()
+        if self._live is not None:
+            self._safely(lambda: self._live.update(dashboard(snapshot)))
+        elif self.mode == "json" and (now - self._last_json >= 1.0 or snapshot.stopping):
+            self._last_json = now
+            self._safely(lambda: _write_line(sys.stdout, json.dumps(snapshot.to_json(), default=str)))
+        elif self.mode == "plain" and (now - self._last_plain >= PLAIN_EVERY_S or snapshot.stopping):
+            self._last_plain = now
+            self._safely(lambda: _write_line(sys.stderr, status_line(snapshot)))
+
+    def final(self, manifest: dict, path: Path) -> None:
+        if self.stop.hung_up:
+            return
+        self._safely(lambda: err.print(_final_table(manifest)))
+        self._safely(lambda: _write_line(sys.stdout, str(path)))
+
+    def _safely(self, action) -> None:
+        try:
+            action()
+        except OSError:  # terminal gone (EIO/EPIPE): keep recording, stop talking
+            self.stop.hung_up = True
+
+
+def _write_line(stream, text: str) -> None:
+    stream.write(text + "\n")
+    stream.flush()
+
+
+def _final_table(manifest: dict) -> Table:
+    table = Table("stream", "samples", "measured Hz", "gaps", "dropped", "p99 latency ms",
+                  title=f"{manifest['session_id']}: {manifest['status']} ({manifest['stop_reason']})",
+                  header_style="bold")
+    for name, s in manifest["streams"].items():
+        rate = s.get("measured_rate_hz")
+        table.add_row(name, str(s.get("samples")), "—" if rate is None else f"{rate:.2f}",
+                      str(s["seq_gaps"]["count"]), str(s.get("dropped")), str(s["latency_ms"].get("p99")))
+    return table

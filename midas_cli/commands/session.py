@@ -1,0 +1,145 @@
+"""`midas session info|list|verify|repair`: inspect and check session folders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.table import Table
+
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.console import clock_text
+from midas_cli.errors import MidasError
+from midas_cli.session.integrity import repair_session, verify_session
+from midas_cli.session.reader import Session, find_sessions
+from midas_cli.session.summary import summarize_session
+
+app = typer.Typer(help="Inspect, list, verify and repair session folders.", no_args_is_help=True)
+
+SESSION_ARG = typer.Argument(..., help="Session folder (holds manifest.json).")
+
+
+def _fmt(value: Any, spec: str = "") -> str:
+    return "—" if value is None else format(value, spec)
+
+
+@app.command()
+def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
+    """Summarise one session: metadata, status, duration, devices and per-stream rates, counts, gaps.
+
+    Example: midas session info sessions/suturing_S1_T1_20260101T120000Z
+    """
+    summary = summarize_session(Session.open(path))
+    if as_json:
+        print_json(summary)
+        return
+    duration = summary["duration_s"]
+    out.print(f"[bold]{summary['session_id']}[/]  status [bold]{summary['status']}[/]"
+              f"  ({summary['stop_reason'] or 'not stopped'})")
+    out.print(f"task {summary['task']}  subject {summary['subject']}  trial {summary['trial']}  "
+              f"platform {summary['platform']}  started {summary['start_utc']}  "
+              f"duration {clock_text(duration) if duration is not None else '—'}")
+    if summary["operator_note"]:
+        out.print(f"note: {summary['operator_note']}", markup=False)
+    table = Table("stream", "device", "nominal Hz", "measured Hz", "samples", "gaps", "missing", "dropped",
+                  "corrupt", "p99 latency ms", header_style="bold")
+    for name, s in summary["streams"].items():
+        table.add_row(name, s["device"], _fmt(s["nominal_rate_hz"], "g"), _fmt(s["measured_rate_hz"], ".2f"),
+                      _fmt(s["samples"]), _fmt(s["gaps"]), _fmt(s["missing"]), _fmt(s["dropped"]),
+                      _fmt(s["corrupt"]), _fmt(s["latency_p99_ms"]))
+    out.print(table)
+    for name, d in summary["devices"].items():
+        out.print(f"device {name}: {d['kind']} {d['url']}  serial {d['serial'] or '—'}  "
+                  f"reconnects {_fmt(d['reconnects'])}", markup=False)
+
+
+@app.command("list")
+def list_sessions(
+    root: Path = typer.Argument(..., help="Folder to search (up to 3 levels deep)."),
+    task: Optional[str] = typer.Option(None, help="Only sessions of this task."),
+    subject: Optional[str] = typer.Option(None, help="Only sessions of this subject."),
+    platform: Optional[str] = typer.Option(None, help="Only sessions on this platform."),
+    status: Optional[str] = typer.Option(None, help="Only sessions with this status."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Tabulate many sessions for scripts; unreadable folders are reported on stderr and skipped.
+
+    Example: midas session list sessions --task suturing --json | jq -r '.[].path'
+    """
+    wanted = {"task": task, "subject": subject, "platform": platform, "status": status}
+    rows, unreadable = [], 0
+    for folder in find_sessions(root):
+        try:
+            summary = summarize_session(Session.open(folder))
+        except MidasError as exc:  # one bad folder must not hide the others
+            err.print(f"midas: skipping {folder}: {exc}", markup=False)
+            unreadable += 1
+            continue
+        if all(v is None or str(summary.get(k)) == v for k, v in wanted.items()):
+            rows.append(summary)
+    if as_json:
+        print_json([{k: v for k, v in r.items() if k != "devices"} for r in rows])
+    else:
+        _print_session_table(rows)
+    if unreadable:
+        raise typer.Exit(4)
+
+
+def _print_session_table(rows: list[dict[str, Any]]) -> None:
+    table = Table("session", "task", "subject", "trial", "platform", "status", "duration", "streams",
+                  header_style="bold")
+    for r in rows:
+        duration = r["duration_s"]
+        table.add_row(r["session_id"], r["task"], str(r["subject"]), str(r["trial"]), r["platform"], r["status"],
+                      clock_text(duration) if duration is not None else "—", ",".join(r["streams"]))
+    out.print(table)
+    err.print(f"{len(rows)} session(s)")
+
+
+@app.command()
+def verify(
+    paths: list[Path] = typer.Argument(..., help="Session folder(s)."),
+    strict: bool = typer.Option(False, "--strict", help="Treat declared sequence gaps (outages) as problems."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Check the manifest against the files (counts, sha256, whole lines, monotonic host time,
+    sequence gaps); exit 4 if anything is wrong.
+
+    Example: midas session verify sessions/*/
+    """
+    reports = [verify_session(p, strict=strict) for p in paths]
+    if as_json:
+        print_json([r.to_json() for r in reports])
+    else:
+        for report in reports:
+            verdict = "[green]OK[/]" if report.ok else f"[red]{len(report.problems)} problem(s)[/]"
+            out.print(f"{report.path}: {verdict}")
+            for problem in report.problems:
+                out.print(f"  problem: {problem}", markup=False)
+            for note in report.notes:
+                out.print(f"  note: {note}", markup=False)
+    if not all(r.ok for r in reports):
+        raise typer.Exit(4)
+
+
+@app.command()
+def repair(paths: list[Path] = typer.Argument(..., help="Session folder(s)."), as_json: bool = JSON_OPTION) -> None:
+    """Make a session left by a crash (status 'recording') readable: cut torn last lines (kept in
+    logs/repair-<stream>.cut), recount every stream, mark it 'recovered'.
+
+    Example: midas session repair sessions/suturing_S1_T1_20260101T120000Z && midas session verify $_
+    """
+    reports = [repair_session(p) for p in paths]
+    if as_json:
+        print_json([r.to_json() for r in reports])
+        return
+    for report in reports:
+        if not report.repaired:
+            out.print(f"{report.path}: status {report.status!r}, nothing to repair")
+            continue
+        cut = ", ".join(f"{s}: {c['lines']} partial line(s), {c['bytes']} bytes" for s, c in report.cut.items())
+        out.print(f"{report.path}: recovered; cut {cut or 'nothing'}", markup=False)
+        for name in report.created:
+            out.print(f"  stream {name} had no file; created it empty", markup=False)
+

@@ -1,0 +1,144 @@
+"""Terminal rendering helpers (the one library module besides commands/ that imports rich).
+
+Pure functions of snapshots: the recorder never renders, renderers never touch devices.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any
+
+from rich.console import Console, Group
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+from midas_cli.devices.pedals import adc_to_volts
+from midas_cli.record.status import RecorderSnapshot, StreamStatus
+
+STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan",
+               "stopped": "dim"}
+BAR_WIDTH = 20
+
+
+def stderr_console() -> Console:
+    """Progress, live status and errors go to stderr so stdout stays clean for results."""
+    return Console(stderr=True, highlight=False, no_color="NO_COLOR" in os.environ or None)
+
+
+def stdout_console() -> Console:
+    """Results. When stdout is a pipe or file, tables get room instead of the 80-column default."""
+    width = None if sys.stdout.isatty() else 200
+    return Console(highlight=False, width=width, no_color="NO_COLOR" in os.environ or None)
+
+
+def is_interactive() -> bool:
+    return sys.stdout.isatty() and sys.stderr.isatty() and os.environ.get("TERM", "") != "dumb"
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if abs(n) < 1024 or unit == "TB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return f"{n:.1f} TB"
+
+
+def clock_text(seconds: float) -> str:
+    seconds = max(0, int(seconds))
+    return f"{seconds // 3600:02d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
+
+
+def _rate_text(stream: StreamStatus) -> str:
+    measured = "—" if stream.measured_rate_hz is None else f"{stream.measured_rate_hz:.1f}"
+    return f"{measured} / {stream.nominal_rate_hz:g} Hz"
+
+
+def _age_text(age: float | None) -> str:
+    if age is None:
+        return "—"
+    return f"{age * 1000:.0f} ms" if age < 10 else f"{age:.0f} s"
+
+
+def dashboard(snapshot: RecorderSnapshot) -> Group:
+    """The live TUI: header, device health table, pedal bars and EmHT positions."""
+    return Group(_header(snapshot), _device_table(snapshot), *_live_panels(snapshot))
+
+
+def _header(snapshot: RecorderSnapshot) -> Text:
+    total = "" if snapshot.duration_s is None else f" / {clock_text(snapshot.duration_s)}"
+    state = "  [stopping…]" if snapshot.stopping else "  (Ctrl-C to stop)"
+    return Text.assemble(
+        ("● REC ", "bold red"), (snapshot.session_id, "bold"),
+        f"   elapsed {clock_text(snapshot.elapsed_s)}{total}",
+        f"   disk free {human_bytes(snapshot.disk_free_bytes)}",
+        f"   writing {human_bytes(snapshot.write_rate_bps)}/s", (state, "dim"),
+    )
+
+
+def _device_table(snapshot: RecorderSnapshot) -> Table:
+    table = Table(expand=False, header_style="bold")
+    for column in ("device", "state", "rate (measured / nominal)", "samples", "last", "dropped", "corrupt",
+                   "missing", "reconn.", "last error"):
+        table.add_column(column, justify="right" if column in ("samples", "dropped", "corrupt", "missing",
+                                                                "reconn.") else "left", no_wrap=True)
+    for device in snapshot.devices:
+        for stream in device.streams:
+            table.add_row(
+                device.name if stream.name == device.name else f"{device.name}/{stream.name}",
+                Text(device.state, STATE_STYLE.get(device.state, "")), _rate_text(stream), str(stream.samples),
+                _age_text(stream.last_age_s), str(stream.dropped), str(stream.corrupt), str(stream.seq_missing),
+                str(device.reconnects), Text(device.last_error[:48], "red"),
+            )
+    return table
+
+
+def _live_panels(snapshot: RecorderSnapshot) -> list[Panel]:
+    panels = []
+    for device in snapshot.devices:
+        for stream in device.streams:
+            if device.kind == "fps" and stream.latest:
+                panels.append(Panel(_pedal_bars(stream.latest), title=f"{device.name}: pedals", expand=False))
+            elif device.kind == "emht" and stream.latest:
+                panels.append(Panel(_emht_positions(stream.latest), title=f"{device.name}: positions (mm)",
+                                    expand=False))
+    return panels
+
+
+def _pedal_bars(latest: dict[str, Any]) -> Table:
+    table = Table.grid(padding=(0, 1))
+    channel = 1
+    while f"ch{channel}_adc" in latest:
+        volts = float(adc_to_volts(latest[f"ch{channel}_adc"]))
+        filled = int(round(volts / 5.0 * BAR_WIDTH))
+        pressed = latest.get(f"ch{channel}_pressed") == 1
+        bar = Text("█" * filled + "·" * (BAR_WIDTH - filled), "bold magenta" if pressed else "magenta")
+        table.add_row(f"P{channel}", bar, f"{volts:4.2f} V", Text("PRESSED" if pressed else "", "bold"))
+        channel += 1
+    return table
+
+
+def _emht_positions(latest: dict[str, Any]) -> Table:
+    table = Table("sensor", "x", "y", "z", box=None, padding=(0, 1))
+    sensor = 1
+    while f"s{sensor}_x_mm" in latest:
+        values = [latest[f"s{sensor}_{a}_mm"] for a in "xyz"]
+        table.add_row(str(sensor), *("—" if v is None or v != v else f"{v:8.1f}" for v in values))
+        sensor += 1
+    return table
+
+
+def status_line(snapshot: RecorderSnapshot) -> str:
+    """One plain line for logs and non-TTY output."""
+    parts = [f"[{clock_text(snapshot.elapsed_s)}]"]
+    for device in snapshot.devices:
+        for stream in device.streams:
+            rate = "-" if stream.measured_rate_hz is None else f"{stream.measured_rate_hz:.1f}"
+            extra = "".join(f" {k}={v}" for k, v in (("dropped", stream.dropped), ("corrupt", stream.corrupt),
+                                                     ("missing", stream.seq_missing),
+                                                     ("reconnects", device.reconnects)) if v)
+            parts.append(f"{stream.name} {device.state} {rate}/{stream.nominal_rate_hz:g}Hz n={stream.samples}{extra}")
+    parts.append(f"disk {human_bytes(snapshot.disk_free_bytes)} free")
+    return " | ".join(parts)
+

@@ -1,0 +1,63 @@
+"""Facts for `midas doctor` and bug reports: versions, serial ports, OBS reachability, GPU, disk."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import platform
+import shutil
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+from midas_cli import __version__
+
+PACKAGES = ("typer", "rich", "pyserial", "numpy", "pandas", "scipy", "opencv-python-headless", "obsws-python",
+            "torch")
+TOOLS = ("tmux", "ffprobe", "obs", "avr-gcc")
+
+
+def collect(obs_host: str = "localhost", obs_port: int = 4455, disk_path: Path = Path(".")) -> dict[str, Any]:
+    return {
+        "midas": __version__,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "packages": {name: _package_version(name) for name in PACKAGES},
+        "tools": {name: shutil.which(name) for name in TOOLS},
+        "serial_ports": _serial_ports(),
+        "obs_websocket": _tcp_reachable(obs_host, obs_port),
+        "gpu": _gpu(),
+        "disk_free_bytes": shutil.disk_usage(disk_path if disk_path.exists() else Path(".")).free,
+    }
+
+
+def _package_version(name: str) -> str | None:
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def _serial_ports() -> list[dict[str, str]]:
+    from serial.tools import list_ports
+
+    return [{"device": p.device, "description": p.description, "hwid": p.hwid} for p in list_ports.comports()]
+
+
+def _tcp_reachable(host: str, port: int) -> dict[str, Any]:
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return {"address": f"{host}:{port}", "reachable": True}
+    except OSError as exc:
+        return {"address": f"{host}:{port}", "reachable": False, "error": exc.strerror or str(exc)}
+
+
+def _gpu() -> dict[str, Any]:
+    try:
+        import torch
+    except ImportError:
+        return {"torch": False, "cuda": False}
+    if not torch.cuda.is_available():
+        return {"torch": True, "cuda": False}
+    names = [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())]
+    return {"torch": True, "cuda": True, "devices": names}

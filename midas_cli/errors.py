@@ -1,0 +1,28 @@
+"""Typed errors raised by the library; the CLI maps each to one stderr line and an exit code.
+
+Exit codes (DESIGN.md section 8): 0 ok, 1 internal error, 2 usage/config, 3 device, 4 session/data.
+"""
+
+
+class MidasError(Exception):
+    """Base class: the message says what was received, what was expected and what to do."""
+
+    exit_code = 1
+
+
+class ConfigError(MidasError):
+    """A bad flag value, rig file or setting."""
+
+    exit_code = 2
+
+
+class DeviceError(MidasError):
+    """A device could not be opened, stopped answering or spoke something unexpected."""
+
+    exit_code = 3
+
+
+class SessionError(MidasError):
+    """A session folder or data file is missing, malformed or inconsistent."""
+
+    exit_code = 4

@@ -1,0 +1,1 @@
+"""The acquisition server: one worker process per device -> a bounded queue -> the session writer."""

@@ -1,0 +1,268 @@
+"""The recorder: spawns one worker per device, writes their batches, tracks health, finalises.
+
+Threads in the main process: the writer thread drains the bounded queue into the session files
+(and fsyncs about once a second); the caller's thread polls ``snapshot()`` for the display and
+decides when to ``stop()``.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import queue
+import shutil
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from midas_cli.clock import HostClock
+from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.registry import describe_device
+from midas_cli.errors import ConfigError
+from midas_cli.record.messages import DataBatch, DeviceEvent
+from midas_cli.record.stats import DeviceRecord, StreamStats
+from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
+from midas_cli.record.worker import WorkerJob, run_worker
+from midas_cli.session.writer import LOG_FILE, SessionMetadata, SessionWriter
+
+log = logging.getLogger(__name__)
+
+SYNC_EVERY_S = 1.0
+STOP_GRACE_S = 5.0
+
+
+@dataclass
+class RecordPlan:
+    """What to record and where. ``devices`` maps device name -> URL."""
+
+    metadata: SessionMetadata
+    devices: dict[str, str]
+    out_root: Path
+    seed: int = 0
+    queue_size: int = 4096
+    rig: dict[str, Any] = field(default_factory=dict)
+
+
+class Recorder:
+    def __init__(self, plan: RecordPlan) -> None:
+        if not plan.devices:
+            raise ConfigError("nothing to record: no devices configured")
+        self.plan = plan
+        self.clock = HostClock.anchored_now()
+        self._ctx = mp.get_context("spawn")
+        self._queue = self._ctx.Queue(maxsize=plan.queue_size)
+        self._stop_workers = self._ctx.Event()
+        self._lock = threading.Lock()
+        self._writer_done = threading.Event()
+        self._processes: list = []
+        self.devices: dict[str, DeviceRecord] = {}
+        self.streams: dict[str, StreamStats] = {}
+        self._describe_devices()
+        self.writer: SessionWriter | None = None
+        self._started_mono = 0.0
+        self._rate_probe = (0.0, 0)
+        self._log_handler: logging.Handler | None = None
+
+    def _describe_devices(self) -> None:
+        """Validate every URL and learn the stream layouts before anything is created on disk."""
+        for name, url in self.plan.devices.items():
+            device = describe_device(name, url, self.plan.seed)
+            streams = device.streams
+            self.devices[name] = DeviceRecord(name, device.kind, DeviceUrl.parse(url).redacted(),
+                                              device.settings(), [s.name for s in streams])
+            for spec in streams:
+                if spec.name in self.streams:
+                    raise ConfigError(f"two devices produce a stream named {spec.name!r}")
+                self.streams[spec.name] = StreamStats(spec)
+
+    @property
+    def path(self) -> Path:
+        assert self.writer is not None, "recorder not started"
+        return self.writer.folder
+
+    def start(self) -> Path:
+        """Create the session folder, start the workers and the writer thread; return the folder."""
+        specs = [stats.spec for stats in self.streams.values()]
+        entries = {name: record.manifest_entry() for name, record in self.devices.items()}
+        self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
+                                           self.plan.rig)
+        self._attach_log()
+        start_ns = self.writer.manifest["start"]["host_ns"]
+        for name, url in self.plan.devices.items():
+            job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
+                            stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid())
+            process = self._ctx.Process(target=run_worker, args=(job, self._queue, self._stop_workers),
+                                        name=f"midas-{name}", daemon=True)
+            process.start()
+            self._processes.append(process)
+        self._started_mono = time.monotonic()
+        self._writer_thread = threading.Thread(target=self._write_loop, name="midas-writer", daemon=True)
+        self._writer_thread.start()
+        log.info("recording %s with devices %s", self.writer.folder, ", ".join(self.devices))
+        return self.writer.folder
+
+    def wait_ready(self, timeout_s: float = 15.0) -> bool:
+        """Wait until every device has opened or failed once (worker start-up takes ~1 s)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                if all(r.state != "starting" for r in self.devices.values()):
+                    self._started_mono = time.monotonic()
+                    return True
+            time.sleep(0.02)
+        return False
+
+    def _stall_timeout(self, device: str) -> float:
+        rates = [s.spec.nominal_rate_hz for s in self.streams.values() if s.spec.device == device]
+        return max(0.5, 10.0 / min(rates)) if rates else 1.0
+
+    def _attach_log(self) -> None:
+        handler = logging.FileHandler(self.path / LOG_FILE, encoding="utf-8")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        logging.getLogger("midas_cli").addHandler(handler)
+        logging.getLogger("midas_cli").setLevel(logging.INFO)
+        self._log_handler = handler
+
+    # -- writer thread ------------------------------------------------------------------------
+    def _write_loop(self) -> None:
+        last_sync = time.monotonic()
+        exited: set[str] = set()
+        while len(exited) < len(self.devices):
+            try:
+                message = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                message = None
+            if isinstance(message, DataBatch):
+                self._write_batch(message)
+            elif isinstance(message, DeviceEvent):
+                self._on_event(message)
+                if message.event == "exited":
+                    exited.add(message.device)
+            if time.monotonic() - last_sync >= SYNC_EVERY_S:
+                self.writer.sync()
+                last_sync = time.monotonic()
+            if self._stop_workers.is_set() and time.monotonic() > self._stop_deadline:
+                log.error("devices %s did not stop in time", ", ".join(set(self.devices) - exited))
+                break
+        self._writer_done.set()
+
+    def _write_batch(self, batch: DataBatch) -> None:
+        self.writer.append(batch.stream, batch.text)
+        committed = self.clock.now_ns()
+        with self._lock:
+            self.streams[batch.stream].add(batch, committed)
+
+    def _on_event(self, event: DeviceEvent) -> None:
+        with self._lock:
+            record = self.devices[event.device]
+            record.events.append({"t_host_ns": event.t_host_ns, "event": event.event, "message": event.message})
+            if event.event == "opened":
+                record.opens += 1
+                record.info = event.info
+                record.state = "ok"
+                if record.opens > 1:
+                    for name in record.streams:
+                        self.streams[name].reopened = True
+            elif event.event in ("lost", "open_failed"):
+                record.state = "lost"
+                record.last_error = event.message
+            elif event.event == "exited":
+                record.exited = True
+                record.state = "stopped"
+        level = logging.WARNING if event.event in ("lost", "open_failed") else logging.INFO
+        log.log(level, "%s: %s %s", event.device, event.event, event.message)
+
+    # -- status -------------------------------------------------------------------------------
+    def snapshot(self, duration_s: float | None = None, stopping: bool = False) -> RecorderSnapshot:
+        now_ns = self.clock.now_ns()
+        with self._lock:
+            devices = tuple(self._device_status(record, now_ns) for record in self.devices.values())
+        elapsed = time.monotonic() - self._started_mono
+        return RecorderSnapshot(
+            session_path=str(self.path),
+            session_id=self.path.name,
+            elapsed_s=elapsed,
+            duration_s=duration_s,
+            disk_free_bytes=shutil.disk_usage(self.path).free,
+            write_rate_bps=self._write_rate(),
+            bytes_written=self.writer.bytes_written,
+            devices=devices,
+            stopping=stopping,
+        )
+
+    def _write_rate(self) -> float:
+        now, written = time.monotonic(), self.writer.bytes_written
+        then, before = self._rate_probe
+        self._rate_probe = (now, written)
+        return (written - before) / (now - then) if then and now > then else 0.0
+
+    def _device_status(self, record: DeviceRecord, now_ns: int) -> DeviceStatus:
+        streams = tuple(self._stream_status(self.streams[name], now_ns) for name in record.streams)
+        return DeviceStatus(record.name, record.kind, record.url, _health(record, streams), record.reconnects,
+                            record.last_error, streams)
+
+    @staticmethod
+    def _stream_status(stats: StreamStats, now_ns: int) -> StreamStatus:
+        age = None if stats.last_t_host_ns is None else (now_ns - stats.last_t_host_ns) / 1e9
+        latest = {}
+        if stats.last_row is not None:
+            latest = dict(zip(stats.spec.column_names[2:], stats.last_row[2:]))
+        return StreamStatus(stats.spec.name, stats.spec.nominal_rate_hz, stats.measured_rate_hz(), stats.samples,
+                            age, stats.dropped, stats.corrupt, stats.missing_outage + stats.missing_unexplained,
+                            latest)
+
+    # -- stopping -----------------------------------------------------------------------------
+    def stop(self, status: str = "complete", reason: str = "stopped") -> dict[str, Any]:
+        """Stop the workers, write what they still had, and finalise the manifest."""
+        self._stop_deadline = time.monotonic() + STOP_GRACE_S
+        self._stop_workers.set()
+        self._writer_done.wait(STOP_GRACE_S + 1.0)
+        self._writer_thread.join(timeout=1.0)
+        for process in self._processes:
+            process.join(timeout=1.0)
+            if process.is_alive():
+                log.error("worker %s did not exit; terminating it", process.name)
+                process.terminate()
+                process.join(timeout=1.0)
+        extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
+        self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
+        manifest = self.writer.finalize(status, reason, self.clock.now_ns(), extra)
+        log.info("session %s finalised: %s (%s)", self.path, status, reason)
+        self._detach_log()
+        return manifest
+
+    def _detach_log(self) -> None:
+        if self._log_handler is not None:
+            logging.getLogger("midas_cli").removeHandler(self._log_handler)
+            self._log_handler.close()
+            self._log_handler = None
+
+    _stop_deadline = float("inf")
+
+
+def _health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:
+    """ok / degraded / lost / starting / stopped, from events and the streams' freshness and rate."""
+    if record.state in ("lost", "stopped", "starting"):
+        return record.state
+    for stream in streams:
+        stale = max(0.5, 5.0 / stream.nominal_rate_hz)
+        if stream.last_age_s is not None and stream.last_age_s > stale:
+            return "degraded"
+        if stream.measured_rate_hz is not None and stream.measured_rate_hz < 0.9 * stream.nominal_rate_hz:
+            return "degraded"
+    return "ok"
+
+
+def run_until(recorder: Recorder, duration_s: float | None, should_stop: Callable[[], bool],
+              on_tick: Callable[[RecorderSnapshot], None], tick_s: float = 0.25) -> None:
+    """Block until ``duration_s`` has elapsed or ``should_stop()`` is true, calling ``on_tick``."""
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    while not should_stop():
+        if deadline is not None and time.monotonic() >= deadline:
+            return
+        on_tick(recorder.snapshot(duration_s))
+        wait = tick_s if deadline is None else max(0.0, min(tick_s, deadline - time.monotonic()))
+        time.sleep(wait)

@@ -1,0 +1,124 @@
+"""Live per-stream and per-device bookkeeping inside the recorder (main process)."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from midas_cli.record.messages import DataBatch
+from midas_cli.session.schema import StreamSpec
+
+LATENCY_BIN_NS = 50_000  # 50 us bins
+LATENCY_BINS = 100_000  # up to 5 s; the last bin collects anything slower
+RATE_WINDOW_NS = 2_000_000_000
+
+
+@dataclass
+class StreamStats:
+    """Counts, rate, latency histogram and sequence accounting of one stream while it records."""
+
+    spec: StreamSpec
+    samples: int = 0
+    last_seq: int | None = None
+    last_t_host_ns: int | None = None
+    last_row: tuple | None = None
+    dropped: int = 0
+    corrupt: int = 0
+    missing_outage: int = 0
+    missing_unexplained: int = 0
+    reopened: bool = False
+    latency_hist: np.ndarray = field(default_factory=lambda: np.zeros(LATENCY_BINS, dtype=np.int64))
+    latency_max_ns: int = 0
+    _recent: deque = field(default_factory=deque)
+
+    def add(self, batch: DataBatch, committed_ns: int) -> None:
+        """Account for a batch just written to disk at host time ``committed_ns``."""
+        self._account_sequence(batch)
+        self.samples += len(batch.seq)
+        self.last_seq = int(batch.seq[-1])
+        self.last_t_host_ns = int(batch.t_host_ns[-1])
+        self.last_row = batch.last_row
+        self.corrupt = batch.corrupt
+        latency = committed_ns - batch.t_host_ns
+        bins = np.bincount(np.minimum(latency // LATENCY_BIN_NS, LATENCY_BINS - 1).clip(0))
+        self.latency_hist[: len(bins)] += bins
+        self.latency_max_ns = max(self.latency_max_ns, int(latency.max()))
+        self._recent.append((self.last_t_host_ns, self.samples))
+        while self._recent and self._recent[0][0] < self.last_t_host_ns - RATE_WINDOW_NS:
+            self._recent.popleft()
+
+    def _account_sequence(self, batch: DataBatch) -> None:
+        newly_dropped = batch.dropped - self.dropped
+        self.dropped = batch.dropped
+        steps = np.diff(batch.seq)
+        inside = int(np.sum(steps[steps > 1] - 1))
+        across = 0 if self.last_seq is None else max(0, int(batch.seq[0]) - self.last_seq - 1)
+        if self.reopened:
+            self.missing_outage += across
+            across = 0
+            self.reopened = False
+        self.missing_unexplained += max(0, inside + across - newly_dropped)
+
+    def measured_rate_hz(self) -> float | None:
+        if len(self._recent) < 2:
+            return None
+        (t0, n0), (t1, n1) = self._recent[0], self._recent[-1]
+        return (n1 - n0) / ((t1 - t0) / 1e9) if t1 > t0 else None
+
+    def latency_ms(self) -> dict[str, float | None]:
+        total = int(self.latency_hist.sum())
+        if not total:
+            return {"p50": None, "p95": None, "p99": None, "max": None, "n": 0}
+        cumulative = np.cumsum(self.latency_hist)
+        result: dict[str, Any] = {}
+        for name, q in (("p50", 0.50), ("p95", 0.95), ("p99", 0.99)):
+            index = int(np.searchsorted(cumulative, q * total))
+            result[name] = round((index + 1) * LATENCY_BIN_NS / 1e6, 3)
+        result["max"] = round(self.latency_max_ns / 1e6, 3)
+        result["n"] = total
+        result["definition"] = "host read -> handed to the OS (write+flush), upper edge of 50 us bins"
+        return result
+
+    def manifest_extra(self) -> dict[str, Any]:
+        return {
+            "dropped": self.dropped,
+            "corrupt": self.corrupt,
+            "latency_ms": self.latency_ms(),
+            "missing_explained": {"outage": self.missing_outage, "queue_overflow": self.dropped},
+            "missing_unexplained_live": self.missing_unexplained,
+        }
+
+
+@dataclass
+class DeviceRecord:
+    """A device's identity and history during the recording."""
+
+    name: str
+    kind: str
+    url: str
+    settings: dict[str, Any]
+    streams: list[str]
+    state: str = "starting"
+    info: dict[str, Any] = field(default_factory=dict)
+    events: list[dict[str, Any]] = field(default_factory=list)
+    opens: int = 0
+    last_error: str = ""
+    exited: bool = False
+
+    @property
+    def reconnects(self) -> int:
+        return max(0, self.opens - 1)
+
+    def manifest_entry(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "url": self.url,
+            "settings": self.settings,
+            "streams": self.streams,
+            "info": self.info,
+            "reconnects": self.reconnects,
+            "events": self.events[-200:],
+        }

@@ -1,0 +1,51 @@
+"""Immutable snapshots of a recording's health: what the live TUI, status lines and JSON render.
+
+Acquisition code fills these; renderers (``midas_cli.console``) are pure functions of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+STATES = ("starting", "ok", "degraded", "lost", "stopped")
+
+
+@dataclass(frozen=True)
+class StreamStatus:
+    name: str
+    nominal_rate_hz: float
+    measured_rate_hz: float | None
+    samples: int
+    last_age_s: float | None
+    dropped: int
+    corrupt: int
+    seq_missing: int
+    latest: dict[str, float | int | None] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DeviceStatus:
+    name: str
+    kind: str
+    url: str
+    state: str
+    reconnects: int
+    last_error: str
+    streams: tuple[StreamStatus, ...]
+
+
+@dataclass(frozen=True)
+class RecorderSnapshot:
+    session_path: str
+    session_id: str
+    elapsed_s: float
+    duration_s: float | None
+    disk_free_bytes: int
+    write_rate_bps: float
+    bytes_written: int
+    devices: tuple[DeviceStatus, ...]
+    stopping: bool = False
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)

@@ -1,0 +1,97 @@
+"""Reading a session folder: the only code (with writer/repair) that knows the v1 layout."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import pandas as pd
+
+from midas_cli.errors import SessionError
+from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
+from midas_cli.session.schema import StreamSpec
+
+
+@dataclass
+class Session:
+    """An opened session folder with a validated manifest."""
+
+    path: Path
+    manifest: dict[str, Any]
+
+    @classmethod
+    def open(cls, path: Path | str) -> "Session":
+        folder = Path(path)
+        if not folder.is_dir():
+            raise SessionError(f"{folder} is not a folder")
+        return cls(folder, load_manifest(folder))
+
+    @property
+    def status(self) -> str:
+        return self.manifest["status"]
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        return self.manifest["metadata"]
+
+    @property
+    def stream_names(self) -> list[str]:
+        return list(self.manifest["streams"])
+
+    def stream_spec(self, name: str) -> StreamSpec:
+        return StreamSpec.from_manifest(name, self._stream_entry(name))
+
+    def stream_path(self, name: str) -> Path:
+        return check_inside(self.path, self._stream_entry(name)["file"])
+
+    def duration_s(self) -> float | None:
+        stop = self.manifest.get("stop") or {}
+        if "host_ns" not in stop:
+            return None
+        return (stop["host_ns"] - self.manifest["start"]["host_ns"]) / 1e9
+
+    def read_stream(self, name: str, allow_incomplete: bool = False) -> pd.DataFrame:
+        """One stream as a DataFrame: int columns as int64 (exact ns times), floats with NaN = missing."""
+        if self.status == "recording" and not allow_incomplete:
+            raise SessionError(
+                f"{self.path} is still marked 'recording' (crashed or running): run `midas session repair {self.path}`"
+            )
+        spec = self.stream_spec(name)
+        dtypes = {c.name: ("Int64" if c.dtype == "int" else "float64") for c in spec.columns}
+        dtypes.update(seq="int64", t_host_ns="int64")
+        try:
+            frame = pd.read_csv(self.stream_path(name), dtype=dtypes, engine="c")
+        except (OSError, ValueError, pd.errors.ParserError) as exc:
+            raise SessionError(f"cannot read stream {name!r} of {self.path}: {exc}") from exc
+        if list(frame.columns) != spec.column_names:
+            raise SessionError(f"stream {name!r} of {self.path}: header does not match the manifest columns")
+        return frame
+
+    def _stream_entry(self, name: str) -> dict[str, Any]:
+        try:
+            return self.manifest["streams"][name]
+        except KeyError:
+            known = ", ".join(self.stream_names) or "none"
+            raise SessionError(f"session {self.path} has no stream {name!r} (streams: {known})") from None
+
+
+def find_sessions(root: Path | str, max_depth: int = 3) -> Iterator[Path]:
+    """Session folders (holding a manifest.json) under ``root``, sorted, at most ``max_depth`` deep."""
+    root = Path(root)
+    if not root.is_dir():
+        raise SessionError(f"{root} is not a folder")
+    if (root / MANIFEST_NAME).is_file():
+        yield root
+        return
+    yield from _walk(root, max_depth)
+
+
+def _walk(folder: Path, depth: int) -> Iterator[Path]:
+    if depth <= 0:
+        return
+    for child in sorted(p for p in folder.iterdir() if p.is_dir() and not p.is_symlink()):
+        if (child / MANIFEST_NAME).is_file():
+            yield child
+        else:
+            yield from _walk(child, depth - 1)

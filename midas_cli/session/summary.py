@@ -1,0 +1,44 @@
+"""Readable facts about a session, from its manifest only (fast enough for hundreds of folders)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from midas_cli.session.reader import Session
+
+
+def summarize_session(session: Session) -> dict[str, Any]:
+    """Metadata, status, duration and per-stream figures (rates, counts, gaps, drops, latency)."""
+    manifest = session.manifest
+    streams = {}
+    for name, entry in manifest["streams"].items():
+        gaps = entry.get("seq_gaps") or {}
+        streams[name] = {
+            "device": entry.get("device"),
+            "file": entry.get("file"),
+            "columns": len(entry.get("columns", [])),
+            "nominal_rate_hz": entry.get("nominal_rate_hz"),
+            "measured_rate_hz": entry.get("measured_rate_hz"),
+            "samples": entry.get("samples"),
+            "gaps": gaps.get("count"),
+            "missing": gaps.get("missing"),
+            "dropped": entry.get("dropped"),
+            "corrupt": entry.get("corrupt"),
+            "latency_p99_ms": (entry.get("latency_ms") or {}).get("p99"),
+        }
+    devices = {
+        name: {"kind": d.get("kind"), "url": d.get("url"), "reconnects": d.get("reconnects"),
+               "serial": (d.get("info") or {}).get("serial")}
+        for name, d in manifest["devices"].items()
+    }
+    return {
+        "path": str(session.path),
+        "session_id": manifest["session_id"],
+        "status": manifest["status"],
+        "stop_reason": manifest.get("stop_reason"),
+        **{k: manifest["metadata"].get(k) for k in ("task", "subject", "trial", "platform", "operator_note")},
+        "start_utc": manifest["start"].get("utc"),
+        "duration_s": session.duration_s(),
+        "devices": devices,
+        "streams": streams,
+    }

@@ -1,0 +1,173 @@
+"""Creating and writing a session folder (format v1, DESIGN.md section 5).
+
+The manifest is written when recording starts (status "recording") and replaced atomically when it
+stops. Stream files are append-only CSV, written in whole lines and flushed to the OS after every
+batch, so a killed recorder leaves at most a torn last line (see ``repair``).
+"""
+
+from __future__ import annotations
+
+import getpass
+import os
+import platform
+import re
+import socket
+import sys
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable
+
+from midas_cli import __version__
+from midas_cli.clock import HostClock
+from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session.manifest import SCHEMA_VERSION, write_manifest
+from midas_cli.session.schema import StreamSpec
+from midas_cli.session.streamfile import summarize_stream
+
+SUBFOLDERS = ("streams", "video", "calib", "derived", "logs")
+LOG_FILE = "logs/midas.log"
+_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.-]*$")
+
+
+@dataclass(frozen=True)
+class SessionMetadata:
+    """Who did what: recorded in the manifest and encoded in the folder name."""
+
+    subject: str
+    task: str
+    trial: int
+    platform: str = "simulated"
+    operator_note: str = ""
+    master_rate_hz: float = 30.0
+
+    def __post_init__(self) -> None:
+        for key in ("subject", "task", "platform"):
+            value = getattr(self, key)
+            if not _NAME_OK.match(value):
+                raise ConfigError(f"{key} {value!r} must be letters, digits, '.' or '-' (it names the folder)")
+        if self.trial < 0:
+            raise ConfigError(f"trial must be >= 0, got {self.trial}")
+        if not 0 < self.master_rate_hz <= 1000:
+            raise ConfigError(f"master rate must be in (0, 1000] Hz, got {self.master_rate_hz}")
+
+    def folder_stem(self) -> str:
+        return f"{self.task}_S{self.subject}_T{self.trial}"
+
+
+def utc_iso(host_ns: int) -> str:
+    return datetime.fromtimestamp(host_ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
+
+
+def make_session_folder(out_root: Path, stem: str, host_ns: int) -> Path:
+    """Create ``out_root/<stem>_<YYYYMMDDTHHMMSSZ>``; never reuse a folder (a clash gets _2, _3, ...)."""
+    stamp = datetime.fromtimestamp(host_ns / 1e9, tz=timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    try:
+        Path(out_root).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"cannot create output folder {out_root}: {exc.strerror}") from exc
+    base = f"{stem}_{stamp}"
+    for attempt in range(1, 1000):
+        folder = Path(out_root) / (base if attempt == 1 else f"{base}_{attempt}")
+        try:
+            folder.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise SessionError(f"cannot create session folder {folder}: {exc.strerror}") from exc
+        return folder
+    raise SessionError(f"too many sessions named {base} in {out_root}")
+
+
+class SessionWriter:
+    """Owns one session folder while it is recorded."""
+
+    def __init__(self, folder: Path, manifest: dict[str, Any], specs: Iterable[StreamSpec]) -> None:
+        self.folder = folder
+        self.manifest = manifest
+        self.specs = {spec.name: spec for spec in specs}
+        self._files = {}
+        self.bytes_written = 0
+        for spec in self.specs.values():
+            fh = open(folder / spec.file, "a", encoding="utf-8", newline="\n")
+            fh.write(spec.header_line())
+            fh.flush()
+            self._files[spec.name] = fh
+
+    @classmethod
+    def create(
+        cls,
+        out_root: Path,
+        metadata: SessionMetadata,
+        clock: HostClock,
+        devices: dict[str, dict[str, Any]],
+        specs: list[StreamSpec],
+        rig: dict[str, Any] | None = None,
+    ) -> "SessionWriter":
+        start_ns = clock.now_ns()
+        folder = make_session_folder(out_root, metadata.folder_stem(), start_ns)
+        for sub in SUBFOLDERS:
+            (folder / sub).mkdir()
+        manifest = {
+            "schema_version": SCHEMA_VERSION,
+            "session_id": folder.name,
+            "status": "recording",
+            "stop_reason": None,
+            "metadata": asdict(metadata),
+            "rig": rig or {},
+            "clock": {"kind": "CLOCK_MONOTONIC anchored to Unix epoch", "anchor_ns": clock.anchor_ns},
+            "start": {"utc": utc_iso(start_ns), "host_ns": start_ns},
+            "stop": None,
+            "software": software_info(),
+            "devices": devices,
+            "streams": {spec.name: spec.to_manifest() for spec in specs},
+            "files": {"log": LOG_FILE},
+        }
+        write_manifest(folder, manifest)
+        return cls(folder, manifest, specs)
+
+    def append(self, stream: str, text: str) -> None:
+        """Append whole CSV lines to a stream and hand them to the OS (survives a process kill)."""
+        fh = self._files[stream]
+        fh.write(text)
+        fh.flush()
+        self.bytes_written += len(text)
+
+    def sync(self) -> None:
+        """fsync every stream file (survives power loss); called about once a second."""
+        for fh in self._files.values():
+            os.fsync(fh.fileno())
+
+    def finalize(self, status: str, stop_reason: str, stop_ns: int, extra: dict[str, dict[str, Any]]) -> dict:
+        """Close the files, describe each from what is on disk, and replace the manifest atomically.
+
+        ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages).
+        """
+        self.sync()
+        for fh in self._files.values():
+            fh.close()
+        for name, spec in self.specs.items():
+            entry = self.manifest["streams"][name]
+            entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
+            entry.update(extra.get(name, {}))
+        self.manifest.update(status=status, stop_reason=stop_reason, stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns})
+        write_manifest(self.folder, self.manifest)
+        return self.manifest
+
+
+def software_info() -> dict[str, str]:
+    return {
+        "name": "midas",
+        "version": __version__,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "host": socket.gethostname(),
+        "user": _user(),
+    }
+
+
+def _user() -> str:
+    try:
+        return getpass.getuser()
+    except Exception:  # no passwd entry in some containers
+        return ""

@@ -1,0 +1,78 @@
+"""The CLI surface: every command has --help with an example, errors are one line with the right code."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import typer.main
+
+from midas_cli.commands.main import app
+from tests.conftest import REPO, midas
+
+
+def _commands(group: typer.Typer, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    click_group = typer.main.get_group(group)
+    found = []
+    for name, command in click_group.commands.items():
+        path = (*prefix, name)
+        if hasattr(command, "commands"):
+            found += [(*path, sub) for sub in command.commands]
+        else:
+            found.append(path)
+    return found
+
+
+ALL_COMMANDS = _commands(app)
+
+
+def test_the_expected_commands_exist() -> None:
+    assert {("record",), ("doctor",), ("session", "info"), ("session", "list"), ("session", "verify"),
+            ("session", "repair")} <= set(ALL_COMMANDS)
+
+
+@pytest.mark.parametrize("command", ALL_COMMANDS, ids=" ".join)
+def test_every_command_has_help_with_an_example(command: tuple[str, ...]) -> None:
+    result = midas(*command, "--help", check=True)
+    assert "Usage: midas " + " ".join(command) in result.stdout
+    assert "Example:" in result.stdout
+
+
+@pytest.mark.parametrize("command", ALL_COMMANDS, ids=" ".join)
+def test_every_command_is_documented_in_the_readme(command: tuple[str, ...]) -> None:
+    assert f"midas {' '.join(command)}" in (REPO / "README.md").read_text()
+
+
+def test_usage_error_exits_2_with_one_line() -> None:
+    result = midas("record", "--duration", "5")
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0
+    assert "nothing to record" in result.stderr
+
+
+def test_bad_device_url_is_a_clear_usage_error(tmp_path: Path) -> None:
+    result = midas("record", "--device", "emht=sim://emht?rate=240&bogus=1", "--subject", "1", "--task", "t",
+                   "--trial", "1", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert "unknown parameter(s) bogus" in result.stderr
+    assert not any(tmp_path.iterdir()), "no session folder may be created for a bad configuration"
+
+
+def test_unavailable_backend_is_refused_before_recording(tmp_path: Path) -> None:
+    result = midas("record", "--rig", str(REPO / "sessions_template/rigs/raven-ii.toml"), "--subject", "1",
+                   "--trial", "1", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert "not available" in result.stderr and "\n" not in result.stderr.strip()
+
+
+def test_session_errors_exit_4(tmp_path: Path) -> None:
+    result = midas("session", "info", str(tmp_path))
+    assert result.returncode == 4
+    assert "not a midas session" in result.stderr
+
+
+def test_doctor_reports_json() -> None:
+    import json
+
+    facts = json.loads(midas("doctor", "--json", check=True).stdout)
+    assert facts["packages"]["numpy"] and "serial_ports" in facts and "cuda" in facts["gpu"]

@@ -1,0 +1,191 @@
+"""`midas record` end to end on the simulated rig: counts, crash safety, signals, outages, TUI."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from midas_cli.session.reader import Session
+from tests.conftest import midas
+
+META = ("--subject", "1", "--task", "suturing", "--trial", "1")
+
+
+def _spawn(out: Path, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "NO_COLOR": "1"}
+    return subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--out", str(out), *META, *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _only_session(out: Path) -> Path:
+    folders = [p for p in out.iterdir() if p.is_dir()]
+    assert len(folders) == 1, folders
+    return folders[0]
+
+
+@pytest.fixture(scope="module")
+def ten_second_session(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    out = tmp_path_factory.mktemp("rec")
+    result = midas("record", "--simulate", "--duration", "10", "--out", str(out), *META, "--no-tui", timeout=90)
+    assert result.returncode == 0, result.stderr
+    return Path(result.stdout.strip().splitlines()[-1]), result
+
+
+def test_ten_second_recording_is_complete_and_verifies(ten_second_session) -> None:
+    path, result = ten_second_session
+    assert path.is_dir() and path.name.startswith("suturing_S1_T1_")
+    assert midas("session", "verify", str(path)).returncode == 0
+    session = Session.open(path)
+    assert session.status == "complete"
+    emht = session.read_stream("emht")
+    fps = session.read_stream("fps")
+    assert len(emht) * 4 >= 0.999 * 4 * 240 * 10
+    assert len(fps) >= 0.999 * 250 * 10
+    for name in session.stream_names:
+        frame = session.read_stream(name)
+        assert (np.diff(frame["t_host_ns"].to_numpy()) > 0).all(), name
+        assert (np.diff(frame["seq"].to_numpy()) == 1).all(), name
+        assert session.manifest["streams"][name]["dropped"] == 0
+
+
+def test_plain_status_lines_when_not_a_tty(ten_second_session) -> None:
+    _, result = ten_second_session
+    lines = [line for line in result.stderr.splitlines() if line.startswith("[00:00:")]
+    assert len(lines) >= 3, result.stderr
+    assert "emht ok" in lines[-1] and "/240Hz" in lines[-1]
+
+
+def test_simulated_signals_are_plausible(ten_second_session) -> None:
+    session = Session.open(ten_second_session[0])
+    emht = session.read_stream("emht")
+    step = np.abs(np.diff(emht["s1_x_mm"].to_numpy()))
+    assert step.max() < 3.0 and emht["s1_x_mm"].std() > 1.0, "smooth but moving"
+    fps = session.read_stream("fps")
+    assert set(np.unique(fps["ch5_pressed"])) <= {0, 1}
+    handkp = session.read_stream("handkp")
+    missed = handkp["left_detected"] == 0
+    assert handkp.loc[missed, "left_thumb_x_mm"].isna().all(), "misses are empty, never zeros"
+
+
+def test_manifest_describes_streams_and_latency(ten_second_session) -> None:
+    manifest = Session.open(ten_second_session[0]).manifest
+    emht = manifest["streams"]["emht"]
+    assert emht["nominal_rate_hz"] == 240
+    assert abs(emht["measured_rate_hz"] - 240) < 2
+    assert emht["latency_ms"]["p99"] is not None and emht["latency_ms"]["n"] == emht["samples"]
+    units = {c["name"]: c.get("unit") for c in emht["columns"]}
+    assert units["s1_x_mm"] == "mm" and units["t_host_ns"] == "ns"
+    assert manifest["devices"]["emht"]["info"]["serial"].startswith("SIM-")
+    assert manifest["stop_reason"] == "duration reached"
+
+
+def test_same_seed_gives_the_same_samples(ten_second_session, tmp_path: Path) -> None:
+    result = midas("record", "--simulate", "--duration", "2", "--out", str(tmp_path), *META, "--no-tui",
+                   timeout=60, check=True)
+    first = Session.open(ten_second_session[0]).read_stream("emht").set_index("seq")
+    second = Session.open(Path(result.stdout.splitlines()[-1])).read_stream("emht").set_index("seq")
+    common = first.index.intersection(second.index)
+    assert len(common) > 100
+    columns = [c for c in first.columns if c.endswith("_mm") or c.endswith("_deg")]
+    assert np.array_equal(first.loc[common, columns].to_numpy(), second.loc[common, columns].to_numpy())
+
+
+def test_sigkill_leaves_a_repairable_session(tmp_path: Path) -> None:
+    process = _spawn(tmp_path, "--simulate", "--duration", "60", "--no-tui")
+    time.sleep(6)
+    killed_at_ns = time.time_ns()
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=10)
+    path = _only_session(tmp_path)
+    assert Session.open(path).status == "recording"
+    assert midas("session", "verify", str(path)).returncode == 4
+    repaired = midas("session", "repair", str(path), check=True)
+    assert "recovered" in repaired.stdout
+    assert midas("session", "verify", str(path)).returncode == 0
+    session = Session.open(path)
+    for name in session.stream_names:
+        last = session.read_stream(name)["t_host_ns"].iloc[-1]
+        assert killed_at_ns - last < 1_000_000_000, f"{name} lost more than the last second"
+    time.sleep(1.0)
+    assert not _workers_alive(), "device workers must exit when the recorder dies"
+
+
+def _workers_alive() -> bool:
+    ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
+    return "midas_cli.record.worker" in ps or "multiprocessing.spawn" in ps and "midas" in ps
+
+
+@pytest.mark.parametrize("sig,status", [(signal.SIGHUP, "interrupted"), (signal.SIGTERM, "interrupted"),
+                                        (signal.SIGINT, "complete")])
+def test_stop_signals_finalise_the_session(tmp_path: Path, sig: signal.Signals, status: str) -> None:
+    process = _spawn(tmp_path, "--simulate", "--duration", "60", "--no-tui")
+    time.sleep(4)
+    process.send_signal(sig)
+    stdout, stderr = process.communicate(timeout=30)
+    assert process.returncode == 0, stderr
+    path = _only_session(tmp_path)
+    session = Session.open(path)
+    assert session.status == status and sig.name in session.manifest["stop_reason"]
+    assert midas("session", "verify", str(path)).returncode == 0
+    if sig != signal.SIGHUP:
+        assert stdout.strip().splitlines()[-1] == str(path)
+
+
+def test_status_json_lines_for_scripts(tmp_path: Path) -> None:
+    result = midas("record", "--simulate", "--duration", "3", "--out", str(tmp_path), *META, "--status-json",
+                   timeout=60, check=True)
+    lines = result.stdout.strip().splitlines()
+    objects = [json.loads(line) for line in lines[:-1]]
+    assert len(objects) >= 2
+    assert {d["name"] for d in objects[-1]["devices"]} == {"emht", "fps", "video", "handkp"}
+    assert Path(lines[-1]).is_dir()
+
+
+def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> None:
+    result = midas("record", "--simulate", "--device", "emht=sim://emht?dropout_at=2&dropout_for=1.5",
+                   "--duration", "6", "--out", str(tmp_path), *META, "--no-tui", timeout=60, check=True)
+    path = Path(result.stdout.splitlines()[-1])
+    manifest = Session.open(path).manifest
+    emht = manifest["devices"]["emht"]
+    assert emht["reconnects"] >= 1
+    assert any(e["event"] == "lost" for e in emht["events"])
+    gaps = manifest["streams"]["emht"]["seq_gaps"]
+    assert gaps["count"] == 1 and 240 <= gaps["missing"] <= 240 * 2.5
+    assert manifest["streams"]["emht"]["missing_explained"]["outage"] == gaps["missing"]
+    for other in ("fps", "video", "handkp"):
+        assert manifest["streams"][other]["seq_gaps"]["count"] == 0
+    assert midas("session", "verify", str(path)).returncode == 0
+    assert midas("session", "verify", "--strict", str(path)).returncode == 4
+    assert "lost" in result.stderr
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (.ci/run installs it)")
+def test_live_tui_in_a_terminal_shows_every_device_rate(tmp_path: Path) -> None:
+    name = f"midas-test-{os.getpid()}"
+    command = (f"{sys.executable} -m midas_cli record --simulate --duration 8 --out {tmp_path} "
+               f"{' '.join(META)}; sleep 30")
+    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "200", "-y", "60", command], check=True)
+    try:
+        screen = ""
+        deadline = time.monotonic() + 25
+        while time.monotonic() < deadline:
+            time.sleep(1)
+            screen = subprocess.run(["tmux", "capture-pane", "-p", "-t", name], capture_output=True,
+                                    text=True).stdout
+            if all(f"/ {rate} Hz" in screen for rate in (240, 250, 30)) and "240." in screen:
+                break
+        for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
+            row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
+            assert f"/ {rate} Hz" in row and " ok " in row, f"{device} row missing or unhealthy:\n{screen}"
+        assert "pedals" in screen and "positions (mm)" in screen and "disk free" in screen
+    finally:
+        subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)

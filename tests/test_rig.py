@@ -1,0 +1,48 @@
+"""Rig files: the templates validate, unknown keys are refused, secrets never reach a manifest."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from midas_cli.errors import ConfigError
+from midas_cli.rig import load_rig, parse_rig, simulated_rig
+from tests.conftest import REPO
+
+TEMPLATES = sorted((REPO / "sessions_template" / "rigs").glob("*.toml"))
+
+
+def test_there_are_three_rig_templates() -> None:
+    assert {p.stem for p in TEMPLATES} == {"simulated", "raven-ii", "davinci-xi"}
+
+
+@pytest.mark.parametrize("path", TEMPLATES, ids=lambda p: p.stem)
+def test_templates_validate(path: Path) -> None:
+    rig = load_rig(path)
+    assert rig.devices and rig.platform
+
+
+def test_simulated_template_matches_the_built_in_rig() -> None:
+    template = load_rig(REPO / "sessions_template/rigs/simulated.toml")
+    assert template.device_urls() == simulated_rig().device_urls()
+    assert template.platform == simulated_rig().platform
+
+
+def test_unknown_key_is_named() -> None:
+    with pytest.raises(ConfigError, match="unknown key devices.emht.rate"):
+        parse_rig({"rig": {"name": "r", "platform": "p"}, "devices": {"emht": {"url": "sim://emht", "rate": 3}}},
+                  "x.toml")
+
+
+def test_wrong_type_is_refused() -> None:
+    with pytest.raises(ConfigError, match="rig.master_rate_hz has the wrong type"):
+        parse_rig({"rig": {"name": "r", "platform": "p", "master_rate_hz": "fast"},
+                   "devices": {"emht": {"url": "sim://emht"}}}, "x.toml")
+
+
+def test_passwords_never_reach_the_manifest() -> None:
+    rig = parse_rig({"rig": {"name": "r", "platform": "p"},
+                     "devices": {"video": {"url": "obs://user:s3cret@localhost:4455?password=s3cret",
+                                           "password": "s3cret"}}}, "x.toml")
+    assert "s3cret" not in repr(rig.to_manifest())

@@ -1,0 +1,137 @@
+"""Session folder v1: manifest round trip, reader refusals, naming, verify and repair."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from midas_cli.errors import SessionError
+from midas_cli.session.integrity import repair_session, verify_session
+from midas_cli.session.manifest import load_manifest, write_manifest
+from midas_cli.session.reader import Session, find_sessions
+from midas_cli.session.schema import StreamSpec
+from midas_cli.session.writer import make_session_folder
+from tests.conftest import SPEC, write_session
+
+
+def test_manifest_round_trip_keeps_every_field(small_session: Path) -> None:
+    manifest = load_manifest(small_session)
+    manifest["metadata"]["operator_note"] = "ünïcode, \"quotes\" and a\nnewline"
+    write_manifest(small_session, manifest)
+    again = load_manifest(small_session)
+    assert again == manifest
+    assert StreamSpec.from_manifest("demo", again["streams"]["demo"]) == SPEC
+    assert not (small_session / "manifest.json.tmp").exists()
+
+
+def test_reader_reads_exact_host_times(small_session: Path) -> None:
+    session = Session.open(small_session)
+    frame = session.read_stream("demo")
+    assert list(frame.columns) == ["seq", "t_host_ns", "x_mm"]
+    assert frame["t_host_ns"].dtype == "int64"
+    assert (frame["t_host_ns"].diff().dropna() == 10_000_000).all()  # no float rounding of ns
+    assert frame["x_mm"].iloc[3] == 1.5
+    assert session.manifest["streams"]["demo"]["samples"] == 50
+
+
+def test_reader_refuses_unknown_schema_version(small_session: Path) -> None:
+    path = small_session / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["schema_version"] = 2
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(SessionError, match="schema_version 2"):
+        Session.open(small_session)
+
+
+@pytest.mark.parametrize("bad", ["../outside.csv", "/etc/passwd", "streams/../../x.csv", "a\\b.csv"])
+def test_reader_refuses_paths_escaping_the_session(small_session: Path, bad: str) -> None:
+    path = small_session / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["streams"]["demo"]["file"] = bad
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(SessionError, match="escapes|relative"):
+        Session.open(small_session)
+
+
+def test_reader_refuses_symlink_out_of_the_session(small_session: Path, tmp_path: Path) -> None:
+    outside = tmp_path / "elsewhere.csv"
+    outside.write_text("seq,t_host_ns,x_mm\n")
+    (small_session / "streams" / "link.csv").symlink_to(outside)
+    path = small_session / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["streams"]["demo"]["file"] = "streams/link.csv"
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(SessionError, match="link"):
+        Session.open(small_session)
+
+
+def test_sessions_are_never_overwritten(tmp_path: Path) -> None:
+    first = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000)
+    second = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000)
+    assert first != second and first.name == "demo_S1_T1_20231114T221320Z"
+    assert second.name == first.name + "_2"
+
+
+def test_verify_accepts_a_good_session(small_session: Path) -> None:
+    report = verify_session(small_session)
+    assert report.ok, report.problems
+
+
+def test_verify_catches_changed_and_truncated_files(tmp_path: Path) -> None:
+    folder = write_session(tmp_path)
+    stream = folder / "streams" / "demo.csv"
+    stream.write_text(stream.read_text().replace(",1.50\n", ",1.51\n"))
+    problems = verify_session(folder).problems
+    assert any("sha256" in p for p in problems)
+    lines = stream.read_text().splitlines(keepends=True)
+    stream.write_text("".join(lines[:-1]))
+    problems = verify_session(folder).problems
+    assert any("49 samples" in p or "file has 49" in p for p in problems)
+
+
+def test_verify_catches_time_going_backwards_and_undeclared_gaps(tmp_path: Path) -> None:
+    folder = write_session(tmp_path)
+    stream = folder / "streams" / "demo.csv"
+    lines = stream.read_text().splitlines(keepends=True)
+    lines[10], lines[11] = lines[11], lines[10]
+    del lines[20]
+    stream.write_text("".join(lines))
+    problems = " | ".join(verify_session(folder).problems)
+    assert "not strictly increasing" in problems
+    assert "backwards" in problems
+    assert "the manifest declares 0" in problems
+
+
+def test_declared_outage_gaps_are_notes_unless_strict(tmp_path: Path) -> None:
+    folder = write_session(tmp_path, rows=20, seq_step=2)
+    report = verify_session(folder)
+    assert report.ok and any("declared" in n for n in report.notes)
+    assert not verify_session(folder, strict=True).ok
+
+
+def test_repair_cuts_torn_line_and_marks_recovered(tmp_path: Path) -> None:
+    folder = write_session(tmp_path, rows=30)
+    manifest = load_manifest(folder)
+    manifest["status"] = "recording"
+    write_manifest(folder, manifest)
+    stream = folder / "streams" / "demo.csv"
+    with open(stream, "a") as fh:
+        fh.write("30,17000")  # the kill happened mid-line
+    assert not verify_session(folder).ok
+    with pytest.raises(SessionError, match="repair"):
+        Session.open(folder).read_stream("demo")
+    report = repair_session(folder)
+    assert report.repaired and report.cut == {"demo": {"bytes": 8, "lines": 1}}
+    assert (folder / "logs" / "repair-demo.cut").read_bytes() == b"30,17000"
+    assert verify_session(folder).ok
+    session = Session.open(folder)
+    assert session.status == "recovered" and len(session.read_stream("demo")) == 30
+    assert repair_session(folder).repaired is False
+
+
+def test_find_sessions_walks_a_tree(tmp_path: Path) -> None:
+    a = write_session(tmp_path / "day1")
+    b = write_session(tmp_path / "day2" / "room")
+    assert list(find_sessions(tmp_path)) == sorted([a, b])
