@@ -9,6 +9,7 @@ import os
 import sys
 from typing import Any
 
+from rich.columns import Columns
 from rich.console import Console, Group
 from rich.panel import Panel
 from rich.table import Table
@@ -19,7 +20,7 @@ from midas_cli.record.status import RecorderSnapshot, StreamStatus
 
 STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan",
                "stopped": "dim"}
-BAR_WIDTH = 20
+BAR_WIDTH = 16
 
 
 def stderr_console() -> Console:
@@ -52,7 +53,7 @@ def clock_text(seconds: float) -> str:
 
 def _rate_text(stream: StreamStatus) -> str:
     measured = "—" if stream.measured_rate_hz is None else f"{stream.measured_rate_hz:.1f}"
-    return f"{measured} / {stream.nominal_rate_hz:g} Hz"
+    return f"{measured} / {stream.nominal_rate_hz:g}"
 
 
 def _age_text(age: float | None) -> str:
@@ -62,8 +63,9 @@ def _age_text(age: float | None) -> str:
 
 
 def dashboard(snapshot: RecorderSnapshot) -> Group:
-    """The live TUI: header, device health table, pedal bars and EmHT positions."""
-    return Group(_header(snapshot), _device_table(snapshot), *_live_panels(snapshot))
+    """The live TUI (fits an 80-column SSH terminal): header, device health, pedal bars, EmHT positions."""
+    return Group(_header(snapshot), _device_table(snapshot), _device_errors(snapshot),
+                 Columns(_live_panels(snapshot)))
 
 
 def _header(snapshot: RecorderSnapshot) -> Text:
@@ -78,20 +80,27 @@ def _header(snapshot: RecorderSnapshot) -> Text:
 
 
 def _device_table(snapshot: RecorderSnapshot) -> Table:
-    table = Table(expand=False, header_style="bold")
-    for column in ("device", "state", "rate (measured / nominal)", "samples", "last", "dropped", "corrupt",
-                   "missing", "reconn.", "last error"):
-        table.add_column(column, justify="right" if column in ("samples", "dropped", "corrupt", "missing",
-                                                                "reconn.") else "left", no_wrap=True)
+    table = Table(expand=False, header_style="bold", caption="rate: measured / nominal Hz; age: last sample",
+                  caption_justify="left", pad_edge=False)
+    for column in ("device", "state", "rate Hz", "samples", "age", "drop", "corr", "miss", "reconn"):
+        table.add_column(column, justify="left" if column in ("device", "state") else "right", no_wrap=True,
+                         min_width=len(column))
+
     for device in snapshot.devices:
         for stream in device.streams:
             table.add_row(
                 device.name if stream.name == device.name else f"{device.name}/{stream.name}",
                 Text(device.state, STATE_STYLE.get(device.state, "")), _rate_text(stream), str(stream.samples),
                 _age_text(stream.last_age_s), str(stream.dropped), str(stream.corrupt), str(stream.seq_missing),
-                str(device.reconnects), Text(device.last_error[:48], "red"),
+                str(device.reconnects),
             )
     return table
+
+
+def _device_errors(snapshot: RecorderSnapshot) -> Text:
+    """Last error of every device that is not healthy, one line each."""
+    lines = [d.last_error for d in snapshot.devices if d.last_error and d.state != "ok"]
+    return Text("\n".join(lines), "red")
 
 
 def _live_panels(snapshot: RecorderSnapshot) -> list[Panel]:
@@ -108,6 +117,10 @@ def _live_panels(snapshot: RecorderSnapshot) -> list[Panel]:
 
 def _pedal_bars(latest: dict[str, Any]) -> Table:
     table = Table.grid(padding=(0, 1))
+    table.add_column(no_wrap=True)
+    table.add_column(no_wrap=True, min_width=BAR_WIDTH)
+    table.add_column(no_wrap=True, justify="right")
+    table.add_column(no_wrap=True, min_width=7)
     channel = 1
     while f"ch{channel}_adc" in latest:
         volts = float(adc_to_volts(latest[f"ch{channel}_adc"]))
@@ -120,11 +133,11 @@ def _pedal_bars(latest: dict[str, Any]) -> Table:
 
 
 def _emht_positions(latest: dict[str, Any]) -> Table:
-    table = Table("sensor", "x", "y", "z", box=None, padding=(0, 1))
+    table = Table("", "x", "y", "z", box=None, padding=(0, 1), pad_edge=False)
     sensor = 1
     while f"s{sensor}_x_mm" in latest:
         values = [latest[f"s{sensor}_{a}_mm"] for a in "xyz"]
-        table.add_row(str(sensor), *("—" if v is None or v != v else f"{v:8.1f}" for v in values))
+        table.add_row(f"s{sensor}", *("—" if v is None or v != v else f"{v:6.1f}" for v in values))
         sensor += 1
     return table
 

@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 SYNC_EVERY_S = 1.0
 STOP_GRACE_S = 5.0
+STALE_RATE_S = 1.0  # no sample for this long: the live rate reads "—" rather than the old value
 
 
 @dataclass
@@ -210,7 +211,8 @@ class Recorder:
         latest = {}
         if stats.last_row is not None:
             latest = dict(zip(stats.spec.column_names[2:], stats.last_row[2:]))
-        return StreamStatus(stats.spec.name, stats.spec.nominal_rate_hz, stats.measured_rate_hz(), stats.samples,
+        rate = stats.measured_rate_hz() if age is not None and age < STALE_RATE_S else None
+        return StreamStatus(stats.spec.name, stats.spec.nominal_rate_hz, rate, stats.samples,
                             age, stats.dropped, stats.corrupt, stats.missing_outage + stats.missing_unexplained,
                             latest)
 

@@ -20,9 +20,10 @@ Frames:
 
 Hand model: each hand holds a master-controller grip, a hinge ("grip point") with two levers of
 ``grip_lever_mm``; the thumb and middle-finger trakSTAR sensors sit on the lever pads. The grip point is
-the sum of a shared, slowly drifting bimanual focus (re-centred during clutch presses), per-hand
-minimum-jerk reaches between targets with holds, slow fine-manipulation wobble and 8-12 Hz tremor. The
-grip opens and closes in grasp cycles; the hand's orientation follows its own reach schedule.
+the sum of a shared, slowly shifting bimanual focus, per-hand minimum-jerk reaches between random targets
+with holds (position and wrist angles together), small fine-manipulation movements and 8-12 Hz tremor.
+During each clutch press (pedal index ``CLUTCH_PEDAL``) the focus and both hands move back near the
+workspace middle. The grip opens and closes in grasp cycles.
 
 Foot model: per pedal, a renewal process of presses; force -> FSR resistance (power law) -> voltage
 divider ``Vout = R / (R + R_fsr) * Vcc`` (Vcc = 5 V) -> 10-bit ADC counts, with contact bounce at the
@@ -53,6 +54,7 @@ _CHUNK_MARGIN_S = 1.0  # events (presses, occlusions) start and end at least thi
 _MIN_APERTURE_END_GAP_S = 0.5
 _FOCUS_SHIFT_BASE_S = 0.8  # duration of a focus shift: base + distance / speed
 _FOCUS_SHIFT_SPEED_MM_S = 40.0
+_RECENTRED_FRACTION = 0.15  # after a clutch press, offsets are this fraction of a random target
 
 # stream ids: each random schedule / noise source draws from its own (seed, stream, ...) key
 _STREAM_FOCUS = 1
@@ -64,6 +66,8 @@ _STREAM_GRASP_BOUNDARY = 22
 _STREAM_PEDAL = 30
 _STREAM_OCCLUSION = 50
 _STREAM_HAND_STATIC = 60
+_STREAM_FINE = 62
+_STREAM_FINE_BOUNDARY = 64
 _STREAM_PEDAL_STATIC = 70
 _STREAM_KEYPOINT_NOISE = 100
 _STREAM_KEYPOINT_MISS = 120
@@ -81,7 +85,8 @@ class EventProfile:
     """Renewal process of timed events (pedal presses, detector occlusions), seconds.
 
     The gap from one event's end to the next event's start is ~ U(gap_min_s, gap_max_s); the first event
-    of a chunk starts U(0, gap_max_s) after the chunk start; durations are ~ U(duration_min_s, duration_max_s).
+    of a chunk starts U(0, gap_max_s) after the chunk start; durations are ~ U(duration_min_s,
+    duration_max_s). Events never span a chunk boundary.
     """
 
     gap_min_s: float
@@ -107,9 +112,9 @@ DEFAULT_PEDAL_PROFILES: tuple[EventProfile | None, ...] = (
 class MotionConfig:
     """Tunables of the surgeon model. Lengths in mm, times in s, angles in degrees, forces in N.
 
-    The nominal hand workspace is ``workspace_centre_mm`` +/- (hand_separation_mm / 2 on y only)
-    + focus_half_extent_mm + reach_half_extent_mm + a few mm of wobble, i.e. about +/-100 mm lateral and
-    +/-60 mm depth/height with the defaults. Changing ``chunk_s`` changes every schedule.
+    Half-open fingertips in the neutral wrist pose sit at ``workspace_centre_mm`` +/- hand_separation_mm / 2
+    laterally; focus, reaches and the grip opening move them about +/-100 mm laterally and +/-50 mm in
+    depth/height (99 % of samples; ~300 mm from the transmitter). Changing ``chunk_s`` changes every schedule.
     """
 
     seed: int = 0
@@ -117,21 +122,21 @@ class MotionConfig:
     chunk_s: float = 60.0
     # hands: position
     workspace_centre_mm: tuple[float, float, float] = (300.0, 0.0, 150.0)
-    hand_separation_mm: float = 100.0
-    focus_half_extent_mm: tuple[float, float, float] = (24.0, 20.0, 24.0)
-    focus_step_mm: float = 12.0
+    hand_separation_mm: float = 90.0
+    focus_half_extent_mm: tuple[float, float, float] = (15.0, 12.0, 15.0)
     focus_hold_s: tuple[float, float] = (0.5, 3.0)
-    reach_half_extent_mm: tuple[float, float, float] = (30.0, 25.0, 30.0)
+    reach_half_extent_mm: tuple[float, float, float] = (22.0, 20.0, 22.0)
     reach_hold_s: tuple[float, float] = (0.3, 2.0)
     reach_base_s: float = 0.3
     reach_speed_mm_s: float = 150.0
-    fine_motion_mm: float = 1.0
+    fine_motion_mm: float = 1.5
+    fine_rotation_deg: float = 3.0
+    fine_interval_s: tuple[float, float] = (0.3, 1.0)
     tremor_mm: float = 0.12
     tremor_hz: tuple[float, float] = (8.0, 12.0)
     # hands: orientation (azimuth/yaw, elevation/pitch, roll)
-    wrist_base_deg: tuple[float, float, float] = (15.0, -20.0, 0.0)
-    wrist_half_range_deg: tuple[float, float, float] = (20.0, 15.0, 30.0)
-    fine_rotation_deg: float = 1.5
+    wrist_base_deg: tuple[float, float, float] = (10.0, -20.0, 0.0)
+    wrist_half_range_deg: tuple[float, float, float] = (15.0, 15.0, 30.0)
     # hands: grasping
     grip_lever_mm: float = 70.0
     aperture_open_mm: tuple[float, float] = (60.0, 80.0)
@@ -142,7 +147,7 @@ class MotionConfig:
     grasp_transition_s: tuple[float, float] = (0.2, 0.45)
     # feet and FSR pedal board
     pedal_profiles: tuple[EventProfile | None, ...] = DEFAULT_PEDAL_PROFILES
-    pedal_force_n: tuple[float, float] = (2.5, 45.0)
+    pedal_force_n: tuple[float, float] = (2.5, 40.0)  # peak foot force per press, log-uniform
     press_rise_s: tuple[float, float] = (0.02, 0.06)
     bounce_window_s: tuple[float, float] = (0.003, 0.010)
     fsr_series_ohm: float = 3300.0
@@ -323,6 +328,23 @@ def _reach_hold_knots(
 
 
 @dataclass(frozen=True)
+class _ReachStyle:
+    """How a hold-and-reach process moves: random targets, move durations (s), hold durations (s)."""
+
+    draw_targets: Callable[[np.random.Generator, int], np.ndarray]  # (rng, count) -> (count, D)
+    duration: Callable[[np.ndarray, np.ndarray], np.ndarray]  # (from (M, D), to (M, D)) -> (M,) s
+    hold_s: tuple[float, float]
+    shortest_move_s: float
+
+    def knots(
+        self, rng: np.random.Generator, span: tuple[float, float], endpoints: tuple[np.ndarray, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Knots (times (K,), values (K, D)) of holds and reaches filling ``span`` between ``endpoints``."""
+        count = int((span[1] - span[0]) / (self.hold_s[0] + self.shortest_move_s)) + 2
+        return _reach_hold_knots(rng, span, endpoints, self.draw_targets(rng, count), self.duration, self.hold_s)
+
+
+@dataclass(frozen=True)
 class _SinusoidBank:
     """Sum of sinusoids per dimension: frequencies_hz, amplitudes, phases_rad all (D, C)."""
 
@@ -349,7 +371,9 @@ class _SinusoidBank:
 def _rotation_from_angles(angles_deg: np.ndarray) -> np.ndarray:
     """Rotations (N, 3, 3) = Rz(azimuth) @ Ry(elevation) @ Rx(roll) from (N, 3) angles in degrees."""
     azimuth, elevation, roll = np.radians(angles_deg).T
-    ca, sa, ce, se, cr, sr = np.cos(azimuth), np.sin(azimuth), np.cos(elevation), np.sin(elevation), np.cos(roll), np.sin(roll)
+    ca, sa = np.cos(azimuth), np.sin(azimuth)
+    ce, se = np.cos(elevation), np.sin(elevation)
+    cr, sr = np.cos(roll), np.sin(roll)
     entries = [
         ca * ce, ca * se * sr - sa * cr, ca * se * cr + sa * sr,
         sa * ce, sa * se * sr + ca * cr, sa * se * cr - ca * sr,
@@ -375,7 +399,8 @@ def _angles_from_rotation(rotation: np.ndarray) -> np.ndarray:
     azimuth = np.arctan2(rotation[:, 1, 0], rotation[:, 0, 0])
     elevation = np.arcsin(np.clip(-rotation[:, 2, 0], -1.0, 1.0))
     roll = np.arctan2(rotation[:, 2, 1], rotation[:, 2, 2])
-    return np.column_stack([_wrap_degrees(np.degrees(azimuth)), np.degrees(elevation), _wrap_degrees(np.degrees(roll))])
+    degrees = np.degrees(np.column_stack([azimuth, elevation, roll]))
+    return np.column_stack([_wrap_degrees(degrees[:, 0]), degrees[:, 1], _wrap_degrees(degrees[:, 2])])
 
 
 @dataclass(frozen=True)
@@ -400,6 +425,16 @@ def _pad_rotation(state: _HandState, side: float) -> np.ndarray:
     return np.stack([sensor_x, side * hand_z, sensor_z], axis=-1)
 
 
+@dataclass(frozen=True)
+class _PedalRest:
+    """Per-pedal (n,) rest state: FSR preload resistance (ohm) and a lightly resting foot (N, Hz, rad)."""
+
+    preload_ohm: np.ndarray
+    foot_n: np.ndarray
+    foot_hz: np.ndarray
+    foot_phase_rad: np.ndarray
+
+
 # ---------------------------------------------------------------------------------------------------
 # the model
 
@@ -410,6 +445,12 @@ class SurgeonMotion:
     def __init__(self, config: MotionConfig = MotionConfig()) -> None:
         self.config = config
         chunk_s = config.chunk_s
+        self._focus_style = _ReachStyle(
+            self._focus_targets, _focus_shift_duration, config.focus_hold_s, _FOCUS_SHIFT_BASE_S
+        )
+        self._reach_style = _ReachStyle(
+            self._reach_targets, self._reach_duration, config.reach_hold_s, config.reach_base_s
+        )
         self._focus = _KnotCurve(chunk_s, self._focus_chunk)
         self._reach = [_KnotCurve(chunk_s, lambda k, h=hand: self._reach_chunk(h, k)) for hand in range(2)]
         self._grasp = [_KnotCurve(chunk_s, lambda k, h=hand: self._grasp_chunk(h, k)) for hand in range(2)]
@@ -420,7 +461,7 @@ class SurgeonMotion:
         self._occlusions = [
             _IntervalSchedule(chunk_s, lambda k, h=hand: self._occlusion_chunk(h, k)) for hand in range(2)
         ]
-        self._fine = [self._draw_fine_motion(hand) for hand in range(2)]
+        self._fine = [_KnotCurve(chunk_s, lambda k, h=hand: self._fine_chunk(h, k)) for hand in range(2)]
         self._tremor = [self._draw_tremor(hand) for hand in range(2)]
         self._aperture_wobble = [self._draw_aperture_wobble(hand) for hand in range(2)]
         self._pedal_rest = self._draw_pedal_rest()
@@ -447,7 +488,7 @@ class SurgeonMotion:
         return np.column_stack([self._aperture(t, hand) for hand in range(2)])
 
     def hand_keypoints(self, t: np.ndarray) -> np.ndarray:
-        """Detected fingertips (N, 2, 2, 3): hand (left, right) x keypoint (thumb, middle) x xyz, mm.
+        """Detected fingertips (N, 2, 2, 3): hand (``HAND_NAMES``) x keypoint (``KEYPOINT_NAMES``) x xyz, mm.
 
         In the camera frame (see ``camera_from_transmitter``), with ~3 mm detection noise; NaN for a
         whole hand where the detector misses it (isolated frames and occlusion runs).
@@ -477,8 +518,8 @@ class SurgeonMotion:
         counts = np.empty((t.size, self.config.n_pedals), dtype=np.int32)
         for pedal in range(self.config.n_pedals):
             force = self._press_force(t, pedal) + self._resting_foot_force(t, pedal)
-            noise = self.config.adc_noise_counts * _hash_normal(self.config.seed, _STREAM_ADC_NOISE + pedal, t_us)
-            counts[:, pedal] = self._fsr_counts(force, self._pedal_rest["rest_ohm"][pedal], noise)
+            noise = _hash_normal(self.config.seed, _STREAM_ADC_NOISE + pedal, t_us) * self.config.adc_noise_counts
+            counts[:, pedal] = self._fsr_counts(force, self._pedal_rest.preload_ohm[pedal], noise)
         return counts
 
     def camera_from_transmitter(self) -> tuple[np.ndarray, np.ndarray]:
@@ -498,19 +539,28 @@ class SurgeonMotion:
     # ---- hands -------------------------------------------------------------------------------------
 
     def _hand_states(self, t: np.ndarray) -> list[_HandState]:
-        """Grip point, rotation and grip half-opening of (left, right) hand at t."""
+        """Grip point (mm, transmitter frame), rotation and grip half-opening of the (left, right) hand."""
         cfg = self.config
         focus = self._focus(t)
         states = []
         for hand in range(2):
             reach, fine = self._reach[hand](t), self._fine[hand](t)
-            lateral = np.array([0.0, _HAND_LATERAL_SIGN[hand] * cfg.hand_separation_mm / 2, 0.0])
-            grip_point = np.asarray(cfg.workspace_centre_mm) + lateral + focus + reach[:, :3] + fine[:, :3]
+            grip_point = self._neutral_grip_point(hand) + focus + reach[:, :3] + fine[:, :3]
             grip_point += self._tremor[hand](t)
             angles = self._wrist_base_deg(hand) + reach[:, 3:] + fine[:, 3:]
             half_angle = np.arcsin(self._aperture(t, hand) / (2.0 * cfg.grip_lever_mm))
             states.append(_HandState(grip_point, _rotation_from_angles(angles), half_angle))
         return states
+
+    def _neutral_grip_point(self, hand: int) -> np.ndarray:
+        """Grip point (3,) mm that puts the hand's fingertips, half-open in the neutral wrist pose, at the
+        workspace centre shifted laterally by half the hand separation."""
+        cfg = self.config
+        lateral = np.array([0.0, _HAND_LATERAL_SIGN[hand] * cfg.hand_separation_mm / 2, 0.0])
+        typical_aperture = np.mean([cfg.aperture_open_mm, cfg.aperture_closed_mm])
+        lever = cfg.grip_lever_mm * np.cos(np.arcsin(typical_aperture / (2.0 * cfg.grip_lever_mm)))
+        hand_x = _rotation_from_angles(self._wrist_base_deg(hand)[None])[0, :, 0]
+        return np.asarray(cfg.workspace_centre_mm) + lateral - lever * hand_x
 
     def _wrist_base_deg(self, hand: int) -> np.ndarray:
         """Neutral (azimuth, elevation, roll) of a hand in degrees; the hands mirror each other."""
@@ -521,8 +571,9 @@ class SurgeonMotion:
     def _pad_position(self, state: _HandState, side: float) -> np.ndarray:
         """Position (N, 3) mm of the grip pad on hand-frame side ``side`` (+1 / -1 along y)."""
         lever = self.config.grip_lever_mm
-        along, across = lever * np.cos(state.half_angle), side * lever * np.sin(state.half_angle)
-        return state.grip_point + state.rotation[:, :, 0] * along[:, None] + state.rotation[:, :, 1] * across[:, None]
+        along = (lever * np.cos(state.half_angle))[:, None]
+        across = (side * lever * np.sin(state.half_angle))[:, None]
+        return state.grip_point + state.rotation[:, :, 0] * along + state.rotation[:, :, 1] * across
 
     def _grip_pads(self, t: np.ndarray) -> list[tuple[int, _HandState, float]]:
         """(sensor index, its hand's state, pad side +1/-1 along hand-frame y) for the 4 sensors."""
@@ -543,42 +594,42 @@ class SurgeonMotion:
         """Thumb-middle pad distance (N,) mm: grasp cycles plus a slow wobble."""
         return self._grasp[hand](t)[:, 0] + self._aperture_wobble[hand](t)[:, 0]
 
-    def _focus_chunk(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Knots of the shared bimanual focus offset (mm) in chunk k: a drifting walk, re-centred per clutch."""
-        cfg = self.config
-        t0, t1 = k * cfg.chunk_s, (k + 1) * cfg.chunk_s
-        rng = _rng(cfg.seed, _STREAM_FOCUS, k)
-        extent = np.asarray(cfg.focus_half_extent_mm)
+    def _knots_between_clutches(
+        self, k: int, rng: np.random.Generator, style: _ReachStyle, boundary: Callable[[int], np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Knots in chunk k of a hold-and-reach process that moves back near zero during each clutch press.
+
+        ``boundary(j)`` is the value at the start of chunk j. Between clutches the process reaches between
+        random targets; a clutch press is one move from a random target to a near-neutral one.
+        """
         clutch_starts, clutch_ends = self._clutch_intervals(k)
-        span_starts, span_ends = np.concatenate([[t0], clutch_ends]), np.concatenate([clutch_starts, [t1]])
-        recentred = rng.normal(0.0, 0.1 * extent, (len(clutch_ends), 3))
-        drifted = rng.uniform(-extent, extent, (len(clutch_starts), 3))
-        start_values = np.vstack([self._focus_boundary(k), recentred])
-        end_values = np.vstack([drifted, self._focus_boundary(k + 1)])
-        times, values = [], []
-        for a, b, va, vb in zip(span_starts, span_ends, start_values, end_values):
-            walk = self._focus_walk(rng, va, b - a)
-            knot_times, knot_values = _reach_hold_knots(rng, (a, b), (va, vb), walk, _focus_shift_duration, cfg.focus_hold_s)
-            times.append(knot_times)
-            values.append(knot_values)
-        return np.concatenate(times)[:-1], np.concatenate(values)[:-1]
+        span_starts = np.concatenate([[k * self.config.chunk_s], clutch_ends])
+        span_ends = np.concatenate([clutch_starts, [(k + 1) * self.config.chunk_s]])
+        recentred = _RECENTRED_FRACTION * style.draw_targets(rng, len(clutch_ends))
+        start_values = np.vstack([boundary(k)[None], recentred])
+        end_values = np.vstack([style.draw_targets(rng, len(clutch_starts)), boundary(k + 1)[None]])
+        spans = zip(span_starts, span_ends, start_values, end_values)
+        pieces = [style.knots(rng, (a, b), (va, vb)) for a, b, va, vb in spans]
+        return np.concatenate([p[0] for p in pieces])[:-1], np.concatenate([p[1] for p in pieces])[:-1]
 
     def _clutch_intervals(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(starts, ends) s of the clutch presses in chunk k."""
         starts, ends, _ = self._press_chunk(CLUTCH_PEDAL, k)
         return starts, ends
 
+    def _focus_chunk(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Knots (times, values (K, 3) mm) of the shared bimanual focus offset in chunk k."""
+        rng = _rng(self.config.seed, _STREAM_FOCUS, k)
+        return self._knots_between_clutches(k, rng, self._focus_style, self._focus_boundary)
+
+    def _focus_targets(self, rng: np.random.Generator, count: int) -> np.ndarray:
+        """Random focus offsets (count, 3) mm, uniform in ``focus_half_extent_mm``."""
+        extent = np.asarray(self.config.focus_half_extent_mm)
+        return rng.uniform(-extent, extent, (count, 3))
+
     def _focus_boundary(self, k: int) -> np.ndarray:
         """Focus offset (3,) mm at the start of chunk k."""
-        extent = np.asarray(self.config.focus_half_extent_mm)
-        return _rng(self.config.seed, _STREAM_FOCUS_BOUNDARY, k).uniform(-0.5 * extent, 0.5 * extent)
-
-    def _focus_walk(self, rng: np.random.Generator, start: np.ndarray, span_s: float) -> np.ndarray:
-        """Random-walk focus targets (M, 3) mm from ``start``, enough to fill ``span_s``, clipped to the extent."""
-        cfg = self.config
-        count = int(span_s / (cfg.focus_hold_s[0] + _FOCUS_SHIFT_BASE_S)) + 2
-        extent = np.asarray(cfg.focus_half_extent_mm)
-        return np.clip(start + np.cumsum(rng.normal(0.0, cfg.focus_step_mm, (count, 3)), axis=0), -extent, extent)
+        return self._focus_targets(_rng(self.config.seed, _STREAM_FOCUS_BOUNDARY, k), 1)[0]
 
     def _reach_duration(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Duration (M,) s of reaches a -> b (M, 6: mm, deg), Fitts-like: base + distance / speed."""
@@ -601,18 +652,14 @@ class SurgeonMotion:
         return self._reach_targets(_rng(self.config.seed, _STREAM_REACH_BOUNDARY, hand, k), 1)[0]
 
     def _reach_chunk(self, hand: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Knots (times, values (K, 6)) of a hand's reach/hold schedule in chunk k."""
-        cfg = self.config
-        t0, t1 = k * cfg.chunk_s, (k + 1) * cfg.chunk_s
-        rng = _rng(cfg.seed, _STREAM_REACH, hand, k)
-        targets = self._reach_targets(rng, int(cfg.chunk_s / (cfg.reach_hold_s[0] + cfg.reach_base_s)) + 2)
-        endpoints = (self._reach_boundary(hand, k), self._reach_boundary(hand, k + 1))
-        times, values = _reach_hold_knots(rng, (t0, t1), endpoints, targets, self._reach_duration, cfg.reach_hold_s)
-        return times[:-1], values[:-1]
+        """Knots (times, values (K, 6): mm, deg) of a hand's reach/hold schedule in chunk k."""
+        rng = _rng(self.config.seed, _STREAM_REACH, hand, k)
+        return self._knots_between_clutches(k, rng, self._reach_style, lambda j: self._reach_boundary(hand, j))
 
     def _grasp_boundary(self, hand: int, k: int) -> float:
         """Open aperture (mm) of a hand at the start of chunk k."""
-        return float(_rng(self.config.seed, _STREAM_GRASP_BOUNDARY, hand, k).uniform(*self.config.aperture_open_mm))
+        rng = _rng(self.config.seed, _STREAM_GRASP_BOUNDARY, hand, k)
+        return float(rng.uniform(*self.config.aperture_open_mm))
 
     def _grasp_chunk(self, hand: int, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Knots (times, apertures (K, 1) mm) of grasp cycles in chunk k: hold open, close, hold, open."""
@@ -632,16 +679,27 @@ class SurgeonMotion:
         times = t0 + np.cumsum(durations[:n].ravel())
         return np.concatenate([[t0], times]), np.concatenate([[start], values[:n].ravel()])[:, None]
 
-    def _draw_fine_motion(self, hand: int) -> _SinusoidBank:
-        """Slow fine-manipulation wobble: 3 position axes (mm) and 3 wrist angles (deg), 0.15-0.9 Hz."""
+    def _fine_targets(self, rng: np.random.Generator, count: int) -> np.ndarray:
+        """Random fine-manipulation offsets (count, 6): position mm, then wrist angles deg."""
         cfg = self.config
-        amplitudes = np.repeat([[cfg.fine_motion_mm] * 3 + [cfg.fine_rotation_deg] * 3], 3, axis=0).T
-        return _SinusoidBank.draw(_rng(cfg.seed, _STREAM_HAND_STATIC, hand, 0), (0.15, 0.9), amplitudes)
+        amplitude = np.array([cfg.fine_motion_mm] * 3 + [cfg.fine_rotation_deg] * 3)
+        return rng.uniform(-amplitude, amplitude, (count, 6))
+
+    def _fine_chunk(self, hand: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Knots (times, values (K, 6)) of small manipulation movements of a hand in chunk k."""
+        cfg = self.config
+        t0, t1 = k * cfg.chunk_s, (k + 1) * cfg.chunk_s
+        rng = _rng(cfg.seed, _STREAM_FINE, hand, k)
+        count = int(cfg.chunk_s / cfg.fine_interval_s[0]) + 2
+        times = t0 + np.cumsum(rng.uniform(*cfg.fine_interval_s, count))
+        keep = times < t1 - cfg.fine_interval_s[0]
+        start = self._fine_targets(_rng(cfg.seed, _STREAM_FINE_BOUNDARY, hand, k), 1)
+        return np.concatenate([[t0], times[keep]]), np.vstack([start, self._fine_targets(rng, count)[keep]])
 
     def _draw_tremor(self, hand: int) -> _SinusoidBank:
-        """Physiological tremor (3 axes, mm): 3 components per axis in ``tremor_hz``."""
+        """Physiological tremor (3 axes, mm): 2 components per axis in ``tremor_hz``."""
         cfg = self.config
-        amplitudes = np.full((3, 3), cfg.tremor_mm)
+        amplitudes = np.full((3, 2), cfg.tremor_mm)
         return _SinusoidBank.draw(_rng(cfg.seed, _STREAM_HAND_STATIC, hand, 1), cfg.tremor_hz, amplitudes)
 
     def _draw_aperture_wobble(self, hand: int) -> _SinusoidBank:
@@ -681,7 +739,7 @@ class SurgeonMotion:
         count = len(starts)
         bounces = rng.choice(len(_BOUNCE_COUNT_PROBABILITIES), (count, 2), p=_BOUNCE_COUNT_PROBABILITIES)
         params = np.column_stack([
-            rng.uniform(*cfg.pedal_force_n, count), bounces,
+            np.exp(rng.uniform(*np.log(cfg.pedal_force_n), count)), bounces,
             rng.uniform(*cfg.bounce_window_s, (count, 2)), rng.uniform(*cfg.press_rise_s, (count, 2)),
             rng.uniform(0.0, 2.0 * np.pi, count),
         ])
@@ -700,33 +758,31 @@ class SurgeonMotion:
         amplitude, hz = _PRESS_WOBBLE
         wobble = 1.0 + amplitude * np.sin(2.0 * np.pi * hz * since_on + params[:, _WOBBLE_PHASE])
         held = np.maximum(peak * _minimum_jerk(np.clip(ramp, 0.0, 1.0)) * wobble, _CONTACT_FORCE_FRACTION * peak)
-        contact = _bounce_contact(since_on, params[:, _ON_BOUNCES], params[:, _ON_WINDOW_S]) & _bounce_contact(
-            until_off, params[:, _OFF_BOUNCES], params[:, _OFF_WINDOW_S]
-        )
-        force[inside] = np.where(contact, held, 0.0)
+        onset_contact = _bounce_contact(since_on, params[:, _ON_BOUNCES], params[:, _ON_WINDOW_S])
+        release_contact = _bounce_contact(until_off, params[:, _OFF_BOUNCES], params[:, _OFF_WINDOW_S])
+        force[inside] = np.where(onset_contact & release_contact, held, 0.0)
         return force
 
-    def _draw_pedal_rest(self) -> dict[str, np.ndarray]:
-        """Per-pedal rest state: FSR preload resistance (ohm) and a lightly resting foot (N, Hz, rad)."""
+    def _draw_pedal_rest(self) -> _PedalRest:
+        """Per-pedal FSR preload and resting-foot parameters."""
         cfg = self.config
         rng = _rng(cfg.seed, _STREAM_PEDAL_STATIC)
         n = len(cfg.pedal_profiles)
-        low, high = np.log(cfg.fsr_rest_ohm)
-        return {
-            "rest_ohm": np.exp(rng.uniform(low, high, n)),
-            "foot_n": rng.uniform(0.0, cfg.resting_foot_max_n, n),
-            "foot_hz": rng.uniform(0.02, 0.1, n),
-            "foot_phase": rng.uniform(0.0, 2.0 * np.pi, n),
-        }
+        return _PedalRest(
+            preload_ohm=np.exp(rng.uniform(*np.log(cfg.fsr_rest_ohm), n)),
+            foot_n=rng.uniform(0.0, cfg.resting_foot_max_n, n),
+            foot_hz=rng.uniform(0.02, 0.1, n),
+            foot_phase_rad=rng.uniform(0.0, 2.0 * np.pi, n),
+        )
 
     def _resting_foot_force(self, t: np.ndarray, pedal: int) -> np.ndarray:
         """Force (N,) in N of a foot resting lightly on a pedal between presses (slowly varying)."""
         rest = self._pedal_rest
-        angle = 2.0 * np.pi * rest["foot_hz"][pedal] * t + rest["foot_phase"][pedal]
-        return rest["foot_n"][pedal] * 0.5 * (1.0 - np.cos(angle))
+        angle = 2.0 * np.pi * rest.foot_hz[pedal] * t + rest.foot_phase_rad[pedal]
+        return rest.foot_n[pedal] * 0.5 * (1.0 - np.cos(angle))
 
     def _fsr_counts(self, force: np.ndarray, rest_ohm: float, noise: np.ndarray) -> np.ndarray:
-        """ADC counts (N,) of the divider for force (N,) in N: R_fsr = R1 / F^n in parallel with the preload."""
+        """ADC counts (N,) of the divider for force (N,) in N; R_fsr = R1 / F^n in parallel with the preload."""
         cfg = self.config
         conductance = 1.0 / rest_ohm + np.power(force, cfg.fsr_exponent) / cfg.fsr_ohm_at_1n  # siemens
         divider = cfg.fsr_series_ohm * conductance / (1.0 + cfg.fsr_series_ohm * conductance)  # Vout / Vcc
