@@ -135,3 +135,17 @@ def test_find_sessions_walks_a_tree(tmp_path: Path) -> None:
     a = write_session(tmp_path / "day1")
     b = write_session(tmp_path / "day2" / "room")
     assert list(find_sessions(tmp_path)) == sorted([a, b])
+
+
+def test_the_documented_example_session_verifies_and_matches_the_simulators() -> None:
+    from midas_cli.devices.registry import describe_device
+    from midas_cli.rig import simulated_rig
+    from tests.conftest import REPO
+
+    example = REPO / "sessions_template" / "example_session"
+    assert verify_session(example).ok
+    session = Session.open(example)
+    for name, url in simulated_rig().device_urls().items():
+        (spec,) = describe_device(name, url).streams
+        assert session.stream_spec(name) == spec, f"{name}: the example's columns no longer match the code"
+        assert len(session.read_stream(name)) > 0
