@@ -149,3 +149,15 @@ def test_the_documented_example_session_verifies_and_matches_the_simulators() ->
         (spec,) = describe_device(name, url).streams
         assert session.stream_spec(name) == spec, f"{name}: the example's columns no longer match the code"
         assert len(session.read_stream(name)) > 0
+
+
+def test_frame_labels_round_trip_with_unlabelled_frames(small_session: Path) -> None:
+    from midas_cli.session.labels import list_label_sets, read_frame_labels, write_frame_labels
+
+    write_frame_labels(small_session, [0, 1, 2, 5], ["G1", "", "G2", "Idle"], {"taxonomy": "t", "source": "test"})
+    got = read_frame_labels(small_session)
+    assert got.frames.tolist() == [0, 1, 2, 5] and got.labels.tolist() == ["G1", "", "G2", "Idle"]
+    assert got.classes() == ["G1", "G2", "Idle"] and got.meta["taxonomy"] == "t"
+    assert "0-based" in got.meta["frame_convention"] and list_label_sets(small_session) == ["gestures"]
+    with pytest.raises(SessionError, match="strictly increasing"):
+        write_frame_labels(small_session, [2, 1], ["a", "b"], {})

@@ -103,8 +103,11 @@ class SessionWriter:
         devices: dict[str, dict[str, Any]],
         specs: list[StreamSpec],
         rig: dict[str, Any] | None = None,
+        start_ns: int | None = None,
     ) -> "SessionWriter":
-        start_ns = clock.now_ns()
+        """Create the folder and write the "recording" manifest. ``start_ns`` (host clock) is given by
+        offline writers (simulate, import) whose data carry their own times; live recording uses now."""
+        start_ns = clock.now_ns() if start_ns is None else start_ns
         folder = make_session_folder(out_root, metadata.folder_stem(), start_ns)
         for sub in SUBFOLDERS:
             (folder / sub).mkdir()

@@ -1,0 +1,78 @@
+"""Frame labels stored in a session: ``labels/<name>.csv`` + ``labels/<name>.json`` (provenance).
+
+Frame convention (stated once, used everywhere): ``frame`` is the 0-based video frame index, i.e. the
+``seq`` value of the session's ``video`` stream (frame 0 = the first frame of the recording). An empty
+label means "unlabelled" (not the same as an explicit Idle class). The manifest is the record of the
+acquisition and is not rewritten; label sets live beside it and say where they came from.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+
+from midas_cli import __version__
+from midas_cli.errors import SessionError
+
+LABELS_DIR = "labels"
+FRAME_CONVENTION = "0-based video frame index = seq of the session's video stream"
+_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+@dataclass
+class FrameLabels:
+    """One label per frame: ``frames`` (N,) int64 ascending, ``labels`` (N,) str ('' = unlabelled)."""
+
+    frames: np.ndarray
+    labels: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def classes(self) -> list[str]:
+        return sorted(set(self.labels.tolist()) - {""})
+
+
+def write_frame_labels(session_path: Path | str, frames: Sequence[int], labels: Sequence[str],
+                       meta: dict[str, Any], name: str = "gestures") -> Path:
+    """Write (replace) label set ``name``; ``meta`` should name the taxonomy and the source."""
+    if not _NAME_OK.match(name):
+        raise SessionError(f"label set name {name!r} must be letters, digits, '_', '.' or '-'")
+    frames = np.asarray(frames, dtype=np.int64)
+    labels = np.asarray(labels, dtype=object)
+    if frames.shape != labels.shape or frames.ndim != 1:
+        raise SessionError(f"frames {frames.shape} and labels {labels.shape} must be equal-length 1-D")
+    if len(frames) > 1 and not (np.diff(frames) > 0).all():
+        raise SessionError("label frames must be strictly increasing")
+    folder = Path(session_path) / LABELS_DIR
+    folder.mkdir(exist_ok=True)
+    csv_path = folder / f"{name}.csv"
+    tmp = csv_path.with_suffix(".csv.tmp")
+    pd.DataFrame({"frame": frames, "label": labels}).to_csv(tmp, index=False)
+    os.replace(tmp, csv_path)
+    full_meta = {"frame_convention": FRAME_CONVENTION, "midas_version": __version__, **meta,
+                 "frames": int(len(frames))}
+    (folder / f"{name}.json").write_text(json.dumps(full_meta, indent=2) + "\n", encoding="utf-8")
+    return csv_path
+
+
+def read_frame_labels(session_path: Path | str, name: str = "gestures") -> FrameLabels:
+    folder = Path(session_path) / LABELS_DIR
+    csv_path = folder / f"{name}.csv"
+    if not csv_path.is_file():
+        have = ", ".join(list_label_sets(session_path)) or "none"
+        raise SessionError(f"{session_path} has no label set {name!r} (label sets: {have})")
+    frame = pd.read_csv(csv_path, dtype={"frame": "int64", "label": str}, keep_default_na=False)
+    meta_path = folder / f"{name}.json"
+    meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
+    return FrameLabels(frame["frame"].to_numpy(), frame["label"].to_numpy(dtype=object), meta)
+
+
+def list_label_sets(session_path: Path | str) -> list[str]:
+    folder = Path(session_path) / LABELS_DIR
+    return sorted(p.stem for p in folder.glob("*.csv")) if folder.is_dir() else []
