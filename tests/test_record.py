@@ -169,25 +169,35 @@ def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> 
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (.ci/run installs it)")
-def test_live_tui_in_a_terminal_shows_every_device_rate(tmp_path: Path) -> None:
+def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_path: Path) -> None:
     name = f"midas-test-{os.getpid()}"
-    command = (f"{sys.executable} -m midas_cli record --simulate --duration 8 --out {tmp_path} "
+    command = (f"{sys.executable} -m midas_cli record --simulate --duration 60 --out {tmp_path} "
                f"{' '.join(META)}; sleep 30")
     subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "50", command], check=True)
     try:
-        screen = ""
-        deadline = time.monotonic() + 25
-        while time.monotonic() < deadline:
-            time.sleep(1)
-            screen = subprocess.run(["tmux", "capture-pane", "-p", "-t", name], capture_output=True,
-                                    text=True).stdout
-            if "elapsed 00:00:04" in screen:
-                break
+        screen = _wait_for_screen(name, "elapsed 00:00:04")
         for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
             row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
             measured = row.split("│")[3].split("/") if row.count("│") > 4 else ["0", "0"]
             assert float(measured[1]) == rate and abs(float(measured[0]) - rate) < 0.05 * rate, screen
             assert " ok " in row, f"{device} row missing or unhealthy:\n{screen}"
         assert "pedals" in screen and "positions (mm)" in screen and "disk free" in screen
+        subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
+        screen = _wait_for_screen(name, str(tmp_path))
+        session = Session.open(_only_session(tmp_path))
+        assert session.status == "complete" and "Ctrl-C" in session.manifest["stop_reason"]
+        assert midas("session", "verify", str(session.path)).returncode == 0
     finally:
         subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+
+
+def _wait_for_screen(name: str, text: str, timeout_s: float = 30) -> str:
+    deadline = time.monotonic() + timeout_s
+    screen = ""
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", "-t", name], capture_output=True,
+                                text=True).stdout
+        if text in screen:
+            return screen
+    raise AssertionError(f"{text!r} never appeared on the screen:\n{screen}")

@@ -7,16 +7,18 @@ decides when to ``stop()``.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import os
 import queue
 import shutil
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
@@ -92,13 +94,14 @@ class Recorder:
                                            self.plan.rig)
         self._attach_log()
         start_ns = self.writer.manifest["start"]["host_ns"]
-        for name, url in self.plan.devices.items():
-            job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
-                            stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid())
-            process = self._ctx.Process(target=run_worker, args=(job, self._queue, self._stop_workers),
-                                        name=f"midas-{name}", daemon=True)
-            process.start()
-            self._processes.append(process)
+        with _terminal_signals_ignored():
+            for name, url in self.plan.devices.items():
+                job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
+                                stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid())
+                process = self._ctx.Process(target=run_worker, args=(job, self._queue, self._stop_workers),
+                                            name=f"midas-{name}", daemon=True)
+                process.start()
+                self._processes.append(process)
         self._started_mono = time.monotonic()
         self._writer_thread = threading.Thread(target=self._write_loop, name="midas-writer", daemon=True)
         self._writer_thread.start()
@@ -243,6 +246,21 @@ class Recorder:
             self._log_handler = None
 
     _stop_deadline = float("inf")
+
+
+@contextlib.contextmanager
+def _terminal_signals_ignored() -> Iterator[None]:
+    """Children inherit SIG_IGN for SIGINT/SIGHUP across exec, so a Ctrl-C or hang-up that reaches the
+    whole process group while a worker is still starting cannot kill it; the recorder decides."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:

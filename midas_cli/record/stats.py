@@ -51,7 +51,7 @@ class StreamStats:
             self._recent.popleft()
 
     def _account_sequence(self, batch: DataBatch) -> None:
-        newly_dropped = batch.dropped - self.dropped
+        newly_dropped = max(0, batch.dropped - self.dropped)
         self.dropped = batch.dropped
         steps = np.diff(batch.seq)
         inside = int(np.sum(steps[steps > 1] - 1))
