@@ -201,3 +201,22 @@ def _wait_for_screen(name: str, text: str, timeout_s: float = 30) -> str:
         if text in screen:
             return screen
     raise AssertionError(f"{text!r} never appeared on the screen:\n{screen}")
+
+
+def test_a_full_disk_stops_cleanly_and_keeps_whole_lines(tmp_path: Path) -> None:
+    import resource
+
+    def limit_file_size() -> None:  # every file this process writes may grow to 300 kB: "disk full"
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, 300_000))
+
+    result = subprocess.run([sys.executable, "-m", "midas_cli", "record", "--simulate", "--duration", "30",
+                             "--out", str(tmp_path), *META, "--no-tui"], capture_output=True, text=True,
+                            timeout=60, preexec_fn=limit_file_size, env={**os.environ, "NO_COLOR": "1"})
+    assert result.returncode == 4, result.stderr
+    assert "writing the session failed" in result.stderr.splitlines()[-1]
+    path = _only_session(tmp_path)
+    session = Session.open(path)
+    assert session.status == "interrupted" and "File too large" in session.manifest["stop_reason"]
+    assert midas("session", "verify", str(path)).returncode == 0
+    assert len(session.read_stream("emht")) > 240

@@ -91,3 +91,24 @@ def test_host_clocks_with_one_anchor_agree_across_instances() -> None:
     other = HostClock(clock.anchor_ns)
     a, b, c = clock.now_ns(), other.now_ns(), clock.now_ns()
     assert a <= b <= c
+
+
+def test_a_worker_bug_is_reported_with_its_traceback(monkeypatch) -> None:
+    import threading
+
+    import pytest
+
+    from midas_cli.record import worker
+
+    def broken(*_args, **_kwargs):
+        raise RuntimeError("bug in a backend")
+
+    monkeypatch.setattr(worker, "create_device", broken)
+    out: queue.Queue = queue.Queue()
+    job = worker.WorkerJob("emht", "sim://emht", 0, 0, 0, 1.0, parent_pid=__import__("os").getppid())
+    with pytest.raises(SystemExit) as exit_info:
+        worker.run_worker(job, out, threading.Event())
+    assert exit_info.value.code == 1
+    events = [out.get_nowait() for _ in range(out.qsize())]
+    assert [e.event for e in events] == ["crashed", "exited"]
+    assert "RuntimeError: bug in a backend" in events[0].message and "Traceback" in events[0].message

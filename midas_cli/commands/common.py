@@ -23,7 +23,13 @@ def print_json(data: Any) -> None:
     sys.stdout.flush()
 
 
+def error_line(message: str) -> None:
+    """One unwrapped line on stderr (scripts grep it; a terminal wraps it itself)."""
+    sys.stderr.write(" ".join(message.split("\n")) + "\n")
+    sys.stderr.flush()
+
+
 def fail(message: str, code: int) -> typer.Exit:
     """Print one error line to stderr and return the Exit to raise."""
-    err.print(f"midas: error: {message}", markup=False, highlight=False)
+    error_line(f"midas: error: {message}")
     return typer.Exit(code)

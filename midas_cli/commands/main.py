@@ -12,7 +12,7 @@ from midas_cli import __version__
 from midas_cli.commands import doctor as doctor_cmd
 from midas_cli.commands import record as record_cmd
 from midas_cli.commands import session as session_cmd
-from midas_cli.commands.common import STDERR_LOG, err
+from midas_cli.commands.common import STDERR_LOG, error_line
 from midas_cli.errors import MidasError
 
 app = typer.Typer(
@@ -54,11 +54,10 @@ def run() -> None:
     except MidasError as exc:
         if _state["debug"]:
             traceback.print_exc()
-        err.print(f"midas: error: {exc}", markup=False, highlight=False)
+        error_line(f"midas: error: {exc}")
         sys.exit(exc.exit_code)
     except Exception as exc:  # the one place that turns surprises into exit code 1
         if _state["debug"]:
             traceback.print_exc()
-        err.print(f"midas: internal error: {type(exc).__name__}: {exc} (run with --debug for a traceback)",
-                  markup=False, highlight=False)
+        error_line(f"midas: internal error: {type(exc).__name__}: {exc} (run with --debug for a traceback)")
         sys.exit(1)

@@ -16,7 +16,7 @@ from rich.table import Table
 
 from midas_cli.commands.common import STDERR_LOG, err
 from midas_cli.console import dashboard, is_interactive, status_line
-from midas_cli.errors import ConfigError
+from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.devices.base import DeviceUrl
@@ -70,13 +70,16 @@ def record(
         if not recorder.wait_ready():
             err.print("midas: warning: some devices did not start within 15 s; recording the others")
         with display:
-            run_until(recorder, duration, lambda: stop.reason is not None, display.update)
+            run_until(recorder, duration, lambda: stop.reason is not None or recorder.fatal_error is not None,
+                      display.update)
             display.update(recorder.snapshot(duration, stopping=True))
-        status, reason = stop.outcome()
+        status, reason = ("interrupted", recorder.fatal_error) if recorder.fatal_error else stop.outcome()
         manifest = recorder.stop(status, reason)
     finally:
         stop.restore()
     display.final(manifest, recorder.path)
+    if recorder.fatal_error:
+        raise SessionError(f"{recorder.fatal_error} (session kept: {recorder.path})")
 
 
 def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigConfig:

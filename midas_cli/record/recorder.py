@@ -23,7 +23,7 @@ from typing import Any, Callable, Iterator
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.registry import describe_device
-from midas_cli.errors import ConfigError
+from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
@@ -68,6 +68,7 @@ class Recorder:
         self._started_mono = 0.0
         self._rate_probe = (0.0, 0)
         self._log_handler: logging.Handler | None = None
+        self.fatal_error: str | None = None
 
     def _describe_devices(self) -> None:
         """Validate every URL and learn the stream layouts before anything is created on disk."""
@@ -132,6 +133,16 @@ class Recorder:
 
     # -- writer thread ------------------------------------------------------------------------
     def _write_loop(self) -> None:
+        try:
+            self._drain_until_workers_exit()
+        except OSError as exc:  # disk full, I/O error: stop cleanly, keep what is on disk
+            self.fatal_error = f"writing the session failed: {exc}"
+            log.error("%s; stopping the recording", self.fatal_error)
+            self._stop_workers.set()
+        finally:
+            self._writer_done.set()
+
+    def _drain_until_workers_exit(self) -> None:
         last_sync = time.monotonic()
         exited: set[str] = set()
         while len(exited) < len(self.devices):
@@ -150,8 +161,7 @@ class Recorder:
                 last_sync = time.monotonic()
             if self._stop_workers.is_set() and time.monotonic() > self._stop_deadline:
                 log.error("devices %s did not stop in time", ", ".join(set(self.devices) - exited))
-                break
-        self._writer_done.set()
+                return
 
     def _write_batch(self, batch: DataBatch) -> None:
         self.writer.append(batch.stream, batch.text)
@@ -170,13 +180,14 @@ class Recorder:
                 if record.opens > 1:
                     for name in record.streams:
                         self.streams[name].reopened = True
-            elif event.event in ("lost", "open_failed"):
+            elif event.event in ("lost", "open_failed", "crashed"):
                 record.state = "lost"
-                record.last_error = event.message
+                record.last_error = (event.message.strip().splitlines() or [""])[-1]
             elif event.event == "exited":
                 record.exited = True
                 record.state = "stopped"
-        level = logging.WARNING if event.event in ("lost", "open_failed") else logging.INFO
+        level = {"lost": logging.WARNING, "open_failed": logging.WARNING, "crashed": logging.ERROR}.get(
+            event.event, logging.INFO)
         log.log(level, "%s: %s %s", event.device, event.event, event.message)
 
     # -- status -------------------------------------------------------------------------------
@@ -234,7 +245,11 @@ class Recorder:
                 process.join(timeout=1.0)
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
-        manifest = self.writer.finalize(status, reason, self.clock.now_ns(), extra)
+        try:
+            manifest = self.writer.finalize(status, reason, self.clock.now_ns(), extra)
+        except OSError as exc:
+            raise SessionError(f"could not finalise {self.path}: {exc}; its stream files are kept, "
+                               f"run `midas session repair {self.path}` when there is space") from exc
         log.info("session %s finalised: %s (%s)", self.path, status, reason)
         self._detach_log()
         return manifest

@@ -11,7 +11,9 @@ import logging
 import os
 import queue
 import signal
+import sys
 import time
+import traceback
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,11 +45,23 @@ class WorkerJob:
 
 
 def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
-    """Process entry point."""
+    """Process entry point. A bug (any other exception) is reported to the recorder with its
+    traceback as a 'crashed' event, never swallowed, and the worker exits with status 1."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     clock = HostClock(job.anchor_ns)
     totals = {"dropped": 0, "corrupt": 0}
+    try:
+        _serve(job, out, stop, clock, totals)
+    except Exception:
+        _send_event(out, job, clock, "crashed", traceback.format_exc(), totals)
+        _send_event(out, job, clock, "exited", totals=totals, block=True)
+        sys.exit(1)
+    _send_event(out, job, clock, "exited", totals=totals, block=True)
+
+
+def _serve(job: WorkerJob, out, stop, clock: HostClock, totals: dict[str, int]) -> None:
+    """Open, pump, and reopen with exponential back-off until told to stop."""
     backoff = BACKOFF_START_S
     while not stop.is_set() and os.getppid() == job.parent_pid:
         try:
@@ -67,7 +81,6 @@ def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
         finally:
             totals["corrupt"] += device.counters.corrupt
             device.close()
-    _send_event(out, job, clock, "exited", totals=totals, block=True)
 
 
 def _pump(device: Device, job: WorkerJob, out, stop, totals: dict[str, int]) -> None:

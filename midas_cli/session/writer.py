@@ -86,13 +86,13 @@ class SessionWriter:
         self.folder = folder
         self.manifest = manifest
         self.specs = {spec.name: spec for spec in specs}
-        self._files = {}
+        self._fds: dict[str, int] = {}
+        self._sizes: dict[str, int] = {}
         self.bytes_written = 0
         for spec in self.specs.values():
-            fh = open(folder / spec.file, "a", encoding="utf-8", newline="\n")
-            fh.write(spec.header_line())
-            fh.flush()
-            self._files[spec.name] = fh
+            self._fds[spec.name] = os.open(folder / spec.file, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+            self._sizes[spec.name] = 0
+            self.append(spec.name, spec.header_line())
 
     @classmethod
     def create(
@@ -130,16 +130,25 @@ class SessionWriter:
         return cls(folder, manifest, specs)
 
     def append(self, stream: str, text: str) -> None:
-        """Append whole CSV lines to a stream and hand them to the OS (survives a process kill)."""
-        fh = self._files[stream]
-        fh.write(text)
-        fh.flush()
-        self.bytes_written += len(text)
+        """Append whole CSV lines to a stream and hand them to the OS (survives a process kill).
+
+        Unbuffered: if the OS refuses part of it (disk full, file too large) the file is cut back to
+        its last whole line and the OSError is raised, so a stream never holds a torn line."""
+        fd, data = self._fds[stream], text.encode("utf-8")
+        view = memoryview(data)
+        try:
+            while view:
+                view = view[os.write(fd, view):]
+        except OSError:
+            os.ftruncate(fd, self._sizes[stream])
+            raise
+        self._sizes[stream] += len(data)
+        self.bytes_written += len(data)
 
     def sync(self) -> None:
         """fsync every stream file (survives power loss); called about once a second."""
-        for fh in self._files.values():
-            os.fsync(fh.fileno())
+        for fd in self._fds.values():
+            os.fsync(fd)
 
     def finalize(self, status: str, stop_reason: str, stop_ns: int, extra: dict[str, dict[str, Any]]) -> dict:
         """Close the files, describe each from what is on disk, and replace the manifest atomically.
@@ -147,8 +156,8 @@ class SessionWriter:
         ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages).
         """
         self.sync()
-        for fh in self._files.values():
-            fh.close()
+        for fd in self._fds.values():
+            os.close(fd)
         for name, spec in self.specs.items():
             entry = self.manifest["streams"][name]
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
