@@ -7,6 +7,9 @@ DEMO_OUT ?= sessions
 
 .PHONY: install demo test test-fast clean
 
+# Pipelines (tables, gesture experiments) live in mk/*.mk and use $(BIN)/midas.
+-include $(wildcard mk/*.mk)
+
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
