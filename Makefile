@@ -7,9 +7,6 @@ DEMO_OUT ?= sessions
 
 .PHONY: install demo test test-fast clean
 
-# Pipelines (tables, gesture experiments) live in mk/*.mk and use $(BIN)/midas.
--include $(wildcard mk/*.mk)
-
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
@@ -32,3 +29,6 @@ test-fast: install
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
+
+# Pipelines (tables, gesture experiments) live in mk/*.mk and use $(BIN)/midas.
+-include $(wildcard mk/*.mk)
