@@ -10,6 +10,7 @@ import typer
 
 from midas_cli import __version__
 from midas_cli.commands import doctor as doctor_cmd
+from midas_cli.commands import labels as labels_cmd
 from midas_cli.commands import record as record_cmd
 from midas_cli.commands import session as session_cmd
 from midas_cli.commands.common import STDERR_LOG, error_line
@@ -24,6 +25,7 @@ app = typer.Typer(
 )
 app.command("record")(record_cmd.record)
 app.add_typer(session_cmd.app, name="session")
+app.add_typer(labels_cmd.app, name="labels")
 app.command("doctor")(doctor_cmd.doctor)
 
 _state = {"debug": False}
