@@ -11,6 +11,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from midas_cli.devices.base import KINDS, DeviceUrl
 from midas_cli.errors import ConfigError
@@ -48,7 +49,9 @@ class RigConfig:
     source: str = ""
 
     def device_urls(self) -> dict[str, str]:
-        return {name: device.url for name, device in self.devices.items()}
+        """Device name -> URL; a ``password_env`` key travels as a URL parameter (the name of an
+        environment variable, never a password), so the backend reads the password in its worker."""
+        return {name: _with_password_env(device) for name, device in self.devices.items()}
 
     def to_manifest(self) -> dict[str, Any]:
         """The rig as recorded in a manifest: URLs without passwords, secrets dropped."""
@@ -58,6 +61,13 @@ class RigConfig:
             devices[name] = {"url": DeviceUrl.parse(device.url).redacted(), "kind": device.kind, **extras}
         return {"name": self.name, "platform": self.platform, "master_rate_hz": self.master_rate_hz,
                 "description": self.description, "source": self.source, "devices": devices}
+
+
+def _with_password_env(device: DeviceConfig) -> str:
+    variable = device.extras.get("password_env")
+    if not variable:
+        return device.url
+    return device.url + ("&" if "?" in device.url else "?") + f"password_env={quote(variable)}"
 
 
 def simulated_rig() -> RigConfig:

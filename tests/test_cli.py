@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import typer.main
 
-from midas_cli.commands.main import app
+from midas_cli.commands.main import build_app
 from tests.conftest import REPO, midas
 
 
@@ -23,7 +23,7 @@ def _commands(group: typer.Typer, prefix: tuple[str, ...] = ()) -> list[tuple[st
     return found
 
 
-ALL_COMMANDS = _commands(app)
+ALL_COMMANDS = _commands(build_app())
 
 
 def test_the_expected_commands_exist() -> None:
@@ -58,11 +58,19 @@ def test_bad_device_url_is_a_clear_usage_error(tmp_path: Path) -> None:
     assert not any(tmp_path.iterdir()), "no session folder may be created for a bad configuration"
 
 
-def test_unavailable_backend_is_refused_before_recording(tmp_path: Path) -> None:
-    result = midas("record", "--rig", str(REPO / "sessions_template/rigs/raven-ii.toml"), "--subject", "1",
-                   "--trial", "1", "--out", str(tmp_path))
+def test_unknown_backend_is_refused_before_recording(tmp_path: Path) -> None:
+    result = midas("record", "--device", "emht=nosuch:///dev/x", "--subject", "1", "--task", "t", "--trial", "1",
+                   "--out", str(tmp_path))
     assert result.returncode == 2
     assert "not available" in result.stderr and "\n" not in result.stderr.strip()
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_rig_whose_hardware_is_absent_fails_fast_with_exit_3(tmp_path: Path) -> None:
+    result = midas("record", "--rig", str(REPO / "sessions_template/rigs/raven-ii.toml"), "--subject", "1",
+                   "--trial", "1", "--out", str(tmp_path), "--no-tui")
+    assert result.returncode == 3, result.stderr
+    assert "could not open" in result.stderr.splitlines()[-1] or "ttyUSB0" in result.stderr.splitlines()[-1]
 
 
 def test_session_errors_exit_4(tmp_path: Path) -> None:
@@ -76,3 +84,16 @@ def test_doctor_reports_json() -> None:
 
     facts = json.loads(midas("doctor", "--json", check=True).stdout)
     assert facts["packages"]["numpy"] and "serial_ports" in facts and "cuda" in facts["gpu"]
+
+
+def test_the_cli_starts_without_importing_heavy_libraries() -> None:
+    """Every command pays for what the CLI imports at start: torch and cv2 load only where used."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.argv = ['midas', '--debug', 'record', '--help']\n"
+            "from midas_cli.commands.main import run\n"
+            "try:\n    run()\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('torch', 'cv2', 'scipy', 'matplotlib') if m in sys.modules))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert loaded.strip().splitlines()[-1] == "[]"

@@ -26,6 +26,17 @@ def _spawn(out: Path, *extra: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 
+def _wait_for_rows(out: Path, stream: str = "emht", rows: int = 480, timeout_s: float = 60) -> Path:
+    """Block until a session under ``out`` has ``rows`` samples of ``stream`` on disk (start-up varies)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        files = list(out.glob(f"*/streams/{stream}.csv"))
+        if files and files[0].read_bytes().count(b"\n") > rows:
+            return files[0].parents[1]
+        time.sleep(0.2)
+    raise AssertionError(f"no session under {out} reached {rows} {stream} rows")
+
+
 def _only_session(out: Path) -> Path:
     folders = [p for p in out.iterdir() if p.is_dir()]
     assert len(folders) == 1, folders
@@ -101,7 +112,7 @@ def test_same_seed_gives_the_same_samples(ten_second_session, tmp_path: Path) ->
 
 def test_sigkill_leaves_a_repairable_session(tmp_path: Path) -> None:
     process = _spawn(tmp_path, "--simulate", "--duration", "60", "--no-tui")
-    time.sleep(6)
+    _wait_for_rows(tmp_path, rows=240 * 4)
     killed_at_ns = time.time_ns()
     process.send_signal(signal.SIGKILL)
     process.communicate(timeout=10)
@@ -128,7 +139,7 @@ def _workers_alive() -> bool:
                                         (signal.SIGINT, "complete")])
 def test_stop_signals_finalise_the_session(tmp_path: Path, sig: signal.Signals, status: str) -> None:
     process = _spawn(tmp_path, "--simulate", "--duration", "60", "--no-tui")
-    time.sleep(4)
+    _wait_for_rows(tmp_path, rows=240 * 2)
     process.send_signal(sig)
     stdout, stderr = process.communicate(timeout=30)
     assert process.returncode == 0, stderr
@@ -151,8 +162,8 @@ def test_status_json_lines_for_scripts(tmp_path: Path) -> None:
 
 
 def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> None:
-    result = midas("record", "--simulate", "--device", "emht=sim://emht?dropout_at=2&dropout_for=1.5",
-                   "--duration", "6", "--out", str(tmp_path), *META, "--no-tui", timeout=60, check=True)
+    result = midas("record", "--simulate", "--device", "emht=sim://emht?dropout_at=3.5&dropout_for=1.5",
+                   "--duration", "8", "--out", str(tmp_path), *META, "--no-tui", timeout=60, check=True)
     path = Path(result.stdout.splitlines()[-1])
     manifest = Session.open(path).manifest
     emht = manifest["devices"]["emht"]

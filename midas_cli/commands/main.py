@@ -1,7 +1,12 @@
-"""The `midas` entry point: command registration and the error -> exit code mapping."""
+"""The `midas` entry point: command registration and the error -> exit code mapping.
+
+Commands are registered from a table and only the module of the command being run is imported
+(``midas record`` never loads torch or OpenCV); ``midas --help`` imports them all to list them.
+"""
 
 from __future__ import annotations
 
+import importlib
 import logging
 import sys
 import traceback
@@ -9,24 +14,26 @@ import traceback
 import typer
 
 from midas_cli import __version__
-from midas_cli.commands import doctor as doctor_cmd
-from midas_cli.commands import labels as labels_cmd
-from midas_cli.commands import record as record_cmd
-from midas_cli.commands import session as session_cmd
 from midas_cli.commands.common import STDERR_LOG, error_line
 from midas_cli.errors import MidasError
 
-app = typer.Typer(
-    help="midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-    context_settings={"help_option_names": ["-h", "--help"]},
-)
-app.command("record")(record_cmd.record)
-app.add_typer(session_cmd.app, name="session")
-app.add_typer(labels_cmd.app, name="labels")
-app.command("doctor")(doctor_cmd.doctor)
+# name -> (module under midas_cli.commands, attribute, "command" | "group")
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "record": ("record", "record", "command"),
+    "session": ("session", "app", "group"),
+    "labels": ("labels", "app", "group"),
+    "simulate": ("simulate", "app", "group"),
+    "import": ("import_cmd", "app", "group"),
+    "emulate": ("emulate", "app", "group"),
+    "calibrate": ("calibrate", "app", "group"),
+    "ground-truth": ("ground_truth", "app", "group"),
+    "align": ("align", "align", "command"),
+    "eval": ("eval", "app", "group"),
+    "train": ("train", "app", "group"),
+    "features": ("features", "app", "group"),
+    "extract": ("extract", "app", "group"),
+    "doctor": ("doctor", "doctor", "command"),
+}
 
 _state = {"debug": False}
 
@@ -37,8 +44,7 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
-@app.callback()
-def main(
+def _main(
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logging."),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
 ) -> None:
@@ -50,9 +56,35 @@ def main(
     logging.getLogger().addHandler(STDERR_LOG)
 
 
+def build_app(only: str | None = None) -> typer.Typer:
+    """The CLI with every command, or with just ``only`` (what `run` uses, to import one module)."""
+    app = typer.Typer(
+        help="midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).",
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+        context_settings={"help_option_names": ["-h", "--help"]},
+    )
+    app.callback()(_main)
+    for name, (module_name, attribute, kind) in COMMANDS.items():
+        if only is not None and name != only:
+            continue
+        target = getattr(importlib.import_module(f"midas_cli.commands.{module_name}"), attribute)
+        if kind == "group":
+            app.add_typer(target, name=name)
+        else:
+            app.command(name)(target)
+    return app
+
+
+def _invoked_command(argv: list[str]) -> str | None:
+    first = next((arg for arg in argv if not arg.startswith("-")), None)
+    return first if first in COMMANDS else None
+
+
 def run() -> None:
     try:
-        app(prog_name="midas")
+        build_app(_invoked_command(sys.argv[1:]))(prog_name="midas")
     except MidasError as exc:
         if _state["debug"]:
             traceback.print_exc()

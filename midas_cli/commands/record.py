@@ -16,7 +16,7 @@ from rich.table import Table
 
 from midas_cli.commands.common import STDERR_LOG, err
 from midas_cli.console import dashboard, is_interactive, status_line
-from midas_cli.errors import ConfigError, SessionError
+from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.devices.base import DeviceUrl
@@ -69,6 +69,7 @@ def record(
     try:
         if not recorder.wait_ready():
             err.print("midas: warning: some devices did not start within 15 s; recording the others")
+        _fail_if_unopened(recorder)
         with display:
             run_until(recorder, duration, lambda: stop.reason is not None or recorder.fatal_error is not None,
                       display.update)
@@ -82,6 +83,16 @@ def record(
         raise SessionError(f"{recorder.fatal_error} (session kept: {recorder.path})")
 
 
+def _fail_if_unopened(recorder: Recorder) -> None:
+    """A device that could not be opened at all at the start stops the recording at once (exit 3),
+    rather than recording without it; a device lost later is reconnected while the others record."""
+    failed = recorder.unopened()
+    if failed:
+        recorder.stop("interrupted", f"could not open {', '.join(failed)} at the start")
+        details = "; ".join(f"{name}: {error}" for name, error in failed.items())
+        raise DeviceError(f"{details} (recording stopped; the session folder is kept as interrupted: {recorder.path})")
+
+
 def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigConfig:
     if simulate and rig is not None:
         raise ConfigError("give either --simulate or --rig, not both")
@@ -91,6 +102,7 @@ def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigCo
     if device and not (simulate or rig):
         config.devices.clear()
         config.name, config.platform, config.source = "command-line", "unknown", "--device"
+        config.description = "devices given with --device"
     for item in device:
         name, sep, url = item.partition("=")
         if not sep or not name or not url:

@@ -78,6 +78,7 @@ class Device(ABC):
         self.name = name
         self.url = url
         self.counters = DeviceCounters()
+        self.final_info: dict[str, Any] = {}  # what ``finish`` checked; merged into the manifest's info
 
     @property
     @abstractmethod
@@ -91,6 +92,12 @@ class Device(ABC):
     @abstractmethod
     def read(self) -> dict[str, list[tuple]]:
         """Block for at most a few ms; return new rows per stream name (possibly none)."""
+
+    def finish(self) -> dict[str, list[tuple]]:
+        """The recording is ending normally (called once, before ``close``): stop what the device
+        records by itself and return its last rows per stream (e.g. frames only known once a file is
+        finalised); put what was checked in ``final_info``. Default: nothing to add."""
+        return {}
 
     def close(self) -> None:
         """Release the device; must be safe to call twice."""

@@ -98,7 +98,8 @@ class Recorder:
         with _terminal_signals_ignored():
             for name, url in self.plan.devices.items():
                 job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
-                                stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid())
+                                stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
+                                session_dir=str(self.path.resolve()))
                 process = self._ctx.Process(target=run_worker, args=(job, self._queue, self._stop_workers),
                                             name=f"midas-{name}", daemon=True)
                 process.start()
@@ -119,6 +120,11 @@ class Recorder:
                     return True
             time.sleep(0.02)
         return False
+
+    def unopened(self) -> dict[str, str]:
+        """Devices that failed every attempt to open so far: name -> their last error."""
+        with self._lock:
+            return {name: r.last_error for name, r in self.devices.items() if r.opens == 0 and r.state == "lost"}
 
     def _stall_timeout(self, device: str) -> float:
         rates = [s.spec.nominal_rate_hz for s in self.streams.values() if s.spec.device == device]
@@ -183,6 +189,8 @@ class Recorder:
             elif event.event in ("lost", "open_failed", "crashed"):
                 record.state = "lost"
                 record.last_error = (event.message.strip().splitlines() or [""])[-1]
+            elif event.event == "finished":  # what the device checked at stop (e.g. OBS frames vs file)
+                record.info = {**record.info, **event.info}
             elif event.event == "exited":
                 record.exited = True
                 record.state = "stopped"

@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 BATCH_S = 0.005
 BACKOFF_START_S = 0.25
-BACKOFF_MAX_S = 4.0
+BACKOFF_MAX_S = 1.0  # a returning device is retried within 1 s (issue 3: reconnect within 2 s)
 
 
 @dataclass(frozen=True)
@@ -42,6 +42,7 @@ class WorkerJob:
     seed: int
     stall_timeout_s: float
     parent_pid: int
+    session_dir: str = ""  # absolute session folder, for devices that write files into it (obs:// video/)
 
 
 def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
@@ -65,7 +66,7 @@ def _serve(job: WorkerJob, out, stop, clock: HostClock, totals: dict[str, int]) 
     backoff = BACKOFF_START_S
     while not stop.is_set() and os.getppid() == job.parent_pid:
         try:
-            device = create_device(job.device, job.url, clock, job.start_ns, job.seed)
+            device = create_device(job.device, job.url, clock, job.start_ns, job.seed, job.session_dir)
             info = device.open()
         except MidasError as exc:
             _send_event(out, job, clock, "open_failed", str(exc), totals)
@@ -76,6 +77,8 @@ def _serve(job: WorkerJob, out, stop, clock: HostClock, totals: dict[str, int]) 
         _send_event(out, job, clock, "opened", info=info, totals=totals)
         try:
             _pump(device, job, out, stop, totals)
+            if device.final_info:
+                _send_event(out, job, clock, "finished", info=device.final_info, totals=totals)
         except MidasError as exc:
             _send_event(out, job, clock, "lost", str(exc), totals)
         finally:
@@ -101,6 +104,8 @@ def _pump(device: Device, job: WorkerJob, out, stop, totals: dict[str, int]) -> 
         if now - last_data > job.stall_timeout_s:
             _flush(device, specs, pending, out, totals)
             raise DeviceError(f"{job.device}: no data for {job.stall_timeout_s:.2f} s")
+    for name, rows in device.finish().items():
+        pending[name].extend(rows)
     _flush(device, specs, pending, out, totals)
 
 

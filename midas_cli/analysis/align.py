@@ -1,0 +1,404 @@
+"""Every stream of a session onto the video frame clock (DESIGN.md section 7), plus a lag estimator.
+
+Reference clock: the ``t_host_ns`` of the ``video`` stream (frame i = video ``seq`` i). Each other
+stream is associated with each frame causally (latest sample at or before the frame time) or by the
+nearest sample; ``<stream>_delta_ms`` = chosen sample time - frame time (host clock, ms). A frame whose
+chosen sample is further than ``stale_periods`` nominal sample periods away (before the stream starts,
+after it ends, inside an outage) is masked, never filled with a sentinel value.
+
+Column names in the aligned table: ``<stream>.<column>`` for raw values, and derived columns:
+``emht.{left,right}_hand_{x,y,z}_mm`` (midpoint of the hand's thumb and middle sensors, transmitter
+frame), ``emht.{hand}_grasper_mm`` (thumb-middle sensor distance), ``emht.{hand}_v{x,y,z}_mm_s``
+(velocity of the hand point), ``handkp.{hand}_hand_{x,y,z}_mm`` (keypoint midpoint, camera frame,
+gap-filled), ``handkp.{hand}_filled`` (0 detected, 1 spline-filled, 2 forward-filled), ``clutch``
+(0/1), and ``<source>_<target>_<model>.{hand}_{x,y,z}_mm`` / ``_{yaw,pitch,roll}_deg`` where a
+calibration in ``calib/`` maps a source (emht, handkp) into a robot frame (mtm, psm).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.interpolate import CubicSpline
+
+from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, load_calibration
+from midas_cli.analysis.transforms import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
+from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session.derived import AlignedTable, find_calibration, write_aligned
+from midas_cli.session.reader import Session
+
+log = logging.getLogger(__name__)
+
+METHODS = ("causal", "nearest")
+HANDS = ("left", "right")
+EMHT_SENSORS = {"left": (2, 1), "right": (3, 4)}  # (thumb, middle) trakSTAR sensor numbers
+CLUTCH_FPS_CHANNEL = 5  # the paper's "Pedal 5 = Clutch"
+REFERENCE = "video"
+
+
+@dataclass(frozen=True)
+class AlignOptions:
+    """``method`` causal|nearest; ``rate_hz`` downsamples the frame clock (None keeps every frame);
+    gaps in HandKP up to ``spline_max_gap_s`` are spline-filled, longer ones forward-filled."""
+
+    method: str = "causal"
+    rate_hz: float | None = None
+    spline_max_gap_s: float = 1.0
+    stale_periods: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"alignment method {self.method!r} is unknown (expected one of {', '.join(METHODS)})")
+        if self.rate_hz is not None and not 0 < self.rate_hz <= 1000:
+            raise ConfigError(f"--rate must be in (0, 1000] Hz, got {self.rate_hz}")
+
+
+class ColumnSet:
+    """Aligned columns being built: name -> (N,) float64 values (NaN = masked) and metadata."""
+
+    def __init__(self, n_frames: int) -> None:
+        self.n = n_frames
+        self.values: dict[str, np.ndarray] = {}
+        self.meta: dict[str, dict[str, Any]] = {}
+
+    def add(self, name: str, values: np.ndarray, unit: str = "", source: str = "", **meta: Any) -> None:
+        values = np.asarray(values, dtype=float)
+        if values.shape != (self.n,):
+            raise SessionError(f"aligned column {name!r} has shape {values.shape}, expected ({self.n},)")
+        self.values[name] = values
+        self.meta[name] = {"unit": unit, "source": source, **{k: v for k, v in meta.items() if v}}
+
+    def get(self, name: str) -> np.ndarray | None:
+        return self.values.get(name)
+
+    def stack(self, names: list[str]) -> np.ndarray:
+        """(N, len(names)) of existing columns."""
+        return np.column_stack([self.values[n] for n in names])
+
+
+def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Index of the sample chosen for each frame, its validity and its offset.
+
+    sample_ns (M,) ascending, frame_ns (N,) host ns. Returns idx (N,) int (clipped into range),
+    valid (N,) bool, delta_ms (N,) float = sample time - frame time (NaN where invalid).
+    """
+    if len(sample_ns) == 0:
+        return np.zeros(len(frame_ns), dtype=int), np.zeros(len(frame_ns), bool), np.full(len(frame_ns), np.nan)
+    after = np.searchsorted(sample_ns, frame_ns, side="right")
+    idx = after - 1  # latest sample at or before the frame
+    if method == "nearest":
+        nxt = np.minimum(after, len(sample_ns) - 1)
+        prev = np.maximum(idx, 0)
+        take_next = (idx < 0) | (np.abs(sample_ns[nxt] - frame_ns) < np.abs(frame_ns - sample_ns[prev]))
+        idx = np.where(take_next, nxt, prev)
+    valid = idx >= 0
+    idx = np.clip(idx, 0, len(sample_ns) - 1)
+    offset = sample_ns[idx] - frame_ns
+    valid &= np.abs(offset) <= stale_ns
+    return idx, valid, np.where(valid, offset / 1e6, np.nan)
+
+
+def associate_stream(frame: pd.DataFrame, spec_columns: list[str], frame_ns: np.ndarray, method: str,
+                     stale_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Values (N, C) of ``spec_columns`` at each frame (NaN where masked) and delta_ms (N,)."""
+    order = np.argsort(frame["t_host_ns"].to_numpy(), kind="stable")
+    sample_ns = frame["t_host_ns"].to_numpy()[order]
+    idx, valid, delta = associate(sample_ns, frame_ns, method, stale_ns)
+    raw = frame[spec_columns].to_numpy(dtype=float, na_value=np.nan)[order]
+    values = raw[idx] if len(raw) else np.full((len(frame_ns), len(spec_columns)), np.nan)
+    values[~valid] = np.nan
+    return values, delta
+
+
+def value_columns(session: Session, stream: str) -> list[Any]:
+    """The data columns of a stream: everything except seq, t_host_ns and device-clock columns."""
+    return [c for c in session.stream_spec(stream).columns if c.clock is None and c.name != "seq"]
+
+
+def stale_ns_for(session: Session, stream: str, options: AlignOptions) -> int:
+    rate = session.stream_spec(stream).nominal_rate_hz
+    return int(options.stale_periods * 1e9 / rate) if rate > 0 else int(1e9)
+
+
+def reference_frames(session: Session) -> tuple[np.ndarray, np.ndarray]:
+    """Video frame indices (N,) and host times (N,) ns: the reference clock, sorted by time."""
+    if REFERENCE not in session.stream_names:
+        raise SessionError(f"{session.path} has no {REFERENCE!r} stream: it is the frame clock `align` needs")
+    video = session.read_stream(REFERENCE)
+    if video.empty:
+        raise SessionError(f"{session.path}: the video stream has no frames")
+    video = video.sort_values("t_host_ns", kind="stable")
+    return video["seq"].to_numpy(np.int64), video["t_host_ns"].to_numpy(np.int64)
+
+
+def read_streams(session: Session) -> dict[str, pd.DataFrame]:
+    """Every stream except the reference, read once."""
+    return {name: session.read_stream(name) for name in session.stream_names if name != REFERENCE}
+
+
+def add_raw_streams(session: Session, data: dict[str, pd.DataFrame], columns: ColumnSet, frame_ns: np.ndarray,
+                    options: AlignOptions, shifts_ns: dict[str, int]) -> None:
+    """Associate every stream in ``data`` with the frames; a stream in ``shifts_ns`` is associated at
+    frame time + shift (compensating a known latency)."""
+    for stream, frame in data.items():
+        cols = value_columns(session, stream)
+        values, delta = associate_stream(frame, [c.name for c in cols], frame_ns + shifts_ns.get(stream, 0),
+                                         options.method, stale_ns_for(session, stream, options))
+        for j, col in enumerate(cols):
+            columns.add(f"{stream}.{col.name}", values[:, j], col.unit, stream, frame=col.frame,
+                        description=col.description)
+        columns.add(f"{stream}_delta_ms", delta, "ms", stream, description="chosen sample time - frame time")
+
+
+def emht_sensor_arrays(columns: ColumnSet, prefix: str = "emht") -> tuple[np.ndarray, np.ndarray] | None:
+    """(N, 4, 3) positions (mm) and (N, 4, 3) yaw/pitch/roll (deg) of sensors 1..4, or None."""
+    names = [f"{prefix}.s{s}_{a}_mm" for s in range(1, 5) for a in "xyz"]
+    if any(columns.get(n) is None for n in names):
+        return None
+    angles = [f"{prefix}.s{s}_{a}_deg" for s in range(1, 5) for a in ("azimuth", "elevation", "roll")]
+    pos = columns.stack(names).reshape(-1, 4, 3)
+    ang = columns.stack(angles).reshape(-1, 4, 3) if all(columns.get(n) is not None for n in angles) else None
+    return pos, ang
+
+
+def hand_points(sensor_pos: np.ndarray) -> dict[str, np.ndarray]:
+    """Hand point (N, 3) = midpoint of the thumb and middle sensors, per hand."""
+    return {h: (sensor_pos[:, t - 1] + sensor_pos[:, m - 1]) / 2 for h, (t, m) in EMHT_SENSORS.items()}
+
+
+def add_emht_features(columns: ColumnSet, t_s: np.ndarray) -> None:
+    """Hand points, grasper distances and hand velocities from the aligned EmHT sensors."""
+    arrays = emht_sensor_arrays(columns)
+    if arrays is None:
+        return
+    pos = arrays[0]
+    for hand, point in hand_points(pos).items():
+        thumb, middle = EMHT_SENSORS[hand]
+        for k, axis in enumerate("xyz"):
+            columns.add(f"emht.{hand}_hand_{axis}_mm", point[:, k], "mm", "emht", frame="emht_transmitter",
+                        description="midpoint of the thumb and middle sensors")
+        columns.add(f"emht.{hand}_grasper_mm", np.linalg.norm(pos[:, thumb - 1] - pos[:, middle - 1], axis=1), "mm",
+                    "emht", description="thumb-middle sensor distance (grasper opening)")
+        velocity = velocity_mm_s(point, t_s)
+        for k, axis in enumerate("xyz"):
+            columns.add(f"emht.{hand}_v{axis}_mm_s", velocity[:, k], "mm/s", "emht", frame="emht_transmitter",
+                        description="hand point velocity (central differences on the frame clock)")
+
+
+def velocity_mm_s(points: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Central-difference velocity (N, 3) of points (N, 3) mm sampled at t_s (N,) s; NaN propagates."""
+    if len(t_s) < 2:
+        return np.full_like(points, np.nan)
+    return np.gradient(points, t_s, axis=0)
+
+
+def fill_gaps(t_s: np.ndarray, values: np.ndarray, max_spline_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Fill NaN rows of ``values`` (N, D): cubic spline through the valid rows for gaps whose bounding
+    valid frames are at most ``max_spline_gap_s`` apart, forward fill otherwise (also after the last
+    valid row); rows before the first valid row stay NaN. Returns filled (N, D), fill code (N,) int
+    (0 = original, 1 = spline, 2 = forward fill, -1 = still missing)."""
+    valid = np.isfinite(values).all(axis=1)
+    code = np.where(valid, 0, -1)
+    filled = values.copy()
+    if valid.sum() == 0:
+        return filled, code
+    good = np.flatnonzero(valid)
+    nxt = np.searchsorted(good, np.arange(len(t_s)))  # index into good of the next valid row
+    prev_row = good[np.clip(nxt - 1, 0, len(good) - 1)]
+    has_prev = nxt > 0
+    has_next = nxt < len(good)
+    span = np.where(has_prev & has_next, t_s[good[np.clip(nxt, 0, len(good) - 1)]] - t_s[prev_row], np.inf)
+    spline_rows = ~valid & has_prev & has_next & (span <= max_spline_gap_s)
+    ffill_rows = ~valid & has_prev & ~spline_rows
+    if spline_rows.any() and len(good) >= 2:
+        filled[spline_rows] = CubicSpline(t_s[good], values[good], axis=0)(t_s[spline_rows])
+        code[spline_rows] = 1
+    filled[ffill_rows] = values[prev_row[ffill_rows]]
+    code[ffill_rows] = 2
+    return filled, code
+
+
+def add_handkp_features(columns: ColumnSet, t_s: np.ndarray, options: AlignOptions) -> None:
+    """Per hand: gap-filled keypoint midpoint in the camera frame and which frames were filled."""
+    for hand in HANDS:
+        names = [f"handkp.{hand}_{kp}_{a}_mm" for kp in ("thumb", "middle") for a in "xyz"]
+        if any(columns.get(n) is None for n in names):
+            continue
+        keypoints = columns.stack(names)  # (N, 6): thumb xyz, middle xyz
+        midpoint = (keypoints[:, :3] + keypoints[:, 3:]) / 2
+        raw_valid = np.isfinite(midpoint).all(axis=1)
+        filled, code = fill_gaps(t_s, midpoint, options.spline_max_gap_s)
+        for k, axis in enumerate("xyz"):
+            columns.add(f"handkp.{hand}_hand_{axis}_mm", filled[:, k], "mm", "handkp", frame="camera",
+                        description="thumb-middle keypoint midpoint; gaps filled (see _filled)")
+        columns.add(f"handkp.{hand}_filled", np.where(code < 0, np.nan, code), "code", "handkp",
+                    description="0 detected, 1 cubic-spline filled (gap <= 1 s), 2 forward-filled")
+        columns.add(f"handkp.{hand}_raw_valid", raw_valid.astype(float), "bool", "handkp",
+                    description="1 where the hand was detected in the associated frame")
+
+
+def add_clutch(columns: ColumnSet) -> None:
+    """``clutch`` (0/1): robot clutch telemetry (mtm stream) where present, else the FPS clutch pedal."""
+    for name, source in (("mtm.clutch", "mtm"), (f"fps.ch{CLUTCH_FPS_CHANNEL}_pressed", "fps")):
+        values = columns.get(name)
+        if values is not None:
+            columns.add("clutch", values, "bool", source, description=f"clutch state from {name}")
+            return
+
+
+def downsample_rows(t_ns: np.ndarray, rate_hz: float | None) -> np.ndarray:
+    """Indices of the frames kept at ``rate_hz``: the first frame of each 1/rate bin (all if None).
+
+    Bin edges get a quarter-frame tolerance: frame times rounded to whole ns (frame 3 at 30 Hz is
+    99 999 999 ns) must not slip into the previous bin and make the kept frames irregular."""
+    if rate_hz is None or len(t_ns) == 0:
+        return np.arange(len(t_ns))
+    tolerance_ns = float(np.median(np.diff(t_ns))) / 4 if len(t_ns) > 1 else 0.0
+    bins = np.floor((t_ns - t_ns[0] + tolerance_ns) * rate_hz / 1e9).astype(np.int64)
+    return np.flatnonzero(np.r_[True, np.diff(bins) > 0])
+
+
+def build_table(frames: np.ndarray, frame_ns: np.ndarray, columns: ColumnSet, rows: np.ndarray,
+                meta: dict[str, Any]) -> AlignedTable:
+    names = list(columns.values)
+    values = columns.stack(names)[rows] if names else np.zeros((len(rows), 0))
+    meta = {**meta, "frames": int(len(rows)), "columns": [{"name": n, **columns.meta[n]} for n in names]}
+    return AlignedTable(frames[rows], frame_ns[rows], names, values, np.isfinite(values), meta)
+
+
+def estimate_lag(reference: np.ndarray, signal: np.ndarray, rate_hz: float, max_lag_s: float = 0.5) -> float:
+    """Lag in seconds by which ``signal`` trails ``reference`` (both (N,) or (N, D) on one uniform clock
+    at ``rate_hz``): the shift maximising the summed normalised cross-correlation, refined to a
+    fraction of a sample by a parabola through the peak. Positive = signal is late. NaN rows ignored."""
+    ref = _standardise(np.asarray(reference, dtype=float).reshape(len(reference), -1))
+    sig = _standardise(np.asarray(signal, dtype=float).reshape(len(signal), -1))
+    max_shift = max(1, int(round(max_lag_s * rate_hz)))
+    shifts = np.arange(-max_shift, max_shift + 1)
+    scores = np.array([_shifted_correlation(ref, sig, s) for s in shifts])
+    if not np.isfinite(scores).any():
+        raise SessionError("cannot estimate a lag: the signals have no overlapping valid samples")
+    best = int(np.nanargmax(scores))
+    offset = 0.0
+    if 0 < best < len(scores) - 1 and np.isfinite(scores[best - 1 : best + 2]).all():
+        left, mid, right = scores[best - 1 : best + 2]
+        denom = left - 2 * mid + right
+        offset = 0.5 * (left - right) / denom if denom < 0 else 0.0
+    return float((shifts[best] + offset) / rate_hz)
+
+
+def _standardise(x: np.ndarray) -> np.ndarray:
+    mean, std = np.nanmean(x, axis=0), np.nanstd(x, axis=0)
+    return (x - mean) / np.where(std > 0, std, 1.0)
+
+
+def _shifted_correlation(ref: np.ndarray, sig: np.ndarray, shift: int) -> float:
+    """Mean of ref[t] * sig[t + shift] over rows where both are valid."""
+    a, b = (ref[: len(ref) - shift], sig[shift:]) if shift >= 0 else (ref[-shift:], sig[: len(sig) + shift])
+    product = a * b
+    ok = np.isfinite(product)
+    return float(product[ok].mean()) if ok.sum() > 10 else np.nan
+
+
+CALIBRATION_STEMS = tuple(f"{s}_to_{t}" for s in SOURCES for t in TARGETS)
+
+
+def load_session_calibrations(session_path: Path) -> list[Calibration]:
+    """Every calibration ``calibrate`` wrote into the session's ``calib/`` (emht/handkp -> mtm/psm)."""
+    found = [find_calibration(session_path, f"{stem}.json") for stem in CALIBRATION_STEMS]
+    return [load_calibration(path) for path in found if path is not None]
+
+
+def add_calibrated(session: Session, data: dict[str, pd.DataFrame], columns: ColumnSet, frame_ns: np.ndarray,
+                   calibration: Calibration, options: AlignOptions) -> None:
+    """Columns ``<source>_<target>_<model>.<hand>_*`` from one calibration (EmHT re-associated at
+    frame time + the calibration's lag, so the estimate refers to the frame's true time)."""
+    prefix = f"{calibration.source}_{calibration.target}"
+    if calibration.source not in data:
+        return
+    if calibration.source == "emht":
+        lagged = ColumnSet(len(frame_ns))
+        shift = {"emht": int(round(calibration.lag_ms * 1e6))}
+        add_raw_streams(session, {"emht": data["emht"]}, lagged, frame_ns, options, shift)
+        arrays = emht_sensor_arrays(lagged)
+        if arrays is None:
+            return
+        points = hand_points(arrays[0])
+        rotations = matrices_from_angles(arrays[1].reshape(-1, 3)).reshape(-1, 4, 3, 3) if arrays[1] is not None else None
+    else:
+        points = {h: columns.stack([f"handkp.{h}_hand_{a}_mm" for a in "xyz"]) for h in HANDS
+                  if columns.get(f"handkp.{h}_hand_x_mm") is not None}
+        rotations = None
+    for model in calibration.models:
+        for hand, point in points.items():
+            mapped = calibration.positions(point, model)
+            for k, axis in enumerate("xyz"):
+                columns.add(f"{prefix}_{model}.{hand}_{axis}_mm", mapped[:, k], "mm", calibration.source,
+                            frame=calibration.target, description=f"{calibration.stem} ({model}), lag {calibration.lag_ms:.1f} ms")
+            if rotations is not None and calibration.has_orientation(hand):
+                thumb, middle = EMHT_SENSORS[hand]
+                hand_rot = calibration.orientations(rotations[:, thumb - 1], rotations[:, middle - 1], hand)
+                angles = angles_from_matrices(hand_rot)
+                for k, name in enumerate(("yaw", "pitch", "roll")):
+                    columns.add(f"{prefix}_{model}.{hand}_{name}_deg", angles[:, k], "deg", calibration.source,
+                                frame=calibration.target, description="composition of rotations (thumb and middle sensors)")
+
+
+def add_robot_orientation(columns: ColumnSet) -> None:
+    """``mtm.<hand>_{yaw,pitch,roll}_deg`` / ``psm...`` from the logged quaternions (for evaluation)."""
+    for robot in TARGETS:
+        for hand in HANDS:
+            names = [f"{robot}.{hand}_q{a}" for a in "xyzw"]
+            if any(columns.get(n) is None for n in names):
+                continue
+            angles = angles_from_matrices(matrices_from_quaternions(columns.stack(names)))
+            for k, name in enumerate(("yaw", "pitch", "roll")):
+                columns.add(f"{robot}.{hand}_{name}_deg", angles[:, k], "deg", robot, frame=robot,
+                            description="from the logged quaternion (Rz @ Ry @ Rx convention)")
+
+
+def align_session(path: Path | str, options: AlignOptions = AlignOptions()) -> AlignedTable:
+    """Align one session (see the module docstring); does not write anything."""
+    session = Session.open(path)
+    frames, frame_ns = reference_frames(session)
+    t_s = (frame_ns - frame_ns[0]) / 1e9
+    columns = ColumnSet(len(frames))
+    data = read_streams(session)
+    add_raw_streams(session, data, columns, frame_ns, options, {})
+    add_emht_features(columns, t_s)
+    add_handkp_features(columns, t_s, options)
+    add_robot_orientation(columns)
+    add_clutch(columns)
+    calibrations = load_session_calibrations(session.path)
+    for calibration in calibrations:
+        add_calibrated(session, data, columns, frame_ns, calibration, options)
+    meta = {
+        "format": "midas-aligned-v1",
+        "session_id": session.manifest["session_id"],
+        "reference": "video frame times (t_host_ns of the video stream); frame = video seq",
+        "method": options.method,
+        "rate_hz": options.rate_hz,
+        "stale_after_periods": options.stale_periods,
+        "handkp_gap_fill": f"cubic spline for gaps <= {options.spline_max_gap_s} s, forward fill beyond",
+        "sources": {s: session.manifest["streams"][s].get("sha256") for s in session.stream_names},
+        "calibrations_applied": [{"file": f"calib/{c.stem}.json", "models": c.models, "lag_ms": c.lag_ms,
+                                  "held_out": c.info.get("held_out")} for c in calibrations],
+    }
+    return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
+
+
+def align_and_write(path: Path | str, options: AlignOptions = AlignOptions()) -> dict[str, Any]:
+    """Align one session and write ``derived/aligned.*``; returns a summary (paths, frames, columns)."""
+    table = align_session(path, options)
+    written = write_aligned(path, table)
+    masked = {s: float(1 - table.mask[:, i].mean()) for i, s in enumerate(table.columns) if s.endswith("_delta_ms")}
+    return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
+            "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},
+            "calibrations": [c["file"] for c in table.meta["calibrations_applied"]],
+            "files": {k: str(v) for k, v in written.items()}}
+

@@ -1,0 +1,213 @@
+"""`eval correlation` / `eval pedals` / `calibrate fps-optimize` over many aligned sessions: collect
+per-session rows, average them into the paper's tables, write files and figures."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pandas as pd
+
+from midas_cli.analysis import evaluation as ev
+from midas_cli.analysis.figures import grasper_figure, pedal_figure, trajectory_figure
+from midas_cli.analysis.metrics import binary_scores
+from midas_cli.analysis.report import json_safe, write_tables
+from midas_cli.devices.pedals import adc_to_volts
+from midas_cli.errors import SessionError
+from midas_cli.session.derived import (AlignedTable, calib_path, find_calibration, output_dir, read_aligned,
+                                       read_pedals_ground_truth)
+from midas_cli.session.reader import Session
+
+FPS_RULES_FILE = "fps_optimized.json"
+
+
+@dataclass
+class EvalResult:
+    """Tables (key -> (DataFrame, caption)), per-session rows, files written, data provenance."""
+
+    tables: dict[str, tuple[pd.DataFrame, str]]
+    rows: dict[str, list[dict[str, Any]]]
+    files: list[Path] = field(default_factory=list)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+def data_label(paths: list[Path]) -> str:
+    """"simulated" when every session was written by a simulator, "recorded" when none, else "mixed"."""
+    simulated = [Session.open(p).manifest.get("stop_reason") == "simulated" for p in paths]
+    return "simulated" if all(simulated) else ("recorded" if not any(simulated) else "mixed (simulated and recorded)")
+
+
+def _provenance(paths: list[Path], tables: list[AlignedTable]) -> dict[str, Any]:
+    label = data_label(paths)
+    return {"data_label": f"{label} data, {len(paths)} session(s)", "sessions": [str(p) for p in paths],
+            "aligned": [{"session": t.meta.get("session_id"), "method": t.meta.get("method"),
+                         "calibrations": t.meta.get("calibrations_applied", [])} for t in tables]}
+
+
+def _default_out(paths: list[Path], out: Path | None) -> Path:
+    if out is not None:
+        return out
+    if len(paths) == 1:
+        return output_dir(paths[0], "eval")
+    raise SessionError("several sessions given: say where the averaged tables go with --out DIR")
+
+
+def run_correlation(paths: list[Path], out: Path | None, plots: bool,
+                    progress: Callable[[str], None] = lambda _: None) -> EvalResult:
+    """CoS/NRMSE, grasper and lag tables averaged over ``paths``; figures per session when ``plots``."""
+    rows: dict[str, list[dict[str, Any]]] = {"correlation": [], "grasper": [], "lag": []}
+    tables = []
+    files: list[Path] = []
+    for path in paths:
+        progress(Path(path).name)
+        table = read_aligned(path)
+        session = table.meta.get("session_id", Path(path).name)
+        rows["correlation"] += ev.correlation_rows(table, session)
+        rows["grasper"] += ev.grasper_rows(table, session)
+        rows["lag"] += ev.lag_rows(table, session)
+        tables.append(table)
+        if plots:
+            files += correlation_figures(path, table)
+    result = EvalResult(correlation_tables(rows), rows, files, _provenance(paths, tables))
+    result.files += write_tables(_default_out(paths, out), "correlation", result.tables, rows, result.provenance)
+    return result
+
+
+def correlation_tables(rows: dict[str, list[dict[str, Any]]]) -> dict[str, tuple[pd.DataFrame, str]]:
+    n = len({r["session"] for r in rows["correlation"] + rows["grasper"] + rows["lag"]})
+    return {
+        "correlation": (ev.correlation_table(rows["correlation"]),
+                        f"Mean CoS and NRMSE(%) per axis over {n} trial(s) and both hands"),
+        "grasper": (ev.summarise(rows["grasper"], ["comparison"], ["iou", "accuracy", "precision"]),
+                    f"Grasper open/close IoU, accuracy, precision over {n} trial(s) and both hands"),
+        "handkp_all_frames": (ev.handkp_table(rows["correlation"], "all"),
+                              "HandKP estimation of the MTM trajectory (gaps filled)"),
+        "handkp_detected_frames": (ev.handkp_table(rows["correlation"], "detected"),
+                                   "HandKP estimation of the MTM trajectory (ignoring missing data)"),
+        "lag": (ev.summarise(rows["lag"], ["comparison"], ["lag_ms"]),
+                "Lag of the hand modality behind the robot kinematics (speed cross-correlation)"),
+    }
+
+
+def correlation_figures(path: Path, table: AlignedTable) -> list[Path]:
+    """Per session: trajectory overlays (left hand) for each calibrated source, and grasper states."""
+    folder = output_dir(path, "plots")
+    files = []
+    for name, source, target in ev.COMPARISONS:
+        models = ev.models_for(table, source, target)
+        if target == "mtm" and models:
+            prefix = f"{source}_{target}_{models[-1]}"
+            drawn = trajectory_figure(table, "left", prefix, folder / f"trajectory_{source}_left.png",
+                                      f"{name} ({models[-1]}), left hand")
+            files += [drawn] if drawn else []
+    states = ev.grasper_states(table)
+    left = {label: by_hand["left"] for label, by_hand in states.items() if "left" in by_hand}
+    if left:
+        files.append(grasper_figure(table.times_s(), left, folder / "grasper_left.png", "Left grasper"))
+    return files
+
+
+def load_rules(path: Path) -> dict[str, ev.PedalRule]:
+    """Pedal rules from a ``calibrate fps-optimize`` file (``calib/fps_optimized.json``)."""
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+        return {p: ev.PedalRule(float(r["threshold_v"]), r["polarity"]) for p, r in data["pedals"].items()}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SessionError(f"cannot read pedal thresholds {path}: {exc}") from exc
+
+
+def run_pedals(paths: list[Path], out: Path | None, plots: bool, use_optimized: bool,
+               progress: Callable[[str], None] = lambda _: None) -> EvalResult:
+    """Per pedal and overall precision/recall/F1/IoU/lag averaged over ``paths``."""
+    rows: list[dict[str, Any]] = []
+    tables, files = [], []
+    for path in paths:
+        progress(Path(path).name)
+        table = read_aligned(path)
+        truth = ev.pedal_truth(table, read_pedals_ground_truth(path))
+        if not truth:
+            raise SessionError(f"{path} has no pedal ground truth: neither derived/pedals_gt.csv nor an mtm "
+                               f"clutch column (run `midas ground-truth pedals` or align a Raven-II session)")
+        rules_file = find_calibration(path, FPS_RULES_FILE) if use_optimized else None
+        session_rows = ev.pedal_rows(table, table.meta.get("session_id", Path(path).name), truth,
+                                     load_rules(rules_file) if rules_file else None)
+        overall = ev.overall_pedal_row(session_rows)
+        rows += session_rows + ([overall] if overall else [])
+        tables.append(table)
+        if plots:
+            files += pedal_figures(path, table, truth, session_rows)
+    per_pedal = ev.summarise(rows, ["pedal", "channel"], ["f1", "precision", "recall", "iou", "lag_ms", "usage_pct"])
+    n = len({r["session"] for r in rows})
+    result = EvalResult({"pedals": (per_pedal, f"Foot pedal state detection, averaged over {n} trial(s)")},
+                        {"pedals": rows}, files, _provenance(paths, tables))
+    result.files += write_tables(_default_out(paths, out), "pedals", result.tables, result.rows, result.provenance)
+    return result
+
+
+def pedal_figures(path: Path, table: AlignedTable, truth: dict[str, np.ndarray], rows: list[dict]) -> list[Path]:
+    folder = output_dir(path, "plots")
+    files = []
+    for row in rows:
+        if row["tp"] + row["fn"] == 0:
+            continue
+        det = ev.pedal_detection(table, row["pedal"])
+        files.append(pedal_figure(table.times_s(), np.nan_to_num(truth[row["pedal"]]), np.nan_to_num(det),
+                                  folder / f"pedal_{row['pedal']}.png",
+                                  f"{row['pedal']} (FPS channel {row['channel']}): F1 {row['f1']:.2f}, IoU {row['iou']:.2f}"))
+    return files
+
+
+def optimise_pedals(paths: list[Path], out: Path | None) -> dict[str, Any]:
+    """Per pedal, the threshold (V) and polarity maximising F1 over all frames of ``paths`` against the
+    ground truth; reports F1 of the recorded states (before) and of the rule (after). Writes
+    ``calib/fps_optimized.json`` into each session (or ``out``). Pedals never pressed are left out."""
+    volts: dict[str, list[np.ndarray]] = {}
+    truths: dict[str, list[np.ndarray]] = {}
+    before: dict[str, list[np.ndarray]] = {}
+    for path in paths:
+        table = read_aligned(path)
+        for pedal, gt in ev.pedal_truth(table, read_pedals_ground_truth(path)).items():
+            column = f"fps.ch{ev.PEDAL_CHANNELS[pedal]}_adc"
+            if table.has(column):
+                volts.setdefault(pedal, []).append(adc_to_volts(table.column(column)))
+                truths.setdefault(pedal, []).append(gt)
+                before.setdefault(pedal, []).append(ev.pedal_detection(table, pedal))
+    pedals = {}
+    for pedal in volts:
+        v, g, b = (np.concatenate(x[pedal]) for x in (volts, truths, before))
+        if not np.nansum(g):
+            continue  # never pressed in the ground truth: nothing to optimise against
+        rule, f1 = best_rule(v, g)
+        pedals[pedal] = {"channel": ev.PEDAL_CHANNELS[pedal], "threshold_v": rule.threshold_v,
+                         "polarity": rule.polarity, "f1_before": binary_scores(b, g).f1, "f1_after": f1}
+    if not pedals:
+        raise SessionError("no pedal is ever pressed in the ground truth of these sessions: nothing to optimise")
+    document = json_safe({"format": "midas-fps-optimized-v1", "trained_on": [str(p) for p in paths], "pedals": pedals,
+                          "rule": "pressed when volts >= threshold (above) or <= threshold (below); no hysteresis"})
+    targets = [Path(out)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]
+    for target in targets:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    return {**document, "written": [str(t) for t in targets]}
+
+
+def best_rule(volts: np.ndarray, truth: np.ndarray) -> tuple[ev.PedalRule, float]:
+    """The (threshold, polarity) with the highest F1 over every distinct voltage as threshold (exact,
+    O(n log n): frames sorted by voltage, true positives counted cumulatively)."""
+    ok = np.isfinite(volts) & np.isfinite(truth)
+    v, g = volts[ok], truth[ok] > 0.5
+    if not g.any():
+        raise SessionError("cannot optimise a pedal threshold without any pressed ground-truth frame")
+    best = (ev.PedalRule(float(v.max())), -1.0)
+    for polarity, sign in (("above", 1.0), ("below", -1.0)):
+        order = np.argsort(-sign * v, kind="stable")  # most "pressed-like" first
+        ranked, tp = v[order], np.cumsum(g[order])
+        last = np.r_[ranked[1:] != ranked[:-1], True]  # threshold = ranked[i] takes every frame up to i
+        f1 = np.where(last, 2 * tp / (np.arange(1, len(v) + 1) + g.sum()), -1.0)  # 2tp / (2tp + fp + fn)
+        k = int(np.argmax(f1))
+        if f1[k] > best[1]:
+            best = (ev.PedalRule(float(ranked[k]), polarity), float(f1[k]))
+    return best

@@ -1,0 +1,80 @@
+"""PNG figures like the paper's: trajectory overlays per axis, pedal step plots with the overlap
+shaded, grasper open/closed states. Drawn with matplotlib (Agg backend, no display needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from midas_cli.analysis.evaluation import AXES
+from midas_cli.errors import ConfigError
+from midas_cli.session.derived import AlignedTable
+
+
+def _pyplot():
+    try:
+        import matplotlib
+    except ImportError as exc:
+        raise ConfigError("plots need matplotlib: pip install matplotlib (or run with --no-plots)") from exc
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def trajectory_figure(table: AlignedTable, hand: str, source_prefix: str, path: Path, title: str) -> Path | None:
+    """Six panels (X, Y, Z, roll, pitch, yaw): MTM, PSM and the calibrated source over time."""
+    plt = _pyplot()
+    t = table.times_s()
+    fig, axes = plt.subplots(6, 1, figsize=(10, 11), sharex=True)
+    drawn = False
+    for ax, (axis, suffix) in zip(axes, AXES):
+        for column, label, style in ((f"mtm.{hand}_{suffix}", "MTM", "-"), (f"psm.{hand}_{suffix}", "PSM", ":"),
+                                     (f"{source_prefix}.{hand}_{suffix}", source_prefix, "--")):
+            if table.has(column):
+                ax.plot(t, table.column(column), style, lw=1, label=label)
+                drawn = True
+        ax.set_ylabel(f"{axis} ({'mm' if suffix.endswith('mm') else 'deg'})")
+    if not drawn:
+        plt.close(fig)
+        return None
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("time since first frame (s)")
+    return _save(plt, fig, path)
+
+
+def pedal_figure(t_s: np.ndarray, truth: np.ndarray, detected: np.ndarray, path: Path, title: str) -> Path:
+    """Step plot of ground truth and detection with frames where both are pressed shaded."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(10, 2.6))
+    ax.step(t_s, truth + 0.02, where="post", lw=1.2, label="ground truth")
+    ax.step(t_s, detected - 0.02, where="post", lw=1.2, label="FPS detection")
+    both = (truth > 0.5) & (detected > 0.5)
+    ax.fill_between(t_s, 0, 1, where=both, step="post", alpha=0.25, color="tab:green", label="overlap (IoU)")
+    ax.set_yticks([0, 1], ["released", "pressed"])
+    ax.set_xlabel("time since first frame (s)")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=8)
+    return _save(plt, fig, path)
+
+
+def grasper_figure(t_s: np.ndarray, states: dict[str, np.ndarray], path: Path, title: str) -> Path:
+    """Closed (1) / open (0) step plots of each source, offset vertically."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(10, 3))
+    for k, (label, values) in enumerate(states.items()):
+        ax.step(t_s, values + 1.5 * k, where="post", lw=1, label=label)
+    ax.set_yticks([1.5 * k + 0.5 for k in range(len(states))], list(states))
+    ax.set_xlabel("time since first frame (s)")
+    ax.set_title(title + " (high = closed)")
+    return _save(plt, fig, path)
+
+
+def _save(plt, fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

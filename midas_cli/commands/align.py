@@ -1,0 +1,64 @@
+"""`midas align SESSION...`: every stream onto the video frame clock -> derived/aligned.{npz,csv,json}."""
+
+from __future__ import annotations
+
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.errors import ConfigError
+
+
+def align(
+    sessions: list[Path] = typer.Argument(..., help="Session folder(s).", file_okay=False),
+    method: str = typer.Option("causal", "--method", help=f"Sample chosen per frame: {' or '.join(METHODS)} "
+                               "(latest at or before the frame / nearest in time)."),
+    rate: Optional[float] = typer.Option(None, "--rate", help="Downsample the frame clock to this rate (Hz), "
+                                         "e.g. 10; default: every video frame."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Align every stream of each session onto its video frame clock (causal or nearest sample,
+    per-stream delta, HandKP gaps filled, masks instead of sentinels, calibrations in calib/ applied,
+    velocity / grasper distance / clutch derived) and write derived/aligned.npz, .csv and .json.
+
+    Example: midas align sessions/*/ --rate 10 --jobs 2
+    """
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    options = AlignOptions(method=method, rate_hz=rate)
+    results = _run(sessions, options, jobs)
+    if as_json:
+        print_json(results)
+        return
+    table = Table("session", "frames", "columns", "masked (per stream)", "calibrations", header_style="bold")
+    for r in results:
+        masked = ", ".join(f"{k} {v:.1%}" for k, v in r["masked_fraction"].items())
+        table.add_row(Path(r["session"]).name, str(r["frames"]), str(r["columns"]), masked,
+                      ", ".join(Path(c).stem for c in r["calibrations"]) or "—")
+    out.print(table)
+
+
+def _run(sessions: list[Path], options: AlignOptions, jobs: int) -> list[dict[str, Any]]:
+    """Align each session (in ``jobs`` processes), with a progress bar on stderr; input order kept."""
+    columns = (TextColumn("aligning"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    results: dict[Path, dict[str, Any]] = {}
+    with Progress(*columns, console=err, transient=True) as progress:
+        task = progress.add_task("align", total=len(sessions))
+        if jobs == 1:
+            for path in sessions:
+                results[path] = align_and_write(path, options)
+                progress.advance(task)
+        else:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                futures = {pool.submit(align_and_write, path, options): path for path in sessions}
+                for future in as_completed(futures):
+                    results[futures[future]] = future.result()
+                    progress.advance(task)
+    return [results[p] for p in sessions]

@@ -1,0 +1,171 @@
+"""`midas emulate ...`: byte-faithful device emulators on pseudo-terminals (for tests and dry runs)."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from midas_cli.commands.common import JSON_OPTION, err, print_json
+from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
+from midas_cli.devices.raven.device import parse_address
+from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
+from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator, serve_for
+from midas_cli.errors import ConfigError
+
+app = typer.Typer(help="Serve emulated serial devices on pseudo-terminals.", no_args_is_help=True)
+
+
+@app.command()
+def trakstar(
+    sensors: int = typer.Option(4, "--sensors", help="Sensors on the tracker (1..4)."),
+    baud: int = typer.Option(115200, "--baud", help="Line speed the output is paced to (8N1)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's motion and of the faults."),
+    corrupt: float = typer.Option(0.0, "--corrupt", help="Probability per byte of framing-breaking line noise."),
+    drop: float = typer.Option(0.0, "--drop", help="Probability per byte of losing it."),
+    stall_at: float = typer.Option(-1.0, "--stall-at", help="Seconds after start: stop sending (see --stall-for)."),
+    stall_for: float = typer.Option(0.0, "--stall-for", help="Length of the stall in seconds."),
+    unplug_at: float = typer.Option(-1.0, "--unplug-at", help="Seconds after start: close the pty (needs --link)."),
+    unplug_for: float = typer.Option(0.0, "--unplug-for", help="Seconds until the pty is reopened at --link."),
+    link: Optional[Path] = typer.Option(None, "--link", help="Symlink that always points at the current pty."),
+    summary: Optional[Path] = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Serve the trakSTAR's Flock-of-Birds RS-232 protocol on a pty, paced to the baud rate, with the
+    simulated surgeon's motion and optional faults. Prints the port path (the --link if given) as the
+    first stdout line; stops on Ctrl-C, SIGTERM or --duration and reports what it sent.
+
+    Example: midas emulate trakstar --link /tmp/trakstar --summary /tmp/trakstar.json --corrupt 0.01
+    """
+    if duration is not None and duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {duration}")
+    config = EmulatorConfig(sensors, baud, seed, corrupt, drop, stall_at, stall_for, unplug_at, unplug_for,
+                            str(link) if link else None)
+    emulator = TrakstarEmulator(config)
+    sys.stdout.write(emulator.path + "\n")
+    sys.stdout.flush()
+    stopped = _stop_on_signals()
+    try:
+        serve_for(emulator, duration, lambda: stopped["signal"] is not None)
+    finally:
+        result = emulator.stop()
+        if summary is not None:
+            emulator.write_summary(summary)
+    err.print(f"trakstar emulator: {result['stream_groups_sent']} cycles streamed, records per sensor "
+              f"{result['records_per_sensor']}, {result['bytes_corrupted']} bytes corrupted, "
+              f"{result['bytes_dropped']} dropped, {len(result['unplugs'])} unplug(s)")
+    if as_json:
+        print_json({k: v for k, v in result.items() if k not in ("stream_counters", "stream_t_model_s")})
+
+
+def _stop_on_signals() -> dict:
+    """SIGINT/SIGTERM end the emulation cleanly (the summary is still written)."""
+    stopped: dict = {"signal": None}
+
+    def handle(signum: int, _frame) -> None:
+        stopped["signal"] = signum
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handle)
+    return stopped
+
+
+@app.command()
+def fps(
+    channels: int = typer.Option(9, "--channels", help="FSR channels on the board (1..9)."),
+    rate: int = typer.Option(250, "--rate", help="Sample rate at boot in Hz (the host sets its own with RATE)."),
+    baud: int = typer.Option(500000, "--baud", help="The firmware's line speed (limits the rate it accepts)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's feet and of the faults."),
+    pedals: str = typer.Option("model", "--pedals", help="model: the surgeon presses pedals; idle: feet at rest."),
+    corrupt: float = typer.Option(0.0, "--corrupt", help="Probability per byte of corrupting it."),
+    drop: float = typer.Option(0.0, "--drop", help="Probability per byte of losing it."),
+    stall_at: float = typer.Option(-1.0, "--stall-at", help="Seconds after start: the board hangs (see --stall-for)."),
+    stall_for: float = typer.Option(0.0, "--stall-for", help="Length of the stall in seconds."),
+    unplug_at: float = typer.Option(-1.0, "--unplug-at", help="Seconds after start: pull the cable (use --link)."),
+    unplug_for: float = typer.Option(0.0, "--unplug-for", help="Seconds until it is plugged back in (a reboot)."),
+    link: Optional[Path] = typer.Option(None, "--link", help="Symlink that always points at the current pty."),
+    summary: Optional[Path] = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Serve the FPS pedal board's MIDAS-FPS line protocol (firmware/fps/PROTOCOL.md) on a pty, paced
+    by its sample clock, with the simulated surgeon's feet and optional faults. Prints the port path
+    (the --link if given) as the first stdout line. Lines on stdin control it: `press N`, `release N`,
+    `auto N`, `unplug`, `replug`. Stops on Ctrl-C, SIGTERM or --duration and reports what it sent.
+
+    Example: midas emulate fps --link /tmp/fps --summary /tmp/fps.json --corrupt 0.01
+    """
+    if duration is not None and duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {duration}")
+    windows = {name: ((at, length),) if at >= 0 and length > 0 else ()
+               for name, at, length in (("stalls", stall_at, stall_for), ("unplugs", unplug_at, unplug_for))}
+    config = FpsEmulatorConfig(channels, rate, baud, seed, pedals, corrupt_p=corrupt, drop_p=drop,
+                               link=link, keep_samples=summary is not None, **windows)
+    emulator = FpsEmulator(config).start()
+    sys.stdout.write(emulator.path + "\n")
+    sys.stdout.flush()
+    stopped = _stop_on_signals()
+    threading.Thread(target=_stdin_controls, args=(emulator,), daemon=True).start()
+    deadline = None if duration is None else time.monotonic() + duration
+    try:
+        while stopped["signal"] is None and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.05)
+    finally:
+        emulator.stop()
+        if summary is not None:
+            emulator.write_report(summary)
+    result = {k: v for k, v in emulator.report().items() if k != "samples"}
+    err.print(f"fps emulator: {result['sent']} samples sent ({result['intact']} intact), "
+              f"{result['corrupted_bytes']} bytes corrupted, {result['dropped_bytes']} dropped, "
+              f"{len(result['boots'])} boot(s)")
+    if as_json:
+        print_json(result)
+
+
+def _stdin_controls(emulator: FpsEmulator) -> None:
+    """Apply control lines from stdin until EOF; a bad line is reported and skipped."""
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        try:
+            emulator.control(line)
+        except ConfigError as exc:
+            err.print(f"midas: error: {exc}", markup=False, highlight=False)
+
+
+@app.command()
+def raven(
+    to: str = typer.Option("127.0.0.1:36000", "--to", help="HOST:PORT the console's UDP packets go to."),
+    rate: float = typer.Option(1000.0, "--rate", help="Packets per second."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's hands and clutch pedal."),
+    corrupt_every: int = typer.Option(0, "--corrupt-every", help="After every N packets send a wrong-size one."),
+    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Send Raven-II surgeon-console telemetry (124-byte u_struct UDP packets) following the simulated
+    surgeon: position increments, orientations, grasp and the clutch as surgeon_mode. Stops on Ctrl-C,
+    SIGTERM or --duration and reports how many packets it sent.
+
+    Example: midas emulate raven --to 127.0.0.1:36000 --rate 1000 --duration 10
+    """
+    if duration is not None and duration <= 0:
+        raise ConfigError(f"--duration must be positive, got {duration}")
+    host, port = parse_address(to, "--to")
+    emulator = RavenEmulator(RavenEmulatorConfig(host, port, rate, seed, corrupt_every), keep_sent=False).start()
+    stopped = _stop_on_signals()
+    deadline = None if duration is None else time.monotonic() + duration
+    try:
+        while stopped["signal"] is None and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.05)
+    finally:
+        result = emulator.stop()
+    err.print(f"raven emulator: {result['packets_sent']} packets sent to {host}:{port}, "
+              f"{result['wrong_size_sent']} wrong-size")
+    if as_json:
+        print_json(result)

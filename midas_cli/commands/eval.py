@@ -1,0 +1,68 @@
+"""`midas eval correlation|pedals`: the paper's validation tables from aligned sessions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import pandas as pd
+import typer
+from rich.table import Table
+
+from midas_cli.analysis.eval_runs import EvalResult, run_correlation, run_pedals
+from midas_cli.analysis.report import format_cell, json_safe
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+
+app = typer.Typer(help="Validate sensing modalities against robot ground truth (paper tables).",
+                  no_args_is_help=True)
+
+SESSIONS_ARG = typer.Argument(..., help="Aligned session folder(s) (run `midas align` first).", file_okay=False)
+OUT_OPTION = typer.Option(None, "--out", help="Folder for the tables averaged over all sessions (CSV, JSON, "
+                          "Markdown, LaTeX); default with one session: its derived/eval/.", file_okay=False)
+PLOTS_OPTION = typer.Option(True, "--plots/--no-plots", help="Write PNG figures into each session's derived/plots/.")
+
+
+@app.command()
+def correlation(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION,
+                plots: bool = PLOTS_OPTION, as_json: bool = JSON_OPTION) -> None:
+    """CoS and NRMSE per axis (X, Y, Z, roll, pitch, yaw) for EmHT-MTM, EmHT-PSM, HandKP-MTM, HandKP-PSM,
+    grasper open/close IoU/accuracy/precision, HandKP with and without missing frames, and the hand
+    modalities' lag; averaged over the sessions (trials) and both hands.
+
+    Example: midas eval correlation data/raven/*/ --out results/raven-ii
+    """
+    _render(run_correlation(sessions, out_dir, plots, lambda m: err.print(f"evaluating {m}", markup=False)), as_json)
+
+
+@app.command()
+def pedals(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION, plots: bool = PLOTS_OPTION,
+           optimized: bool = typer.Option(False, "--optimized", help="Detect presses with the thresholds of "
+                                          "`calibrate fps-optimize` (calib/fps_optimized.json) instead of the "
+                                          "recorded states."),
+           as_json: bool = JSON_OPTION) -> None:
+    """Per pedal and overall frame-level precision, recall, F1, temporal IoU and lag (ms) of the FPS
+    against Raven-II clutch telemetry or derived/pedals_gt.csv, averaged over the sessions.
+
+    Example: midas eval pedals data/davinci/*/ --out results/davinci-xi
+    """
+    _render(run_pedals(sessions, out_dir, plots, optimized, lambda m: err.print(f"evaluating {m}", markup=False)),
+            as_json)
+
+
+def _render(result: EvalResult, as_json: bool) -> None:
+    if as_json:
+        print_json(json_safe({"provenance": result.provenance, "files": [str(f) for f in result.files],
+                              "tables": {k: t.to_dict("records") for k, (t, _) in result.tables.items()}}))
+        return
+    for table, caption in result.tables.values():
+        if not table.empty:
+            out.print(_rich(table, f"{caption} — {result.provenance['data_label']}"))
+    err.print(f"wrote {len(result.files)} file(s), e.g. {result.files[-1]}" if result.files else "wrote nothing",
+              markup=False)
+
+
+def _rich(frame: pd.DataFrame, title: str) -> Table:
+    table = Table(*map(str, frame.columns), title=title, header_style="bold")
+    for row in frame.itertuples(index=False):
+        table.add_row(*(format_cell(v) for v in row))
+    return table

@@ -1,0 +1,102 @@
+"""`midas ground-truth pedals`: pedal states read from the console video's UI indicators."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from midas_cli.analysis.pedal_video.ground_truth import (GroundTruthRequest, GroundTruthResult, JobFailure,
+                                                         resolve_input, result_dict, run_many)
+from midas_cli.analysis.pedal_video.layout import load_layout
+from midas_cli.analysis.pedal_video.preview import preview_frame, write_png
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.console import is_interactive
+from midas_cli.errors import ConfigError
+
+app = typer.Typer(help="Ground truth read from recordings (pedal states from the console video).",
+                  no_args_is_help=True)
+
+REAL_TIME_FPS = 30.0
+
+
+@app.command("pedals")
+def pedals(
+    inputs: list[Path] = typer.Argument(..., help="Session folders (one video in video/) or video files."),
+    layout: str = typer.Option("davinci-xi", "--layout", help="Built-in layout name or a layout TOML file."),
+    view: str = typer.Option("auto", "--view", help="auto (left half of side-by-side stereo), left or full."),
+    min_duration: int = typer.Option(1, "--min-duration", help="Drop state changes lasting fewer frames."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Videos processed in parallel (worker processes)."),
+    preview: Optional[int] = typer.Option(None, "--preview", help="Frame index (0-based): draw the regions "
+                                          "and their states on that frame instead of extracting."),
+    out_path: Optional[Path] = typer.Option(None, "--out", help="PNG for --preview; CSV for one bare video "
+                                            "(default: <video>.pedals_gt.csv beside it)."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Read pedal states from the console video; write derived/pedals_gt.csv (frame = 0-based video frame
+    index = seq of the session's video stream, t_host_ns, one 0/1 column per pedal) and a JSON sidecar.
+
+    Example: midas ground-truth pedals sessions/suturing_S1_T1_20260101T120000Z --min-duration 2
+    """
+    if preview is not None:
+        _preview(inputs, layout, view, preview, out_path, as_json)
+        return
+    if out_path is not None and len(inputs) > 1:
+        raise ConfigError("--out names one output file: give one video, or leave --out out")
+    requests = [GroundTruthRequest(p, layout, view, min_duration, out_path) for p in inputs]
+    load_layout(layout)  # a bad layout is one usage error, not one failure per input
+    outcomes = _run_with_progress(requests, jobs)
+    failures = [o for o in outcomes if isinstance(o, JobFailure)]
+    if as_json:
+        print_json([result_dict(o) for o in outcomes])
+    else:
+        _render([o for o in outcomes if isinstance(o, GroundTruthResult)])
+    for failure in failures:
+        err.print(f"midas: error: {failure.input}: {failure.message}", markup=False, highlight=False)
+    if failures:
+        raise typer.Exit(max(f.exit_code for f in failures))
+
+
+def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: Optional[Path], as_json: bool) -> None:
+    if len(inputs) != 1 or out_path is None:
+        raise ConfigError("--preview needs exactly one session or video and --out FILE.png")
+    video, _, _ = resolve_input(inputs[0], None)
+    picture, reading = preview_frame(video, load_layout(layout), frame, view)
+    path = write_png(out_path, picture)
+    if as_json:
+        print_json({"png": str(path), "frame": frame, "pedals": reading.pedals,
+                    "regions": {k: {"on": s, "score": round(v, 4)} for k, (s, v) in reading.regions.items()}})
+        return
+    pressed = [p for p, on in reading.pedals.items() if on]
+    out.print(f"frame {frame}: pressed {', '.join(pressed) or 'none'}", markup=False)
+    out.print(str(path), markup=False)
+
+
+def _run_with_progress(requests: list[GroundTruthRequest], jobs: int) -> list[GroundTruthResult | JobFailure]:
+    if not is_interactive():
+        outcomes = run_many(requests, jobs)
+        for outcome in outcomes:
+            if isinstance(outcome, GroundTruthResult):
+                err.print(f"midas: {outcome.input}: {outcome.frames} frames -> {outcome.csv}", markup=False)
+        return outcomes
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=err, transient=False) as progress:
+        tasks = [progress.add_task(r.input.name, total=None) for r in requests]
+
+        def update(index: int, done: int, total: int) -> None:
+            progress.update(tasks[index], completed=done, total=total or None)
+        return run_many(requests, jobs, update)
+
+
+def _render(results: list[GroundTruthResult]) -> None:
+    if not results:
+        return
+    pedals = list(results[0].pressed_fraction)
+    table = Table("input", "frames", "fps", "x real time", *[f"{p} %" for p in pedals], "output", header_style="bold")
+    for r in results:
+        table.add_row(Path(r.input).name, str(r.frames), f"{r.speed_fps:.0f}", f"{r.speed_fps / REAL_TIME_FPS:.1f}",
+                      *[f"{100 * r.pressed_fraction.get(p, 0):.1f}" for p in pedals], r.csv)
+    out.print(table)

@@ -1,0 +1,68 @@
+"""`midas import midas-dcs|jigsaws|compass`: other systems' recordings -> v1 session folders."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.importers.midas_dcs import import_midas_dcs
+from midas_cli.importers.surgical import import_surgical
+
+app = typer.Typer(help="Import sessions from other formats (original MiDAS folders, JIGSAWS, COMPASS).",
+                  no_args_is_help=True)
+
+FOLDER_ARG = typer.Argument(..., help="Source folder.")
+OUT_OPTION = typer.Option(..., "--out", help="Folder that receives the new session folder(s).")
+
+
+def _render(results: list[tuple[Path, dict[str, Any]]], as_json: bool) -> None:
+    if as_json:
+        print_json([{"path": str(path), "import_report": report} for path, report in results])
+        return
+    for path, report in results:
+        err.print(_summary(report), markup=False, highlight=False)
+        out.print(str(path), markup=False, highlight=False, soft_wrap=True)
+
+
+def _summary(report: dict[str, Any]) -> str:
+    """One line per source file: what was found and which quirks were handled."""
+    lines = [f"imported {report.get('source') or report.get('kinematics', {}).get('path')}"]
+    for name, facts in report.items():
+        if isinstance(facts, dict) and "path" in facts:
+            keys = ("rows", "records", "frames", "header_quirk", "malformed_rows_skipped", "all_placeholder_rows",
+                    "host_times_adjusted", "note", "row_widths", "pds_block_placeholders")
+            shown = ", ".join(f"{k}={facts[k]}" for k in keys if k in facts)
+            lines.append(f"  {name}: {shown}")
+    return "\n".join(lines)
+
+
+@app.command("midas-dcs")
+def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
+              platform: str = typer.Option("unknown", "--platform", help="Platform to record (not in the source)."),
+              as_json: bool = JSON_OPTION) -> None:
+    """Import one folder of the original MiDAS system; quirks are reported here and in logs/import_report.json.
+
+    Example: midas import midas-dcs ../shared/data/midas-dcs-sample/trakt_Strakt_T1_2024-07-05 --out sessions
+    """
+    _render([import_midas_dcs(folder, out_dir, platform)], as_json)
+
+
+@app.command("jigsaws")
+def jigsaws(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool = JSON_OPTION) -> None:
+    """Import every JIGSAWS trial (kinematics/AllGestures/*.txt + transcriptions/*.txt) under FOLDER.
+
+    Example: midas import jigsaws JIGSAWS/Suturing --out sessions/jigsaws
+    """
+    _render(import_surgical(folder, out_dir, "jigsaws"), as_json)
+
+
+@app.command("compass")
+def compass(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool = JSON_OPTION) -> None:
+    """Import every COMPASS trial (kinematics/*.csv + gestures/*.txt) under FOLDER.
+
+    Example: midas import compass COMPASS/Datasets/dV/Suturing --out sessions/compass
+    """
+    _render(import_surgical(folder, out_dir, "compass"), as_json)

@@ -1,0 +1,90 @@
+"""`midas simulate ...`: synthetic recordings with known ground truth (no hardware needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
+from midas_cli.simulate.dataset import generate_dataset, trial_configs
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.console import is_interactive
+from midas_cli.errors import ConfigError
+
+app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
+
+
+@app.command("dataset")
+def dataset(
+    out_root: Path = typer.Option(..., "--out", help="Folder to create the session folders in."),
+    platform: str = typer.Option("davinci-xi", "--platform", help="davinci-xi (suturing) or raven-ii (peg transfer)."),
+    trials: int = typer.Option(3, "--trials", help="Number of trials (one session folder each)."),
+    seed: int = typer.Option(0, "--seed", help="Seed: the same seed gives byte-identical sessions."),
+    subjects: int = typer.Option(1, "--subjects", help="Subjects the trials are spread over."),
+    latency_ms: float = typer.Option(40.0, "--latency-ms", help="True EmHT latency in ms."),
+    distortion_mm: float = typer.Option(1.0, "--distortion-mm", help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
+    max_seconds: Optional[float] = typer.Option(None, "--max-seconds", help="Cut each trial to this length (s)."),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="Trials generated in parallel (worker processes)."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Write a simulated dataset: one complete session per trial with known ground truth (gesture labels,
+    calibration truth and, on the da Vinci, derived/pedals_gt.csv).
+
+    Example: midas simulate dataset --out sessions --platform davinci-xi --trials 4 --seed 1
+    """
+    configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds)
+
+    def report(result: dict[str, Any]) -> None:
+        err.print(f"midas: simulated {result['path']} ({result['duration_s']:.1f} s)", markup=False)
+    results = generate_dataset(configs, jobs, report)
+    if as_json:
+        print_json(results)
+        return
+    for result in results:
+        out.print(result["path"], markup=False)
+
+
+@app.command("console-video")
+def console_video(
+    out_path: Path = typer.Option(..., "--out", help="Video file to write (.mkv/.mp4: mp4v, .avi: MJPG)."),
+    duration: float = typer.Option(20.0, "--duration", help="Length in seconds."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the pedal schedule, picture and noise."),
+    fps: float = typer.Option(30.0, "--fps", help="Frame rate in Hz."),
+    size: str = typer.Option("1920x1080", "--size", help="One view's WIDTHxHEIGHT in pixels."),
+    stereo: bool = typer.Option(False, "--stereo", help="Side-by-side stereo (two views in one frame)."),
+    noise: float = typer.Option(3.0, "--noise", help="Sensor noise, standard deviation in grey levels."),
+    max_shift: int = typer.Option(1, "--max-shift", help="Largest whole-frame shift in pixels (capture jitter)."),
+    layout: str = typer.Option("davinci-xi", "--layout", help="Layout whose indicators are drawn."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Render a synthetic da Vinci Xi console video whose pedal indicators follow a seeded schedule, and
+    write the schedule (frame, one 0/1 column per pedal) to <video stem>.schedule.csv beside it.
+
+    Example: midas simulate console-video --out console.mkv --duration 20 --seed 1
+    """
+    spec = ConsoleVideoSpec(duration, seed, fps, _parse_size(size), stereo, noise, max_shift, layout)
+    if is_interactive():
+        with Progress(TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                      console=err) as progress:
+            task = progress.add_task("render", total=spec.frames)
+            video = render_console_video(out_path, spec, lambda done, total: progress.update(task, completed=done))
+    else:
+        video = render_console_video(out_path, spec)
+    if as_json:
+        print_json({"video": str(video.video), "schedule": str(video.schedule_csv), "frames": video.frames,
+                    "pedals": video.pedals})
+        return
+    out.print(f"{video.frames} frames, pedals {', '.join(video.pedals)}", markup=False)
+    out.print(str(video.schedule_csv), markup=False)
+    out.print(str(video.video), markup=False)
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 1920x1080") from None
+    return width, height

@@ -1,0 +1,145 @@
+"""`midas train gestures|ablation`: gesture recognition with MS-TCN++ or the MTRSAP-style transformer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.errors import ConfigError
+from midas_cli.session.reader import find_sessions
+
+# midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast.
+
+app = typer.Typer(help="Train and evaluate gesture-recognition models on aligned, labelled sessions.",
+                  no_args_is_help=True)
+
+SESSIONS_ARG = typer.Argument(..., help="Session folders, or folders holding sessions (searched 3 levels deep).")
+MODALITIES_OPT = typer.Option("emht", "--modalities", help="Comma list of emht, handkp, mtm, psm, image.")
+FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, grasper, clutch.")
+SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto or louo.")
+EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
+SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
+DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
+RATE_OPT = typer.Option(None, "--rate", help="Model rate in Hz (default: Raven-II 10, otherwise 30).")
+EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
+
+
+def session_paths(paths: list[Path]) -> list[Path]:
+    found = [s for p in paths for s in find_sessions(p)]
+    if not found:
+        raise ConfigError(f"no session folders (with manifest.json) under {', '.join(map(str, paths))}")
+    return found
+
+
+def _split_list(text: str) -> tuple[str, ...]:
+    return tuple(s.strip() for s in text.split(",") if s.strip())
+
+
+def _epoch_progress(progress: Progress, label: str):
+    task = progress.add_task(label, total=None, info="")
+
+    def update(epoch: int, epochs: int, info: dict) -> None:
+        val = info.get("val_accuracy")
+        text = f"loss {info['loss']:.3f}" + (f"  val acc {val:.3f}" if val is not None else "")
+        progress.update(task, completed=epoch, total=epochs, info=text)
+
+    return update
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+                    TimeElapsedColumn(), console=err, transient=False)
+
+
+def _render_metrics(metrics: dict, run_dir: Path) -> None:
+    summary = metrics["test"]["summary"]
+    table = Table("metric", "test", header_style="bold")
+    for key in ("accuracy", "f1", "precision", "recall", "edit", "f1@10", "f1@25", "f1@50", "frames"):
+        value = summary[key]
+        table.add_row(key, f"{value:.3f}" if isinstance(value, float) else str(value))
+    out.print(table)
+    out.print(f"run folder: {run_dir}", markup=False)
+
+
+@app.command()
+def gestures(
+    sessions: list[Path] = SESSIONS_ARG,
+    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++) or transformer (MTRSAP-style)."),
+    modalities: str = MODALITIES_OPT,
+    features: str = FEATURES_OPT,
+    split: str = SPLIT_OPT,
+    fold: int = typer.Option(0, "--fold", min=0, help="loto/louo: which trial/subject (sorted) is held out."),
+    epochs: int = EPOCHS_OPT,
+    seed: int = SEED_OPT,
+    device: str = DEVICE_OPT,
+    rate: Optional[float] = RATE_OPT,
+    exclude_clutch: bool = EXCLUDE_OPT,
+    shuffle_labels: bool = typer.Option(False, "--shuffle-labels", help="Control run: permute training gesture classes."),
+    out_dir: Path = typer.Option(..., "--out", help="New run folder (config, split, metrics, checkpoint, plots)."),
+    eval_only: Optional[Path] = typer.Option(None, "--eval-only", help="Evaluate this checkpoint.pt on its test split."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser; metrics to stdout.
+
+    Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
+    """
+    from midas_cli.models.data import DatasetConfig
+    from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
+
+    paths = session_paths(sessions)
+    with _progress() as progress:
+        if eval_only is not None:
+            result = evaluate_checkpoint(paths, eval_only, out_dir, device)
+        else:
+            data = DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, rate)
+            config = TrainConfig(model=model, split=split, fold=fold, epochs=epochs, seed=seed, device=device,
+                                 shuffle_labels=shuffle_labels)
+            result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
+    if as_json:
+        print_json({"run": str(result.out_dir), "test": result.metrics["test"]["summary"]})
+        return
+    _render_metrics(result.metrics, result.out_dir)
+
+
+@app.command()
+def ablation(
+    sessions: list[Path] = SESSIONS_ARG,
+    models: str = typer.Option("transformer,mstcn", "--models", help="Comma list of models (table order)."),
+    grid: Optional[str] = typer.Option(None, "--grid", help="';'-separated rows MODALITIES:FEATURES[:exclude-clutch] "
+                                       "(default: the paper's Raven-II grid)."),
+    split: str = SPLIT_OPT,
+    epochs: int = EPOCHS_OPT,
+    seed: int = SEED_OPT,
+    device: str = DEVICE_OPT,
+    out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Train every model x grid row and write the paper-style table (Acc, F1, Prec., Rec.).
+
+    Example: midas train ablation sessions/ --models transformer,mstcn --grid "emht:pos,ori,vel:exclude-clutch;mtm:pos,ori,vel,grasper:exclude-clutch" --epochs 50 --out results/gestures
+    """
+    from midas_cli.models.ablation import parse_grid, run_ablation
+    from midas_cli.models.train import TrainConfig
+
+    paths = session_paths(sessions)
+    rows = parse_grid(grid)
+    model_list = list(_split_list(models))
+    base = TrainConfig(split=split, epochs=epochs, seed=seed, device=device)
+    with _progress() as progress:
+        runs = progress.add_task("ablation runs", total=len(rows) * len(model_list), info="")
+        epoch_update = _epoch_progress(progress, "epochs")
+
+        def on_run(label: str, k: int, n: int) -> None:
+            progress.update(runs, completed=k - 1, info=label)
+
+        report = run_ablation(paths, rows, model_list, base, out_dir, on_run, epoch_update)
+        progress.update(runs, completed=len(rows) * len(model_list))
+    if as_json:
+        print_json(report)
+        return
+    out.print((out_dir / "table.md").read_text(encoding="utf-8"), markup=False)

@@ -1,0 +1,255 @@
+"""``fob://PORT?baud=115200&sensors=4&rate=200&range=36``: the trakSTAR over its FOB-compatible RS-232 port.
+
+Opening configures the tracker (optional RTS reset, FBB auto-configuration for N sensors, position
+scaling, measurement rate, POSITION/ANGLES format per sensor, group mode), reads the settings back and
+refuses a device that did not take them, then starts STREAM. Each measurement cycle becomes one row of
+the same stream layout as the simulated EmHT (:class:`~midas_cli.devices.sim.devices.SimEmHT`):
+``seq, t_host_ns, t_device_s`` (empty: the FOB records carry no device clock), per sensor x/y/z (mm),
+azimuth/elevation/roll (deg) and quality (empty: not in POSITION/ANGLES records). A sensor whose record
+failed framing has empty fields and is counted in ``counters.corrupt``; bytes thrown away by the decoder
+are counted in ``counters.discarded_bytes``.
+
+``t_host_ns`` is the host time of the read that completed the cycle's last record, less the line time of
+the bytes that followed it in that read (see :class:`~midas_cli.devices.trakstar.protocol.RecordDecoder`),
+and at least 1 ns after the previous row's (the session format wants strictly increasing host times).
+``seq`` is the driver's cycle counter. On every (re)open it starts from the number of cycles the
+session has lasted (session start to now at the nominal rate), never below where the previous
+connection of this device in this process stopped, so an outage shows as a sequence gap.
+``PORT`` is anything pyserial's ``serial_for_url`` opens: ``/dev/ttyUSB0``, a pty path, a symlink.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any
+
+import serial
+
+from midas_cli.clock import HostClock
+from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.sim.devices import SimEmHT
+from midas_cli.devices.trakstar import protocol as fob
+from midas_cli.errors import ConfigError, DeviceError
+from midas_cli.session.schema import StreamSpec
+
+log = logging.getLogger(__name__)
+
+PARAMS = {"baud": int, "sensors": int, "rate": float, "range": int, "reset": str, "timeout": float}
+DEFAULTS = {"baud": 115200, "sensors": 4, "rate": 80.0, "range": 36, "reset": "none", "timeout": 1.0}
+BAUDS = (9600, 19200, 38400, 57600, 115200)
+READ_TIMEOUT_S = 0.005
+REPLY_TIMEOUT_S = 1.0
+AUTOCONFIG_SETTLE_S = 0.6  # the Flock needs this long after an FBB auto-configuration
+RTS_RESET_S = (1.0, 2.0)  # hold RTS high, then wait for the tracker to wake up
+_NEXT_SEQ: dict[str, int] = {}  # per device name, in this worker process: where seq resumes after a reconnect
+
+
+def first_seq(name: str, rate_hz: float, clock: HostClock, start_ns: int) -> int:
+    """Where a (re)opened device's seq starts: cycles since the session start at the nominal rate, never
+    below where the previous connection of device ``name`` in this process stopped."""
+    elapsed_ns = max(0, clock.now_ns() - start_ns)
+    return max(int(math.ceil(elapsed_ns * rate_hz / 1e9)), _NEXT_SEQ.get(name, 0))
+
+
+def remember_seq(name: str, next_seq: int) -> None:
+    """Record the seq the next row of device ``name`` would get (see :func:`first_seq`)."""
+    _NEXT_SEQ[name] = next_seq
+
+
+def emht_stream(name: str, sensors: int, rate_hz: float, description: str) -> StreamSpec:
+    """The simulated EmHT's stream layout (same columns, so downstream code does not care)."""
+    simulated = SimEmHT(name, DeviceUrl.parse(f"sim://emht?sensors={sensors}&rate={rate_hz}"), HostClock(0), 0)
+    spec = simulated.streams[0]
+    return StreamSpec(spec.name, spec.device, spec.columns, rate_hz, description)
+
+
+class FobEmHT(Device):
+    """The trakSTAR (or any Flock-of-Birds-compatible tracker) on a serial port, group mode, STREAM."""
+
+    kind = "emht"
+
+    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, start_ns: int, seed: int = 0) -> None:
+        super().__init__(name, url)
+        self.params = url.take(PARAMS, DEFAULTS)
+        self.port_path = url.target
+        self._validate()
+        self.clock = clock
+        self.start_ns = start_ns
+        self.capacity_hz = fob.line_capacity_hz(self.params["baud"], self.params["sensors"])
+        self.warning = self._capacity_warning()
+        self._port: serial.Serial | None = None
+        self._byte_ns = int(fob.BITS_PER_BYTE_ON_WIRE * 1e9 / self.params["baud"])
+        self._decoder = fob.RecordDecoder(self.params["sensors"], self.params["range"], self._byte_ns)
+        self._groups = fob.GroupAssembler(self.params["sensors"])
+        self._seq_base = 0
+        self._last_data = 0.0
+        self._last_t_host_ns = 0
+
+    def _validate(self) -> None:
+        p, raw = self.params, self.url.raw
+        if not self.port_path:
+            raise ConfigError(f"{raw}: no serial port (expected e.g. fob:///dev/ttyUSB0?baud=115200)")
+        if p["baud"] not in BAUDS:
+            raise ConfigError(f"{raw}: baud must be one of {', '.join(map(str, BAUDS))}, got {p['baud']}")
+        if not 1 <= p["sensors"] <= 4:
+            raise ConfigError(f"{raw}: sensors must be 1..4, got {p['sensors']}")
+        if not 0 < p["rate"] <= fob.MAX_RATE_HZ:
+            raise ConfigError(f"{raw}: rate must be in (0, {fob.MAX_RATE_HZ:.1f}] Hz, got {p['rate']}")
+        if p["range"] not in fob.RANGES_IN:
+            raise ConfigError(f"{raw}: range must be 36 or 72 (inches), got {p['range']}")
+        if p["reset"] not in ("none", "rts"):
+            raise ConfigError(f"{raw}: reset must be none or rts, got {p['reset']!r}")
+        if p["timeout"] <= 0:
+            raise ConfigError(f"{raw}: timeout must be positive, got {p['timeout']}")
+
+    def _capacity_warning(self) -> str:
+        """A warning when rate x sensors x 13 bytes x 10 bits exceeds the baud rate, else ''."""
+        p = self.params
+        if p["rate"] <= self.capacity_hz:
+            return ""
+        text = (f"{self.name}: {p['rate']:g} Hz x {p['sensors']} sensors x {fob.RECORD_BYTES} bytes needs "
+                f"{p['rate'] * p['sensors'] * fob.RECORD_BYTES * 10:.0f} baud but the line has {p['baud']}: "
+                f"at most {self.capacity_hz:.1f} records/s per sensor fit; the tracker will skip measurements "
+                f"(lower the rate or the number of sensors)")
+        log.warning(text)
+        return text
+
+    @property
+    def streams(self) -> list[StreamSpec]:
+        return [emht_stream(self.name, self.params["sensors"], self.params["rate"],
+                            "6-DoF pose per sensor from the trakSTAR's RS-232 (FOB) port, one row per cycle")]
+
+    def settings(self) -> dict[str, Any]:
+        extra = {"warning": self.warning} if self.warning else {}
+        return {"protocol": "Flock of Birds RS-232, group mode, POSITION/ANGLES, STREAM", "port": self.port_path,
+                **self.params, "line_capacity_hz_per_sensor": round(self.capacity_hz, 1), **extra}
+
+    # -- opening ------------------------------------------------------------------------------------
+    def open(self) -> dict[str, Any]:
+        try:
+            self._port = serial.serial_for_url(self.port_path, baudrate=self.params["baud"], timeout=READ_TIMEOUT_S,
+                                               write_timeout=REPLY_TIMEOUT_S)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceError(f"{self.name}: cannot open serial port {self.port_path}: {exc} "
+                              f"(is the trakSTAR connected and switched on, and is the port right?)") from exc
+        try:
+            info = self._configure()
+        except (serial.SerialException, OSError) as exc:
+            self.close()
+            raise DeviceError(f"{self.name}: serial port {self.port_path} failed while configuring: {exc}") from exc
+        except DeviceError:
+            self.close()
+            raise
+        return info
+
+    def _configure(self) -> dict[str, Any]:
+        """Reset, configure, verify and start streaming; return what the device said about itself."""
+        p = self.params
+        self._stop_stream()
+        if p["reset"] == "rts":
+            self._rts_reset()
+        self._send(fob.change_byte(fob.PARAM_AUTOCONFIG, p["sensors"]))
+        time.sleep(AUTOCONFIG_SETTLE_S)
+        self._send(fob.change_word(fob.PARAM_POSITION_SCALING, fob.RANGES_IN[p["range"]]))
+        self._send(fob.change_word(fob.PARAM_MEASUREMENT_RATE, fob.rate_word(p["rate"])))
+        for address in range(1, p["sensors"] + 1):
+            self._send(fob.to_sensor(address) + fob.POSITION_ANGLES)
+        self._send(fob.change_byte(fob.PARAM_GROUP_MODE, 1))
+        info = self._verify()
+        self._start_stream()
+        return info
+
+    def _verify(self) -> dict[str, Any]:
+        p = self.params
+        rate_word = self._examine(fob.PARAM_MEASUREMENT_RATE)
+        scaling = self._examine(fob.PARAM_POSITION_SCALING)
+        group = self._examine(fob.PARAM_GROUP_MODE)
+        if rate_word != fob.rate_word(p["rate"]) or scaling != fob.RANGES_IN[p["range"]] or group != 1:
+            raise DeviceError(
+                f"{self.name}: the tracker did not take the settings: measurement rate {rate_word / 256:g} Hz "
+                f"(asked {p['rate']:g}), position scaling {scaling} (asked {fob.RANGES_IN[p['range']]}), "
+                f"group mode {group} (asked 1); check the rate is supported by this tracker")
+        revision = self._examine(fob.PARAM_REVISION)
+        serial_number = self._examine(fob.PARAM_SERIAL_NUMBER)
+        return {"model": "trakSTAR / Flock of Birds (RS-232)", "serial": str(serial_number),
+                "firmware": f"{revision & 0xFF}.{revision >> 8}", "measurement_rate_hz": rate_word / 256}
+
+    def _rts_reset(self) -> None:
+        hold_s, wake_s = RTS_RESET_S
+        self._port.rts = True
+        time.sleep(hold_s)
+        self._port.rts = False
+        time.sleep(wake_s)
+        self._port.reset_input_buffer()
+
+    def _stop_stream(self) -> None:
+        """POINT stops a stream left running; drop whatever it and the stream sent."""
+        self._send(fob.POINT)
+        time.sleep(0.05)
+        self._port.reset_input_buffer()
+
+    def _start_stream(self) -> None:
+        self._port.reset_input_buffer()
+        self._seq_base = first_seq(self.name, self.params["rate"], self.clock, self.start_ns)
+        self._decoder = fob.RecordDecoder(self.params["sensors"], self.params["range"], self._byte_ns)
+        self._groups = fob.GroupAssembler(self.params["sensors"])
+        self._send(fob.STREAM)
+        self._last_data = time.monotonic()
+
+    def _send(self, command: bytes) -> None:
+        self._port.write(command)
+        self._port.flush()
+
+    def _examine(self, param: int) -> int:
+        self._send(fob.examine(param))
+        wanted = fob.reply_length(param)
+        reply = bytearray()
+        deadline = time.monotonic() + REPLY_TIMEOUT_S
+        while len(reply) < wanted and time.monotonic() < deadline:
+            reply += self._port.read(wanted - len(reply))
+        if len(reply) < wanted:
+            raise DeviceError(f"{self.name}: no answer to EXAMINE VALUE {param} within {REPLY_TIMEOUT_S:g} s "
+                              f"(got {len(reply)} of {wanted} bytes) on {self.port_path}: is the tracker on, "
+                              f"in FOB/RS-232 mode and set to {self.params['baud']} baud?")
+        return fob.parse_reply(param, bytes(reply))
+
+    # -- streaming ----------------------------------------------------------------------------------
+    def read(self) -> dict[str, list[tuple]]:
+        if self._port is None:
+            raise DeviceError(f"{self.name}: read before open")
+        try:
+            chunk = self._port.read(max(1, self._port.in_waiting))
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceError(f"{self.name}: serial port {self.port_path} failed: {exc}") from exc
+        now = time.monotonic()
+        if not chunk:
+            if now - self._last_data > self.params["timeout"]:
+                raise DeviceError(f"{self.name}: no data from {self.port_path} for {self.params['timeout']:g} s")
+            return {}
+        t_host_ns = self.clock.now_ns()
+        self._last_data = now
+        groups = self._groups.add(self._decoder.feed(chunk, t_host_ns))
+        self.counters.corrupt = self._groups.missing
+        self.counters.discarded_bytes = self._decoder.counts.discarded_bytes
+        return {self.name: [self._row(group) for group in groups]} if groups else {}
+
+    def _row(self, group: fob.Group) -> tuple:
+        seq = self._seq_base + group.index
+        remember_seq(self.name, seq + 1)
+        self._last_t_host_ns = max(group.t_host_ns, self._last_t_host_ns + 1)
+        values: list[Any] = []
+        for sensor in group.values:
+            values += list(sensor) + [None] if sensor is not None else [None] * 7
+        return (seq, self._last_t_host_ns, None, *values)
+
+    def close(self) -> None:
+        if self._port is None:
+            return
+        try:
+            self._send(fob.POINT)
+        except (serial.SerialException, OSError):
+            pass  # the port is already gone (unplugged); nothing to stop
+        self._port.close()
+        self._port = None

@@ -1,0 +1,135 @@
+"""Import JIGSAWS and COMPASS trials (kinematics + gesture transcriptions) as v1 sessions.
+
+* JIGSAWS ``kinematics/AllGestures/<Task>_<X###>.txt``: 76 space-separated values per line at 30 Hz;
+  per manipulator (MTM left 1-19, MTM right 20-38, PSM left 39-57, PSM right 58-76): tool-tip position
+  xyz (m), rotation matrix (9, row-major), linear velocity xyz (m/s), angular velocity xyz (rad/s),
+  gripper angle (rad).
+* COMPASS ``kinematics/<Task>_S##_T##.csv``: 32 comma-separated columns with a header; MTML, MTMR, PSML,
+  PSMR each position xyz (m), orientation quaternion xyzw, gripper angle (rad); velocity is derived here
+  by central differences.
+* Transcriptions ``<same stem>.txt`` in ``transcriptions/`` (JIGSAWS) or ``gestures/`` (COMPASS):
+  ``start end Gk`` at 30 Hz, inclusive; frames outside every segment are unlabelled.
+Each trial becomes a session with streams ``video`` (frame clock: kinematic row k = frame k at 30 Hz;
+the sources have no host clock, so host time = a fixed epoch + k / 30 s), ``mtm`` and ``psm``
+(``kinematics_spec``, mm, quaternion xyzw, mm/s, degrees; clutch not recorded -> empty) and frame labels.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from midas_cli.analysis.kinematics_schema import kinematics_spec
+from midas_cli.errors import ConfigError, SessionError
+from midas_cli.importers.common import file_facts, write_session
+from midas_cli.session.labels import write_frame_labels
+from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+from midas_cli.session.writer import SessionMetadata
+from midas_cli.simulate.gestures import read_transcription
+from midas_cli.simulate.truth import quaternion_from_matrix
+
+RATE_HZ = 30.0
+EPOCH_NS = 1_262_304_000_000_000_000  # 2010-01-01T00:00:00Z: stands in for the missing host clock
+FORMATS = ("jigsaws", "compass")
+LABEL_DIRS = {"jigsaws": ("transcriptions",), "compass": ("gestures", "transcriptions")}
+_STEM = re.compile(r"^(?P<task>[A-Za-z-]+(?:_[A-Za-z-]+)*?)_(?:S(?P<s>\d+)_T(?P<t>\d+)|(?P<letter>[A-Z])(?P<n>\d{3}))$")
+ARMS = (("mtm", "left"), ("mtm", "right"), ("psm", "left"), ("psm", "right"))
+
+
+def kinematics_files(folder: Path, fmt: str) -> list[Path]:
+    pattern = "*.txt" if fmt == "jigsaws" else "*.csv"
+    files = sorted(p for p in folder.rglob(pattern) if "kinematics" in p.parts)
+    if not files:
+        raise SessionError(f"{folder} holds no {fmt} kinematics files (looked for kinematics/**/{pattern})")
+    return files
+
+
+def read_arms(path: Path, fmt: str) -> dict[tuple[str, str], dict[str, np.ndarray]]:
+    """Per (robot, side): position (N, 3) mm, quaternion (N, 4), velocity (N, 3) mm/s, grasper (N,) deg."""
+    if fmt == "jigsaws":
+        table = pd.read_csv(path, sep=r"\s+", header=None, engine="python").to_numpy(float)
+        if table.shape[1] != 76:
+            raise SessionError(f"{path}: {table.shape[1]} columns per line, JIGSAWS kinematics have 76")
+        return {arm: _jigsaws_arm(table[:, 19 * i:19 * (i + 1)]) for i, arm in enumerate(ARMS)}
+    table = pd.read_csv(path).to_numpy(float)
+    if table.shape[1] != 32:
+        raise SessionError(f"{path}: {table.shape[1]} columns, COMPASS kinematics have 32")
+    return {arm: _compass_arm(table[:, 8 * i:8 * (i + 1)]) for i, arm in enumerate(ARMS)}
+
+
+def _jigsaws_arm(block: np.ndarray) -> dict[str, np.ndarray]:
+    rotation = block[:, 3:12].reshape(-1, 3, 3)
+    return {"position": block[:, :3] * 1000.0, "quaternion": quaternion_from_matrix(rotation),
+            "velocity": block[:, 12:15] * 1000.0, "grasper": np.degrees(block[:, 18])}
+
+
+def _compass_arm(block: np.ndarray) -> dict[str, np.ndarray]:
+    position = block[:, :3] * 1000.0
+    quaternion = block[:, 3:7] / np.linalg.norm(block[:, 3:7], axis=1, keepdims=True)
+    velocity = np.gradient(position, 1.0 / RATE_HZ, axis=0) if len(position) > 1 else np.zeros_like(position)
+    return {"position": position, "quaternion": quaternion, "velocity": velocity, "grasper": np.degrees(block[:, 7])}
+
+
+def transcription_for(kinematics: Path, root: Path, fmt: str) -> Path | None:
+    for folder in LABEL_DIRS[fmt]:
+        for candidate in root.rglob(f"{folder}/{kinematics.stem}.txt"):
+            return candidate
+    return None
+
+
+def frame_labels(segments: list[tuple[int, int, str]], frames: int) -> np.ndarray:
+    """(frames,) labels: each segment's label on its inclusive frame range, '' elsewhere."""
+    labels = np.full(frames, "", dtype=object)
+    for start, end, label in segments:
+        labels[start:min(end, frames - 1) + 1] = label
+    return labels
+
+
+def import_trial(path: Path, root: Path, fmt: str, out_root: Path) -> tuple[Path, dict[str, Any]]:
+    match = _STEM.match(path.stem)
+    if not match:
+        raise SessionError(f"{path.name}: cannot read task/subject/trial from the name "
+                           "(expected <Task>_S##_T## or <Task>_<Letter>###)")
+    task = match["task"].replace("_", "-").lower()
+    subject, trial = (match["s"], int(match["t"])) if match["s"] else (match["letter"], int(match["n"]))
+    arms = read_arms(path, fmt)
+    n = len(arms[ARMS[0]]["position"])
+    k = np.arange(n, dtype=np.int64)
+    host = EPOCH_NS + np.round(k * 1e9 / RATE_HZ).astype(np.int64)
+    video = StreamSpec("video", "video", (SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")),
+                       RATE_HZ, "frame clock (kinematic row k = frame k)")
+    streams = [(video, [k, host, k / RATE_HZ])]
+    for robot in ("mtm", "psm"):
+        columns: list[np.ndarray] = [k, host, k / RATE_HZ]
+        for side in ("left", "right"):
+            arm = arms[(robot, side)]
+            columns += [*arm["position"].T, *arm["quaternion"].T, *arm["velocity"].T, arm["grasper"]]
+        streams.append((kinematics_spec(robot, RATE_HZ), columns + [np.full(n, np.nan)]))
+    report: dict[str, Any] = {"format": fmt, "kinematics": file_facts(path), "rows": n,
+                              "clock": "no host clock in the source: t_host_ns = 2010-01-01 + frame / 30 Hz",
+                              "clutch": "not recorded by the source: empty"}
+    devices = {"video": {"kind": "video", "url": f"import://{fmt}/{path.name}", "streams": ["video"]},
+               "robot": {"kind": "raven", "url": f"import://{fmt}/{path.name}", "streams": ["mtm", "psm"]}}
+    metadata = SessionMetadata(subject, task, trial, "davinci", f"imported from {fmt} {path.name}")
+    transcription = transcription_for(path, root, fmt)
+    report["transcription"] = file_facts(transcription) if transcription else "none found: no labels written"
+    session = write_session(out_root, metadata, devices, streams, report)
+    if transcription:
+        segments = read_transcription(transcription)
+        write_frame_labels(session, k, frame_labels(segments, n), {
+            "taxonomy": f"{fmt}-{task}", "source": str(transcription), "segments": len(segments)})
+    return session, report
+
+
+def import_surgical(folder: Path | str, out_root: Path | str, fmt: str) -> list[tuple[Path, dict[str, Any]]]:
+    """Import every kinematics file under ``folder``; returns (session path, report) per trial."""
+    if fmt not in FORMATS:
+        raise ConfigError(f"format {fmt!r} unknown (expected {' or '.join(FORMATS)})")
+    root = Path(folder)
+    if not root.is_dir():
+        raise SessionError(f"{root} is not a folder")
+    return [import_trial(path, root, fmt, Path(out_root)) for path in kinematics_files(root, fmt)]

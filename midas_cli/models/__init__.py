@@ -1,0 +1,1 @@
+"""Gesture recognition: dataset building, splits, networks (one file each), metrics and training runs."""

@@ -1,0 +1,166 @@
+"""Ablation runner: model x modality x feature set -> Acc, F1, Prec, Rec, in the layout of the paper's
+gesture tables (Appendix B, "Peg Transfer gesture recognition ablation using different modalities").
+
+A grid row is written ``MODALITIES:FEATURES[:exclude-clutch]``: modalities joined with ``+``
+(``emht+image``), feature sets with ``,`` (``pos,ori,vel``); ``exclude-clutch`` drops clutch windows
+(the paper's default; its "-NC" rows keep them). Every (model, row) is one training run in
+``OUT/runs/<model>__<row slug>/``; a run folder that already holds ``metrics.json`` is reused, so an
+interrupted ablation resumes. Rows whose data are missing (no MTM on a da Vinci, no image features)
+are listed as skipped with the reason. Scores are fractions of the test split (macro F1, precision,
+recall), as in the paper.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import re
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable, Sequence
+
+from midas_cli.errors import ConfigError, MidasError
+from midas_cli.models.data import DatasetConfig
+from midas_cli.models.train import TrainConfig, train_run
+
+log = logging.getLogger(__name__)
+
+MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++"}
+MODALITY_TITLES = {"emht": "EmHT", "handkp": "HandKP", "mtm": "MTM", "psm": "PSM", "image": "Image"}
+FEATURE_TITLES = {"pos": "pos.", "ori": "ori.", "vel": "vel.", "grasper": "grasp.", "clutch": "clutch"}
+PAPER_GRID = (
+    "psm:pos,ori,grasper:exclude-clutch", "psm:pos,ori:exclude-clutch", "psm:pos,ori,vel,grasper:exclude-clutch",
+    "mtm:pos,ori,grasper:exclude-clutch", "mtm:pos,ori:exclude-clutch", "mtm:pos,ori,vel,grasper:exclude-clutch",
+    "emht:pos:exclude-clutch", "emht:pos,ori:exclude-clutch", "emht:pos,vel:exclude-clutch",
+    "emht:pos,ori,vel:exclude-clutch", "emht:pos,ori,vel",
+    "image:pos:exclude-clutch", "handkp:pos,vel:exclude-clutch", "handkp+image:pos,vel:exclude-clutch",
+)
+COLUMNS = ("Dataset", "Model", "Modality", "Features", "Acc", "F1", "Prec.", "Rec.")
+
+
+@dataclass(frozen=True)
+class GridRow:
+    modalities: tuple[str, ...]
+    features: tuple[str, ...]
+    exclude_clutch: bool
+
+    @classmethod
+    def parse(cls, text: str) -> "GridRow":
+        parts = text.strip().split(":")
+        if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] != "exclude-clutch"):
+            raise ConfigError(f"grid row {text!r} must be MODALITIES:FEATURES[:exclude-clutch], "
+                              "e.g. emht+image:pos,ori,vel:exclude-clutch")
+        row = cls(tuple(parts[0].split("+")), tuple(parts[1].split(",")), len(parts) == 3)
+        DatasetConfig(row.modalities, row.features)  # validates names
+        return row
+
+    def slug(self) -> str:
+        text = f"{'+'.join(self.modalities)}__{'-'.join(self.features)}{'__xc' if self.exclude_clutch else ''}"
+        return re.sub(r"[^A-Za-z0-9_+-]", "_", text)
+
+    def modality_title(self) -> str:
+        kinematic = [m for m in self.modalities if m != "image"]
+        title = ", ".join(MODALITY_TITLES[m] for m in self.modalities)
+        if kinematic and all(m in ("mtm", "psm") for m in kinematic) and "grasper" not in self.features:
+            title += "-NG"
+        if kinematic and not self.exclude_clutch and "clutch" not in self.features:
+            title += "-NC"
+        return title
+
+    def feature_title(self) -> str:
+        kinematic = any(m != "image" for m in self.modalities)
+        names = [FEATURE_TITLES[f] for f in self.features] if kinematic else []
+        return ", ".join(names + (["RGB"] if "image" in self.modalities else []))
+
+
+def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequence[str], base: TrainConfig,
+                 out_dir: Path, on_run: Callable[[str, int, int], None] | None = None,
+                 progress: Callable[[int, int, dict], None] | None = None) -> dict:
+    """Train every (model, row); write ``table.{md,tex,csv}`` and ``ablation.json``; return the results."""
+    out_dir = Path(out_dir)
+    (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    results, skipped = [], []
+    jobs = [(model, row) for model in models for row in rows]
+    for k, (model, row) in enumerate(jobs, start=1):
+        if on_run:
+            on_run(f"{MODEL_TITLES[model]} {row.modality_title()} [{row.feature_title()}]", k, len(jobs))
+        try:
+            summary, dataset_title = _run_one(sessions, model, row, base, out_dir / "runs" / f"{model}__{row.slug()}", progress)
+        except MidasError as exc:
+            log.warning("ablation row %s / %s skipped: %s", model, row.slug(), exc)
+            skipped.append({"model": model, "row": row.slug(), "reason": str(exc)})
+            continue
+        results.append({"dataset": dataset_title, "model": MODEL_TITLES[model], "modality": row.modality_title(),
+                        "features": row.feature_title(), **{k: summary[k] for k in ("accuracy", "f1", "precision", "recall")}})
+    if not results:
+        raise ConfigError(f"no ablation row could run ({len(skipped)} skipped; first reason: "
+                          f"{skipped[0]['reason'] if skipped else 'empty grid'})")
+    report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__}}
+    write_tables(out_dir, results, skipped)
+    (out_dir / "ablation.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return report
+
+
+def _run_one(sessions: Sequence[Path], model: str, row: GridRow, base: TrainConfig, run_dir: Path,
+             progress) -> tuple[dict, str]:
+    metrics_path, run_path = run_dir / "metrics.json", run_dir / "run.json"
+    if not metrics_path.is_file():
+        data = DatasetConfig(row.modalities, row.features, exclude_clutch=row.exclude_clutch)
+        train_run(sessions, data, replace(base, model=model), run_dir, progress)
+    run = json.loads(run_path.read_text(encoding="utf-8"))
+    return json.loads(metrics_path.read_text(encoding="utf-8"))["test"]["summary"], dataset_title(run["trials"])
+
+
+def dataset_title(trials: list[dict]) -> str:
+    platforms = sorted({t["platform"] for t in trials})
+    names = {"raven-ii": "Raven-II", "davinci-xi": "da Vinci Xi"}
+    return f"{' / '.join(names.get(p, p) for p in platforms)} ({len(trials)} trials)"
+
+
+def write_tables(out_dir: Path, results: list[dict], skipped: list[dict]) -> dict[str, Path]:
+    rows = [[r["dataset"], r["model"], r["modality"], r["features"],
+             *(f"{r[k]:.2f}" for k in ("accuracy", "f1", "precision", "recall"))] for r in results]
+    paths = {"md": out_dir / "table.md", "tex": out_dir / "table.tex", "csv": out_dir / "table.csv"}
+    paths["md"].write_text(markdown_table(rows, skipped), encoding="utf-8")
+    paths["tex"].write_text(latex_table(rows), encoding="utf-8")
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(COLUMNS)
+    writer.writerows(rows)
+    paths["csv"].write_text(buffer.getvalue(), encoding="utf-8")
+    return paths
+
+
+def markdown_table(rows: list[list[str]], skipped: list[dict]) -> str:
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * 4 + "---:|" * 4]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    if skipped:
+        lines += ["", "Skipped: " + "; ".join(f"{s['model']} {s['row']} ({s['reason']})" for s in skipped)]
+    return "\n".join(lines) + "\n"
+
+
+def latex_table(rows: list[list[str]]) -> str:
+    """A booktabs tabular with the paper's columns; a rule between models."""
+    out = ["\\begin{tabular}{@{}llllcccc@{}}", "\\toprule",
+           " & ".join(f"\\textbf{{{c}}}" for c in COLUMNS) + " \\\\", "\\midrule"]
+    previous = None
+    for row in rows:
+        if previous is not None and row[1] != previous:
+            out.append("\\cmidrule(l){2-8}")
+        previous = row[1]
+        out.append(" & ".join(_latex_escape(c) for c in row) + " \\\\")
+    out += ["\\bottomrule", "\\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+def _latex_escape(text: str) -> str:
+    return text.replace("\\", "\\textbackslash{}").replace("&", "\\&").replace("%", "\\%").replace("_", "\\_")
+
+
+def parse_grid(text: str | None) -> list[GridRow]:
+    """Rows from ``;``-separated specs, or the paper's Raven-II grid when ``text`` is empty."""
+    specs = [s for s in (text.split(";") if text else PAPER_GRID) if s.strip()]
+    return [GridRow.parse(s) for s in specs]
+

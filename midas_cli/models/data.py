@@ -1,0 +1,362 @@
+"""Dataset building for gesture recognition: aligned sessions -> simple arrays per trial.
+
+A separate step from training (the loop never parses session files). Per session it reads
+``derived/aligned.npz`` (``midas align``; columns ``<stream>.<column>`` on the video frame clock, plus
+``clutch``), the frame labels ``labels/<label_set>.csv`` (frame = video ``seq``) and, for the ``image``
+modality, ``derived/<image_features>.npz`` (``frame`` (N,), ``features`` (N, D)).
+
+Feature sets per modality (columns of the aligned table; velocities are time derivatives of the
+positions on the frame clock, in mm/s, computed before resampling):
+
+========  =====================================  ===================  ==========================  ===========
+modality  pos                                    ori                  vel                         grasper
+========  =====================================  ===================  ==========================  ===========
+emht      ``emht.s{1-4}_{x,y,z}_mm`` (12)         sin, cos of the 12   d/dt of pos (12)            thumb-middle
+                                                 sensor angles (24)                               distance (2)
+handkp    ``handkp.{hand}_{kp}_{x,y,z}_mm`` (12)  --                   d/dt of pos (12)            as emht (2)
+mtm, psm  ``{side}_{x,y,z}_mm`` (6)               quaternion (8)       logged ``_v*_mm_s`` (6)     ``_grasper_deg``
+image     all ``features`` columns of the NPZ; feature sets do not apply
+========  =====================================  ===================  ==========================  ===========
+
+``clutch`` adds the clutch state (aligned ``clutch`` column) as one feature. A feature set a modality
+does not have (HandKP orientation) is skipped and listed in ``GestureDataset.skipped``. Missing values
+(HandKP misses, stream outages) are filled by linear interpolation over time per column (edges: the
+nearest value; a column with no value at all: 0) -- documented, never silent: the fraction filled is
+kept per modality in ``Trial.filled``.
+
+Resampling keeps the first frame of each 1/rate bin (Raven-II 30 -> 10 Hz in the paper, da Vinci
+native 30 Hz). ``exclude_clutch`` drops frames with the clutch pressed (before training AND
+inference, as in the paper's appendix B). Frames without a label are kept inside a trial as class -1
+(ignored by losses and metrics) and trimmed at its ends. Normalisation (:class:`Normaliser`) is
+fitted on the training split only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session.derived import AlignedTable, read_aligned
+from midas_cli.session.labels import read_frame_labels
+from midas_cli.session.reader import Session
+
+log = logging.getLogger(__name__)
+
+MODALITIES = ("emht", "handkp", "mtm", "psm", "image")
+FEATURE_SETS = ("pos", "ori", "vel", "grasper", "clutch")
+PLATFORM_RATE_HZ = {"raven-ii": 10.0}  # the paper's resampling; everything else keeps 30 Hz
+DEFAULT_RATE_HZ = 30.0
+HANDS = {"left": (2, 1), "right": (3, 4)}  # EmHT (thumb, middle) sensor numbers
+SIDES = ("left", "right")
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What to build: modalities and feature sets, clutch exclusion, rate (None = platform default)."""
+
+    modalities: tuple[str, ...]
+    features: tuple[str, ...] = ("pos", "ori", "vel")
+    exclude_clutch: bool = False
+    rate_hz: float | None = None
+    label_set: str = "gestures"
+    image_features: str = "image_features"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "modalities", tuple(self.modalities))
+        object.__setattr__(self, "features", tuple(self.features))
+        for name, given, known in (("modality", self.modalities, MODALITIES), ("feature set", self.features, FEATURE_SETS)):
+            bad = [g for g in given if g not in known]
+            if bad or not given or len(set(given)) != len(given):
+                raise ConfigError(f"{name} list {','.join(given)!r} is invalid (choose distinct values from "
+                                  f"{', '.join(known)})")
+        if self.rate_hz is not None and not 0 < self.rate_hz <= 1000:
+            raise ConfigError(f"rate must be in (0, 1000] Hz, got {self.rate_hz}")
+
+    def to_json(self) -> dict:
+        return {**asdict(self), "modalities": list(self.modalities), "features": list(self.features)}
+
+
+@dataclass
+class Trial:
+    """One session as arrays on its (resampled) frame clock; T frames."""
+
+    name: str
+    subject: str
+    trial: int
+    platform: str
+    frames: np.ndarray  # (T,) int64 video frame index of each sample
+    inputs: dict[str, np.ndarray]  # modality -> (T, D_m) float32, not normalised
+    labels: np.ndarray  # (T,) int64 class index, -1 = unlabelled
+    rate_hz: float
+    filled: dict[str, float] = field(default_factory=dict)  # modality -> fraction of values filled
+
+    def stacked(self, order: Sequence[str]) -> np.ndarray:
+        """(T, sum D_m) float32: the modalities concatenated in ``order``."""
+        return np.concatenate([self.inputs[m] for m in order], axis=1)
+
+
+@dataclass
+class GestureDataset:
+    trials: list[Trial]
+    classes: list[str]
+    feature_names: dict[str, list[str]]  # modality -> column names, in input order
+    config: DatasetConfig
+    skipped: list[str] = field(default_factory=list)  # "modality:feature" pairs that do not exist
+
+    @property
+    def modality_dims(self) -> dict[str, int]:
+        return {m: len(self.feature_names[m]) for m in self.config.modalities}
+
+    def trial_index(self, name: str) -> int:
+        for i, trial in enumerate(self.trials):
+            if trial.name == name:
+                return i
+        raise SessionError(f"trial {name!r} is not in the dataset (trials: {', '.join(t.name for t in self.trials)})")
+
+    def fingerprint(self) -> str:
+        """sha256 over the classes, feature names and every trial's frames, inputs and labels."""
+        digest = hashlib.sha256(repr((self.classes, self.feature_names)).encode())
+        for trial in self.trials:
+            digest.update(trial.name.encode())
+            for array in (trial.frames, trial.labels, *(trial.inputs[m] for m in self.config.modalities)):
+                digest.update(np.ascontiguousarray(array).tobytes())
+        return digest.hexdigest()
+
+
+@dataclass
+class Normaliser:
+    """Per-feature mean and std (fitted on training frames only); applied as (x - mean) / std."""
+
+    mean: np.ndarray  # (D,)
+    std: np.ndarray  # (D,)
+
+    @classmethod
+    def fit(cls, blocks: Sequence[np.ndarray]) -> "Normaliser":
+        """Fit on (T_i, D) blocks of training frames."""
+        stacked = np.concatenate(blocks, axis=0)
+        std = stacked.std(axis=0)
+        return cls(stacked.mean(axis=0), np.where(std > 1e-8, std, 1.0))
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        return ((x - self.mean) / self.std).astype(np.float32)
+
+    def to_json(self) -> dict:
+        return {"mean": self.mean.tolist(), "std": self.std.tolist()}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Normaliser":
+        return cls(np.asarray(data["mean"], dtype=np.float64), np.asarray(data["std"], dtype=np.float64))
+
+
+@dataclass
+class _RawTrial:
+    """One session read at the model rate, labels still strings."""
+
+    session: Session
+    frames: np.ndarray  # (T,) int64
+    rate_hz: float
+    labels: np.ndarray  # (T,) str, '' = unlabelled
+    inputs: dict[str, np.ndarray]  # modality -> (T, D_m) float64, filled
+    names: dict[str, list[str]]
+    filled: dict[str, float]
+    skipped: list[str]
+
+
+def build_dataset(sessions: Sequence[Path], config: DatasetConfig, classes: Sequence[str] | None = None) -> GestureDataset:
+    """Arrays per trial for ``sessions`` (each holding aligned data and frame labels).
+
+    ``classes`` fixes the class order (e.g. from a checkpoint); by default the sorted union of labels.
+    """
+    if not sessions:
+        raise ConfigError("no sessions given: pass session folders (or folders holding sessions)")
+    raws = [_read_session(Path(p), config) for p in sessions]
+    seen = sorted({label for raw in raws for label in raw.labels.tolist()} - {""})
+    names = seen if classes is None else list(classes)
+    unknown = sorted(set(seen) - set(names))
+    if unknown:
+        raise SessionError(f"labels {', '.join(unknown)} are not among the classes {', '.join(names)}")
+    for raw in raws[1:]:
+        if raw.names != raws[0].names:
+            raise SessionError(f"{raw.session.path}: its feature columns differ from {raws[0].session.path}; "
+                               "align every session with the same midas version and devices")
+    index = {name: i for i, name in enumerate(names)}
+    trials = [t for t in (_to_trial(raw, index) for raw in raws) if len(t.labels)]
+    if not trials:
+        raise SessionError("no session has labelled frames after resampling and clutch exclusion")
+    skipped = sorted({s for raw in raws for s in raw.skipped})
+    if skipped:
+        log.info("feature sets not available and skipped: %s", ", ".join(skipped))
+    return GestureDataset(trials, names, raws[0].names, config, skipped)
+
+
+def _read_session(path: Path, config: DatasetConfig) -> _RawTrial:
+    session = Session.open(path)
+    table = read_aligned(path)
+    rows, rate_hz = _kept_rows(table, session, config)
+    labels = _frame_labels(path, table.frame[rows], config.label_set)
+    times_s = table.times_s()
+    inputs, names, filled, skipped = {}, {}, {}, []
+    for modality in config.modalities:
+        values, cols = _modality_features(path, table, times_s, modality, config, skipped)
+        if not cols:
+            raise ConfigError(f"{path}: modality {modality!r} has none of the feature sets {','.join(config.features)}")
+        filled[modality] = float(np.isnan(values[rows]).mean())
+        inputs[modality], names[modality] = _fill_missing(values)[rows], cols
+    return _RawTrial(session, table.frame[rows].astype(np.int64), rate_hz, labels, inputs, names, filled, skipped)
+
+
+def _to_trial(raw: _RawTrial, index: dict[str, int]) -> Trial:
+    """Encode labels and trim unlabelled frames at both ends."""
+    y = np.array([index[label] if label else -1 for label in raw.labels.tolist()], dtype=np.int64)
+    labelled = np.flatnonzero(y >= 0)
+    keep = slice(labelled[0], labelled[-1] + 1) if len(labelled) else slice(0, 0)
+    meta = raw.session.metadata
+    return Trial(raw.session.manifest["session_id"], str(meta["subject"]), int(meta["trial"]),
+                 str(meta.get("platform", "")), raw.frames[keep],
+                 {m: v[keep].astype(np.float32) for m, v in raw.inputs.items()}, y[keep], raw.rate_hz, raw.filled)
+
+
+def _kept_rows(table: AlignedTable, session: Session, config: DatasetConfig) -> tuple[np.ndarray, float]:
+    """Row indices after resampling (first frame of each 1/rate bin) and clutch exclusion; the rate."""
+    if len(table.frame) == 0:
+        raise SessionError(f"{session.path}: the aligned table has no frames")
+    platform = str(session.metadata.get("platform", ""))
+    rate = config.rate_hz or PLATFORM_RATE_HZ.get(platform, DEFAULT_RATE_HZ)
+    t = table.t_host_ns - table.t_host_ns[0]
+    bins = np.floor(t * rate / 1e9 + 1e-3).astype(np.int64)  # tolerance: frame times rounded to ns
+    rows = np.flatnonzero(np.r_[True, np.diff(bins) > 0])
+    if config.exclude_clutch:
+        clutch = _clutch(table, session.path)
+        rows = rows[~(clutch[rows] > 0.5)]
+    return rows, float(rate)
+
+
+def _clutch(table: AlignedTable, path: Path) -> np.ndarray:
+    """(N,) clutch state 0/1 (NaN -> 0) from the aligned ``clutch`` column (or its sources)."""
+    for name in ("clutch", "mtm.clutch", "fps.ch5_pressed"):
+        if table.has(name):
+            return np.nan_to_num(table.column(name), nan=0.0)
+    raise SessionError(f"{path}: no clutch signal in the aligned table (needs an fps or mtm stream); "
+                       "drop --exclude-clutch or the clutch feature set")
+
+
+def _frame_labels(path: Path, frames: np.ndarray, label_set: str) -> np.ndarray:
+    """(T,) label strings of ``frames`` (video frame indices); '' where the label set has none."""
+    labels = read_frame_labels(path, label_set)
+    lookup = dict(zip(labels.frames.tolist(), labels.labels.tolist()))
+    return np.array([lookup.get(f, "") for f in frames.tolist()], dtype=object)
+
+
+def _modality_features(path: Path, table: AlignedTable, times_s: np.ndarray, modality: str,
+                       config: DatasetConfig, skipped: list[str]) -> tuple[np.ndarray, list[str]]:
+    """(N, D) float64 with NaN = missing, and the D names, for one modality at the full frame rate."""
+    if modality == "image":
+        return _image_features(path, table.frame, config.image_features)
+    blocks, names = [], []
+    for feature in config.features:
+        block = _feature_block(table, times_s, modality, feature, path)
+        if block is None:
+            skipped.append(f"{modality}:{feature}")
+            continue
+        blocks.append(block[0])
+        names += block[1]
+    return (np.concatenate(blocks, axis=1) if blocks else np.zeros((len(table.frame), 0))), names
+
+
+def _feature_block(table: AlignedTable, times_s: np.ndarray, modality: str, feature: str,
+                   path: Path) -> tuple[np.ndarray, list[str]] | None:
+    """One feature set of one modality, or None where the modality does not have it."""
+    if feature == "clutch":
+        return _clutch(table, path)[:, None], ["clutch"]
+    positions = _position_columns(modality)
+    if feature == "pos":
+        return _columns(table, positions, path), positions
+    if feature == "vel":
+        if modality in ("mtm", "psm"):
+            names = [f"{modality}.{s}_v{a}_mm_s" for s in SIDES for a in "xyz"]
+            return _columns(table, names, path), names
+        return _derivative(_columns(table, positions, path), times_s), [f"d/dt {n}" for n in positions]
+    if feature == "ori":
+        return _orientation(table, modality, path)
+    return _grasper(table, modality, path)
+
+
+def _position_columns(modality: str) -> list[str]:
+    if modality == "emht":
+        return [f"emht.s{s}_{a}_mm" for s in range(1, 5) for a in "xyz"]
+    if modality == "handkp":
+        return [f"handkp.{h}_{kp}_{a}_mm" for h in SIDES for kp in ("thumb", "middle") for a in "xyz"]
+    return [f"{modality}.{s}_{a}_mm" for s in SIDES for a in "xyz"]
+
+
+def _orientation(table: AlignedTable, modality: str, path: Path) -> tuple[np.ndarray, list[str]] | None:
+    if modality == "handkp":
+        return None
+    if modality == "emht":
+        names = [f"emht.s{s}_{a}_deg" for s in range(1, 5) for a in ("azimuth", "elevation", "roll")]
+        radians = np.radians(_columns(table, names, path))
+        return (np.concatenate([np.sin(radians), np.cos(radians)], axis=1),
+                [f"sin {n}" for n in names] + [f"cos {n}" for n in names])
+    names = [f"{modality}.{s}_q{a}" for s in SIDES for a in "xyzw"]
+    return _columns(table, names, path), names
+
+
+def _grasper(table: AlignedTable, modality: str, path: Path) -> tuple[np.ndarray, list[str]]:
+    if modality in ("mtm", "psm"):
+        names = [f"{modality}.{s}_grasper_deg" for s in SIDES]
+        return _columns(table, names, path), names
+    points = _columns(table, _position_columns(modality), path).reshape(len(table.frame), 4, 3)  # (N, 12) -> (N, 4, 3)
+    if modality == "emht":
+        pairs = [(thumb - 1, middle - 1) for thumb, middle in HANDS.values()]
+    else:
+        pairs = [(0, 1), (2, 3)]  # handkp order: left thumb, left middle, right thumb, right middle
+    distance = [np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs]
+    return np.column_stack(distance), [f"{modality}.{h}_grasper_mm" for h in SIDES]
+
+
+def _columns(table: AlignedTable, names: list[str], path: Path) -> np.ndarray:
+    missing = [n for n in names if not table.has(n)]
+    if missing:
+        raise SessionError(f"{path}: the aligned table lacks {', '.join(missing[:4])}"
+                           f"{' ...' if len(missing) > 4 else ''}: is that stream recorded? (run `midas align`)")
+    return np.column_stack([table.column(n) for n in names])
+
+
+def _derivative(values: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+    """d/dt per column (N, D) in units per second; NaN where a neighbour is missing."""
+    if len(times_s) < 2:
+        return np.zeros_like(values)
+    return np.gradient(values, times_s, axis=0)
+
+
+def _image_features(path: Path, frames: np.ndarray, name: str) -> tuple[np.ndarray, list[str]]:
+    """(N, D) image features at ``frames`` (NaN where the NPZ has no row for a frame)."""
+    npz = Path(path) / "derived" / f"{name}.npz"
+    if not npz.is_file():
+        raise SessionError(f"{path} has no derived/{name}.npz: run `midas features image` on its video first")
+    with np.load(npz, allow_pickle=False) as data:
+        feature_frames, features = data["frame"].astype(np.int64), data["features"].astype(np.float64)
+    out = np.full((len(frames), features.shape[1]), np.nan)
+    pos = np.searchsorted(feature_frames, frames)
+    ok = pos < len(feature_frames)
+    ok[ok] = feature_frames[pos[ok]] == frames[ok]
+    out[ok] = features[pos[ok]]
+    return out, [f"image.{i}" for i in range(features.shape[1])]
+
+
+def _fill_missing(values: np.ndarray) -> np.ndarray:
+    """Linear interpolation over rows per column; edges take the nearest value; empty columns 0."""
+    out = values.copy()
+    rows = np.arange(len(values))
+    for j in range(values.shape[1]):
+        ok = np.isfinite(values[:, j])
+        if ok.all():
+            continue
+        out[:, j] = np.interp(rows, rows[ok], values[ok, j]) if ok.any() else 0.0
+    return out

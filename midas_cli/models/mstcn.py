@@ -1,0 +1,143 @@
+"""MS-TCN++ (Li, Abu Farha, Liu, Cheng, Gall: "MS-TCN++: Multi-Stage Temporal Convolutional Network for
+Action Segmentation", TPAMI 2020), frame-wise over whole sequences.
+
+As published: a prediction-generation stage of 11 dual-dilated layers (each layer adds a dilation
+2^(L-1-l) and a dilation 2^l 3-tap convolution, fuses them with a 1x1 convolution, ReLU, dropout,
+residual), then 3 refinement stages of 10 dilated residual layers (dilation 2^l) fed with the softmax
+of the previous stage, 64 feature maps. Loss per stage: cross-entropy + 0.15 x the truncated MSE of
+the log-probabilities of consecutive frames (clamped at tau^2 with tau = 4, gradient stopped through
+the previous frame). Padding frames are masked (mask (B, 1, T), 1 = real frame) so batches of
+different lengths give the same result as one sequence at a time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class MSTCNConfig:
+    in_features: int
+    n_classes: int
+    pg_layers: int = 11
+    refinement_stages: int = 3
+    refinement_layers: int = 10
+    feature_maps: int = 64
+    dropout: float = 0.5
+    smoothing_weight: float = 0.15
+    tau: float = 4.0
+
+
+class DilatedConv(nn.Conv1d):
+    """3-tap dilated convolution with zero "same" padding. When the dilation reaches the sequence
+    length, both outer taps only ever see padding, so the result equals the centre tap alone: computing
+    it that way gives identical outputs without convolving over 2 x dilation padding frames."""
+
+    def __init__(self, maps: int, dilation: int) -> None:
+        super().__init__(maps, maps, 3, padding=dilation, dilation=dilation)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.dilation[0] >= x.shape[-1]:
+            return F.conv1d(x, self.weight[:, :, 1:2], self.bias)
+        return super().forward(x)
+
+
+class DualDilatedLayer(nn.Module):
+    """Prediction-generation layer: two dilations (one shrinking, one growing with depth) fused by 1x1."""
+
+    def __init__(self, maps: int, dilation_small: int, dilation_large: int, dropout: float) -> None:
+        super().__init__()
+        self.conv_large = DilatedConv(maps, dilation_large)
+        self.conv_small = DilatedConv(maps, dilation_small)
+        self.fusion = nn.Conv1d(2 * maps, maps, 1)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        fused = self.fusion(torch.cat([self.conv_large(x), self.conv_small(x)], dim=1))  # (B, 2M, T) -> (B, M, T)
+        return (x + self.dropout(F.relu(fused))) * mask
+
+
+class DilatedResidualLayer(nn.Module):
+    """Refinement layer: dilated 3-tap convolution, ReLU, 1x1, dropout, residual."""
+
+    def __init__(self, maps: int, dilation: int, dropout: float) -> None:
+        super().__init__()
+        self.conv_dilated = DilatedConv(maps, dilation)
+        self.conv_1x1 = nn.Conv1d(maps, maps, 1)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return (x + self.dropout(self.conv_1x1(F.relu(self.conv_dilated(x))))) * mask
+
+
+class PredictionGeneration(nn.Module):
+    def __init__(self, cfg: MSTCNConfig) -> None:
+        super().__init__()
+        n = cfg.pg_layers
+        self.conv_in = nn.Conv1d(cfg.in_features, cfg.feature_maps, 1)
+        self.layers = nn.ModuleList(
+            DualDilatedLayer(cfg.feature_maps, 2 ** i, 2 ** (n - 1 - i), cfg.dropout) for i in range(n))
+        self.conv_out = nn.Conv1d(cfg.feature_maps, cfg.n_classes, 1)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        h = self.conv_in(x) * mask  # (B, D, T) -> (B, M, T)
+        for layer in self.layers:
+            h = layer(h, mask)
+        return self.conv_out(h) * mask  # (B, C, T)
+
+
+class Refinement(nn.Module):
+    def __init__(self, cfg: MSTCNConfig) -> None:
+        super().__init__()
+        self.conv_in = nn.Conv1d(cfg.n_classes, cfg.feature_maps, 1)
+        self.layers = nn.ModuleList(
+            DilatedResidualLayer(cfg.feature_maps, 2 ** i, cfg.dropout) for i in range(cfg.refinement_layers))
+        self.conv_out = nn.Conv1d(cfg.feature_maps, cfg.n_classes, 1)
+
+    def forward(self, probs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        h = self.conv_in(probs) * mask  # (B, C, T) -> (B, M, T)
+        for layer in self.layers:
+            h = layer(h, mask)
+        return self.conv_out(h) * mask  # (B, C, T)
+
+
+class MSTCN(nn.Module):
+    """Input ``x`` (B, D, T) float, ``mask`` (B, T) bool; output logits per stage (S, B, C, T)."""
+
+    def __init__(self, cfg: MSTCNConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.generation = PredictionGeneration(cfg)
+        self.refinements = nn.ModuleList(Refinement(cfg) for _ in range(cfg.refinement_stages))
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        m = mask.unsqueeze(1).to(x.dtype)  # (B, T) -> (B, 1, T)
+        logits = self.generation(x, m)
+        stages = [logits]
+        for refinement in self.refinements:
+            logits = refinement(F.softmax(logits, dim=1) * m, m)
+            stages.append(logits)
+        return torch.stack(stages)  # (S, B, C, T)
+
+    def loss(self, stages: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Sum over stages of CE + smoothing_weight * truncated MSE. ``target`` (B, T) long, -1 = ignore."""
+        tau_sq = self.cfg.tau ** 2
+        pair_mask = (mask[:, 1:] & mask[:, :-1]).unsqueeze(1).float()  # (B, 1, T-1): both frames real
+        total = stages.new_zeros(())
+        for logits in stages:
+            ce = F.cross_entropy(logits.transpose(1, 2).reshape(-1, logits.shape[1]),  # (B*T, C)
+                                 target.reshape(-1), ignore_index=-1)
+            log_p = F.log_softmax(logits, dim=1)
+            mse = torch.clamp((log_p[:, :, 1:] - log_p.detach()[:, :, :-1]) ** 2, min=0, max=tau_sq)
+            smooth = (mse * pair_mask).sum() / (pair_mask.sum() * logits.shape[1]).clamp(min=1)
+            total = total + ce + self.cfg.smoothing_weight * smooth
+        return total
+
+    @staticmethod
+    def frame_logits(stages: torch.Tensor) -> torch.Tensor:
+        """The last stage's logits (B, C, T): the prediction."""
+        return stages[-1]

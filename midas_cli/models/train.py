@@ -1,0 +1,334 @@
+"""Training and evaluation runs for gesture recognition; a run is a self-describing folder.
+
+``RUN_DIR/``
+  ``run.json``        dataset + training + model configuration, split, data fingerprint, code version,
+                      classes, feature names, normaliser, per-epoch history, skipped feature sets
+  ``metrics.json``    test (and validation) metrics: summary, per-class report, confusion matrix
+  ``checkpoint.pt``   weights + everything above needed to rebuild and re-evaluate the model, plain
+                      types only, so ``torch.load(path, weights_only=True)`` reads it
+  ``predictions/<trial>.csv``  frame, truth, prediction of every test frame
+  ``plots/confusion.png``, ``plots/<trial>.png``  (truth / prediction ribbons)
+
+The loop: build arrays (models/data.py) -> split (models/splits.py) -> fit the normaliser on the
+training units -> train for ``epochs``, keeping the weights of the epoch with the best validation
+frame accuracy (the last epoch when there is no validation set) -> predict the test units -> metrics.
+Deterministic on CPU for a given ``seed`` (weights, batch order and dropout come from seeded
+generators).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import pickle
+import subprocess
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from midas_cli import __version__
+from midas_cli.errors import ConfigError, SessionError
+from midas_cli.models import metrics as M
+from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
+from midas_cli.models.mstcn import MSTCN, MSTCNConfig
+from midas_cli.models.plots import write_confusion_png, write_timeline_png
+from midas_cli.models.splits import PARTS, Split, instances, make_split
+from midas_cli.models.transformer import GestureTransformer, TransformerConfig
+
+log = logging.getLogger(__name__)
+
+MODELS = ("mstcn", "transformer")
+CHECKPOINT_FORMAT = "midas-gesture-run/1"
+DEFAULT_LR = {"mstcn": 5e-4, "transformer": 1e-3}
+
+
+@dataclass
+class TrainConfig:
+    model: str = "mstcn"
+    split: str = "gesture"
+    fold: int = 0
+    epochs: int = 50
+    batch_size: int = 4
+    lr: float | None = None  # None = the model's default (MS-TCN++ paper: 5e-4)
+    weight_decay: float = 0.0
+    seed: int = 0
+    device: str = "cpu"
+    shuffle_labels: bool = False  # control: permute the classes of the training gesture instances
+    model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ConfigError(f"--model {self.model!r} is unknown (expected one of {', '.join(MODELS)})")
+        if self.epochs < 0 or self.batch_size < 1:
+            raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
+        if self.device not in ("cpu", "cuda"):
+            raise ConfigError(f"--device must be cpu or cuda, got {self.device!r}")
+
+
+@dataclass
+class Sequences:
+    """The units of one split part as arrays: ``x`` (T_i, D) float32 normalised, ``y`` (T_i,) int64."""
+
+    units: list[tuple[str, int, int]]
+    x: list[np.ndarray]
+    y: list[np.ndarray]
+
+
+@dataclass
+class RunResult:
+    out_dir: Path
+    metrics: dict
+    history: list[dict]
+
+
+ProgressFn = Callable[[int, int, dict], None]
+
+
+def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainConfig, out_dir: Path,
+              progress: ProgressFn | None = None) -> RunResult:
+    """Build the data, train, evaluate on the test units and write the run folder."""
+    out_dir = _new_run_dir(out_dir)
+    device = _device(config.device)
+    dataset = build_dataset(sessions, data_config)
+    split = make_split(dataset, config.split, config.seed, config.fold)
+    order = list(data_config.modalities)
+    normaliser = Normaliser.fit([dataset.trials[dataset.trial_index(n)].stacked(order)[a:b]
+                                 for n, a, b in split.units["train"]])
+    parts = {part: _sequences(dataset, split.units[part], normaliser, order) for part in PARTS}
+    if not parts["train"].units or not parts["test"].units:
+        raise SessionError(f"split {split.kind} left no training or no test units: more labelled data needed")
+    if config.shuffle_labels:
+        parts["train"].y = shuffled_instance_labels(parts["train"].y, config.seed)
+    torch.manual_seed(config.seed)
+    model, model_cfg = build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options)
+    model.to(device)
+    history = fit(model, parts["train"], parts["val"], config, device, progress)
+    result = {"test": _evaluate(model, parts["test"], dataset.classes, device)}
+    if parts["val"].units:
+        result["val"] = _evaluate(model, parts["val"], dataset.classes, device)
+    run = _run_record(dataset, split, normaliser, config, model_cfg, history)
+    _write_run(out_dir, run, result, model, dataset, parts["test"], device)
+    return RunResult(out_dir, result, history)
+
+
+def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Path, device_name: str = "cpu") -> RunResult:
+    """Re-evaluate a saved model on the test units of its own split (trials found in ``sessions``)."""
+    out_dir = _new_run_dir(out_dir)
+    device = _device(device_name)
+    saved = load_checkpoint(checkpoint)
+    data_config = DatasetConfig(**saved["dataset_config"])
+    dataset = build_dataset(sessions, data_config, classes=saved["classes"])
+    if dataset.feature_names != saved["feature_names"]:
+        raise SessionError(f"the sessions give features {dataset.modality_dims}, the checkpoint was trained on "
+                           f"{ {m: len(v) for m, v in saved['feature_names'].items()} }")
+    split = Split.from_json(saved["split"])
+    test = _sequences(dataset, split.units["test"], Normaliser.from_json(saved["normaliser"]),
+                      list(data_config.modalities))
+    model, _ = build_model(saved["model"], dataset.modality_dims, len(dataset.classes), saved["model_options"])
+    model.load_state_dict(saved["state_dict"])
+    model.to(device)
+    result = {"test": _evaluate(model, test, dataset.classes, device)}
+    run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
+           "data_fingerprint_now": dataset.fingerprint()}
+    _write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
+    return RunResult(out_dir, result, saved.get("history", []))
+
+
+def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict) -> tuple[torch.nn.Module, dict]:
+    """The network and its config as a plain dict; ``options`` override config fields."""
+    if name == "mstcn":
+        cfg = MSTCNConfig(in_features=sum(modality_dims.values()), n_classes=n_classes)
+        model_cls = MSTCN
+    else:
+        cfg = TransformerConfig(modality_dims=dict(modality_dims), n_classes=n_classes)
+        model_cls = GestureTransformer
+    unknown = set(options) - set(asdict(cfg))
+    if unknown:
+        raise ConfigError(f"model options {', '.join(sorted(unknown))} do not exist for {name} "
+                          f"(known: {', '.join(asdict(cfg))})")
+    cfg = type(cfg)(**{**asdict(cfg), **options})
+    return model_cls(cfg), asdict(cfg)
+
+
+def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
+        progress: ProgressFn | None = None) -> list[dict]:
+    """Adam on the training units for ``config.epochs``; restores the best-validation weights."""
+    lr = config.lr if config.lr is not None else DEFAULT_LR[config.model]
+    optimiser = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=config.weight_decay)
+    rng = np.random.default_rng(config.seed)
+    history, best = [], (-1.0, None)
+    for epoch in range(1, config.epochs + 1):
+        model.train()
+        losses = []
+        for batch in _batches(train, rng.permutation(len(train.x)), config.batch_size):
+            x, y, mask = (t.to(device) for t in batch)
+            loss = model.loss(model(x, mask), y, mask)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            losses.append(float(loss.detach()))
+        val_acc = _accuracy(model, val, device) if val.units else None
+        history.append({"epoch": epoch, "loss": float(np.mean(losses)), "val_accuracy": val_acc})
+        if val_acc is not None and val_acc > best[0]:
+            best = (val_acc, {k: v.detach().clone() for k, v in model.state_dict().items()})
+        if progress:
+            progress(epoch, config.epochs, history[-1])
+    if best[1] is not None:
+        model.load_state_dict(best[1])
+    return history
+
+
+def shuffled_instance_labels(labels: list[np.ndarray], seed: int) -> list[np.ndarray]:
+    """Control: the classes of all training gesture instances permuted (seeded); structure is kept,
+    the link between signal and class is broken."""
+    found = [(i, cls, a, b) for i, y in enumerate(labels) for cls, a, b in instances(y)]
+    permuted = np.random.default_rng(seed + 7919).permutation([cls for _, cls, _, _ in found])
+    out = [y.copy() for y in labels]
+    for (i, _, a, b), cls in zip(found, permuted):
+        out[i][a:b] = cls
+    return out
+
+
+def predict(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> list[np.ndarray]:
+    """Class index per frame (T_i,) for every unit, in eval mode."""
+    model.eval()
+    out = []
+    with torch.no_grad():
+        for x in seqs.x:
+            inputs = torch.from_numpy(x.T[None]).to(device)  # (T, D) -> (1, D, T)
+            mask = torch.ones(1, x.shape[0], dtype=torch.bool, device=device)
+            out.append(model.frame_logits(model(inputs, mask))[0].argmax(dim=0).cpu().numpy())
+    return out
+
+
+def load_checkpoint(path: Path) -> dict:
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, ValueError, pickle.UnpicklingError) as exc:
+        raise SessionError(f"cannot load checkpoint {path}: {exc}") from exc
+    if not isinstance(saved, dict) or saved.get("format") != CHECKPOINT_FORMAT:
+        raise SessionError(f"{path} is not a midas gesture checkpoint (expected format {CHECKPOINT_FORMAT})")
+    return saved
+
+
+def code_version() -> dict:
+    """midas version, sha256 of the model package sources, and the git commit when available."""
+    package = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for source in sorted(package.glob("*.py")):
+        digest.update(source.name.encode() + source.read_bytes())
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=package, capture_output=True, text=True,
+                                timeout=5).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"midas": __version__, "models_sha256": digest.hexdigest(), "git_commit": commit,
+            "torch": str(torch.__version__)}
+
+
+def _sequences(dataset: GestureDataset, units: list[tuple[str, int, int]], normaliser: Normaliser,
+               order: list[str]) -> Sequences:
+    xs, ys = [], []
+    for name, start, stop in units:
+        trial = dataset.trials[dataset.trial_index(name)]
+        xs.append(normaliser.apply(trial.stacked(order)[start:stop]))
+        ys.append(trial.labels[start:stop])
+    return Sequences(list(units), xs, ys)
+
+
+def _batches(seqs: Sequences, order: np.ndarray, batch_size: int):
+    """Padded batches: x (B, D, T_max) float32, y (B, T_max) long (-1 on padding), mask (B, T_max) bool."""
+    for start in range(0, len(order), batch_size):
+        pick = order[start:start + batch_size]
+        t_max = max(len(seqs.y[i]) for i in pick)
+        dim = seqs.x[pick[0]].shape[1]
+        x = np.zeros((len(pick), dim, t_max), dtype=np.float32)
+        y = np.full((len(pick), t_max), -1, dtype=np.int64)
+        for row, i in enumerate(pick):
+            t = len(seqs.y[i])
+            x[row, :, :t] = seqs.x[i].T  # (T, D) -> (D, T)
+            y[row, :t] = seqs.y[i]
+        mask = np.zeros((len(pick), t_max), dtype=bool)
+        for row, i in enumerate(pick):
+            mask[row, :len(seqs.y[i])] = True
+        yield torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(mask)
+
+
+def _accuracy(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> float:
+    preds = predict(model, seqs, device)
+    truth = np.concatenate(seqs.y)
+    keep = truth >= 0
+    return float((np.concatenate(preds)[keep] == truth[keep]).mean()) if keep.any() else 0.0
+
+
+def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], device: torch.device) -> dict:
+    preds = predict(model, seqs, device)
+    return {**M.evaluate(preds, seqs.y, classes), "predictions": preds}
+
+
+def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser, config: TrainConfig,
+                model_cfg: dict, history: list[dict]) -> dict:
+    return {"format": CHECKPOINT_FORMAT, "model": config.model, "model_config": model_cfg,
+            "model_options": dict(config.model_options), "train_config": asdict(config),
+            "dataset_config": dataset.config.to_json(), "classes": list(dataset.classes),
+            "feature_names": dataset.feature_names, "skipped_features": dataset.skipped,
+            "trials": [{"name": t.name, "subject": t.subject, "trial": t.trial, "platform": t.platform,
+                        "frames": int(len(t.labels)), "rate_hz": t.rate_hz, "filled": t.filled}
+                       for t in dataset.trials],
+            "split": split.to_json(), "normaliser": normaliser.to_json(),
+            "data_fingerprint": dataset.fingerprint(), "code": code_version(), "history": history}
+
+
+def _write_run(out_dir: Path, run: dict, result: dict, model: torch.nn.Module, dataset: GestureDataset,
+               test: Sequences, device: torch.device, save_checkpoint: bool = True) -> None:
+    preds = result["test"].pop("predictions")
+    if "val" in result:
+        result["val"].pop("predictions")
+    (out_dir / "run.json").write_text(json.dumps(run, indent=2) + "\n", encoding="utf-8")
+    (out_dir / "metrics.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    if save_checkpoint:
+        state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        torch.save({**run, "state_dict": state}, out_dir / "checkpoint.pt")
+    _write_predictions(out_dir, dataset, test, preds)
+    write_confusion_png(out_dir / "plots" / "confusion.png", np.asarray(result["test"]["confusion"]), dataset.classes)
+
+
+def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, preds: list[np.ndarray]) -> None:
+    """predictions/<trial>.csv and plots/<trial>.png: test frames of each trial on its own timeline."""
+    (out_dir / "predictions").mkdir(exist_ok=True)
+    per_trial: dict[str, np.ndarray] = {}
+    for (name, start, stop), pred in zip(test.units, preds):
+        trial = dataset.trials[dataset.trial_index(name)]
+        timeline = per_trial.setdefault(name, np.full(len(trial.labels), -1, dtype=np.int64))
+        timeline[start:stop] = pred
+    for name, timeline in sorted(per_trial.items()):
+        trial = dataset.trials[dataset.trial_index(name)]
+        tested = timeline >= 0
+        rows = ["frame,truth,prediction"] + [
+            f"{f},{dataset.classes[t] if t >= 0 else ''},{dataset.classes[p]}"
+            for f, t, p in zip(trial.frames[tested], trial.labels[tested], timeline[tested])]
+        (out_dir / "predictions" / f"{name}.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+        write_timeline_png(out_dir / "plots" / f"{name}.png", trial.labels, timeline, dataset.classes, name)
+
+
+def _new_run_dir(out_dir: Path) -> Path:
+    out_dir = Path(out_dir)
+    if (out_dir / "run.json").exists():
+        raise ConfigError(f"{out_dir} already holds a run (run.json): choose a new --out folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create run folder {out_dir}: {exc.strerror}") from exc
+    return out_dir
+
+
+def _device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda asked for, but torch sees no CUDA GPU (use --device cpu)")
+    if name not in ("cpu", "cuda"):
+        raise ConfigError(f"--device must be cpu or cuda, got {name!r}")
+    return torch.device(name)

@@ -1,0 +1,120 @@
+"""MTRSAP-style multimodal transformer (Weerasinghe et al., "Multimodal Transformer for Real-time
+Surgical Activity Recognition and Prediction", ICRA 2024), frame-wise.
+
+Per modality, a 1-D CNN encoder over time (three same-padded convolutions with ReLU, stride 1 so every
+frame keeps its own embedding); the modality embeddings are concatenated and fused by a linear layer
+to ``d_model``; a sinusoidal position code is added; a transformer encoder attends over TIME; a linear
+head gives per-frame class logits.
+
+What differs from the public implementation, and why: in UVA-DSA/MTRSAP ``models/transtcn.py``
+(commit aa11a5b) ``TransformerModel`` builds ``nn.TransformerEncoderLayer(d_model, nhead, dropout)``
+without ``batch_first=True`` (PyTorch's default is False) but feeds it ``[batch, time, d]``: PyTorch
+reads dimension 0 (the batch of windows) as the sequence, so attention mixes different windows at the
+same time step instead of the frames of one window (a later commit of that repository adds a
+``batch_first`` argument). Here the sequence is explicitly split into windows of ``window`` frames,
+reshaped to ``[batch * n_windows, window, d]`` and given to an encoder built with
+``batch_first=True``, so every attention weight connects two frames of the same window; padding
+frames are excluded with ``src_key_padding_mask``. The public model also max-pools the window to one
+label; this one keeps a label per frame (frame-wise segmentation, like MS-TCN++).
+Windows tile the sequence without overlap; the CNN encoders before them see across window borders.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class TransformerConfig:
+    modality_dims: dict[str, int]  # input features per modality, in the order the data gives them
+    n_classes: int
+    cnn_channels: int = 64
+    kernel_size: int = 9
+    d_model: int = 64
+    n_heads: int = 4
+    n_layers: int = 2
+    ff_dim: int = 128
+    window: int = 64
+    dropout: float = 0.1
+    modality_order: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not self.modality_order:
+            self.modality_order = list(self.modality_dims)
+
+
+class ModalityEncoder(nn.Module):
+    """1-D CNN over time for one modality: (B, D_m, T) -> (B, cnn_channels, T); padding stays zero."""
+
+    def __init__(self, in_features: int, channels: int, kernel: int, dropout: float, depth: int = 3) -> None:
+        super().__init__()
+        self.convs = nn.ModuleList(nn.Conv1d(in_features if i == 0 else channels, channels, kernel,
+                                             padding=kernel // 2) for i in range(depth))
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        h = x * mask  # mask (B, 1, T)
+        for conv in self.convs:
+            h = self.dropout(F.relu(conv(h))) * mask
+        return h
+
+
+def sinusoidal_positions(length: int, d_model: int) -> torch.Tensor:
+    """(length, d_model) sine/cosine position code (Vaswani et al.)."""
+    position = torch.arange(length, dtype=torch.float32).unsqueeze(1)  # (L, 1)
+    rate = torch.exp(torch.arange(0, d_model, 2, dtype=torch.float32) * (-math.log(10000.0) / d_model))
+    code = torch.zeros(length, d_model)
+    code[:, 0::2] = torch.sin(position * rate)
+    code[:, 1::2] = torch.cos(position * rate)[:, : d_model // 2]
+    return code
+
+
+class GestureTransformer(nn.Module):
+    """Input ``x`` (B, D, T) with modalities concatenated along D in ``modality_order``; ``mask`` (B, T)
+    bool (True = real frame). Output logits (1, B, C, T) (one "stage", like MS-TCN's)."""
+
+    def __init__(self, cfg: TransformerConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoders = nn.ModuleDict({name: ModalityEncoder(cfg.modality_dims[name], cfg.cnn_channels,
+                                                             cfg.kernel_size, cfg.dropout)
+                                       for name in cfg.modality_order})
+        self.fusion = nn.Linear(cfg.cnn_channels * len(cfg.modality_order), cfg.d_model)
+        layer = nn.TransformerEncoderLayer(cfg.d_model, cfg.n_heads, cfg.ff_dim, cfg.dropout, batch_first=True)
+        self.encoder = nn.TransformerEncoder(layer, cfg.n_layers, enable_nested_tensor=False)
+        self.head = nn.Linear(cfg.d_model, cfg.n_classes)
+        self.register_buffer("positions", sinusoidal_positions(cfg.window, cfg.d_model), persistent=False)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        b, _, t = x.shape
+        w = self.cfg.window
+        m = mask.unsqueeze(1).to(x.dtype)  # (B, T) -> (B, 1, T)
+        parts = torch.split(x, [self.cfg.modality_dims[n] for n in self.cfg.modality_order], dim=1)
+        encoded = [self.encoders[n](p, m) for n, p in zip(self.cfg.modality_order, parts)]  # each (B, K, T)
+        h = self.fusion(torch.cat(encoded, dim=1).transpose(1, 2))  # (B, M*K, T) -> (B, T, M*K) -> (B, T, d)
+        pad = (-t) % w
+        h = F.pad(h, (0, 0, 0, pad))  # (B, T + pad, d)
+        valid = F.pad(mask, (0, pad), value=False)  # (B, T + pad)
+        n_windows = (t + pad) // w
+        h = h.reshape(b * n_windows, w, -1) + self.positions  # (B, T', d) -> (B * nW, W, d)
+        valid = valid.reshape(b * n_windows, w)  # (B * nW, W)
+        empty = ~valid.any(dim=1)  # windows of pure padding would give NaN attention: unmask them
+        h = self.encoder(h, src_key_padding_mask=~(valid | empty.unsqueeze(1)))  # attends over W frames
+        h = h.reshape(b, n_windows * w, -1)[:, :t]  # (B * nW, W, d) -> (B, T', d) -> (B, T, d)
+        logits = self.head(h).transpose(1, 2) * m  # (B, T, C) -> (B, C, T)
+        return logits.unsqueeze(0)  # (1, B, C, T)
+
+    def loss(self, stages: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Frame-wise cross-entropy; ``target`` (B, T) long, -1 = ignore."""
+        logits = stages[-1]
+        return F.cross_entropy(logits.transpose(1, 2).reshape(-1, logits.shape[1]),  # (B*T, C)
+                               target.reshape(-1), ignore_index=-1)
+
+    @staticmethod
+    def frame_logits(stages: torch.Tensor) -> torch.Tensor:
+        return stages[-1]

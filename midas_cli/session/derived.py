@@ -1,0 +1,130 @@
+"""Derived files of a session: ``derived/aligned.{npz,csv,json}``, ``calib/*`` and ``derived/eval/``.
+
+Only this module (with the rest of ``midas_cli/session/``) knows where these files live.
+
+Aligned table (written by ``midas align``):
+  * ``derived/aligned.npz``: ``frame`` (N,) int64 video frame index (= video ``seq``), ``t_host_ns``
+    (N,) int64 frame time on the host clock, ``values`` (N, C) float64 (NaN where masked), ``mask``
+    (N, C) bool (True = valid sample), ``columns`` (C,) str.
+  * ``derived/aligned.csv``: ``frame,t_host_ns,<columns>``; a masked value is an empty field.
+  * ``derived/aligned.json``: column metadata (unit, frame, source, description), method, rate, source
+    stream sha256s, calibrations applied.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from midas_cli.errors import SessionError
+
+ALIGNED_STEM = "derived/aligned"
+CALIB_DIR = "calib"
+EVAL_DIR = "derived/eval"
+PLOTS_DIR = "derived/plots"
+PEDALS_GT = "derived/pedals_gt.csv"
+
+
+@dataclass
+class AlignedTable:
+    """Every stream on the video frame clock: ``values`` (N, C) float64, ``mask`` (N, C) bool."""
+
+    frame: np.ndarray
+    t_host_ns: np.ndarray
+    columns: list[str]
+    values: np.ndarray
+    mask: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def column(self, name: str) -> np.ndarray:
+        """One column (N,) float64, NaN where masked."""
+        try:
+            return self.values[:, self.columns.index(name)]
+        except ValueError:
+            raise SessionError(f"aligned table has no column {name!r}; re-run `midas align` "
+                               f"(columns start: {', '.join(self.columns[:8])}, ...)") from None
+
+    def has(self, name: str) -> bool:
+        return name in self.columns
+
+    def times_s(self) -> np.ndarray:
+        """Frame times (N,) in seconds since the first frame."""
+        return (self.t_host_ns - self.t_host_ns[0]) / 1e9 if len(self.t_host_ns) else np.zeros(0)
+
+
+def write_aligned(session_path: Path | str, table: AlignedTable) -> dict[str, Path]:
+    """Write ``derived/aligned.{npz,csv,json}`` atomically (each via a temporary file and rename)."""
+    base = Path(session_path) / ALIGNED_STEM
+    base.parent.mkdir(exist_ok=True)
+    paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "csv", "json")}
+    with open(_tmp(paths["npz"]), "wb") as fh:
+        np.savez_compressed(fh, frame=table.frame, t_host_ns=table.t_host_ns, values=table.values,
+                            mask=table.mask, columns=np.asarray(table.columns, dtype=str))
+    frame = pd.DataFrame(np.where(table.mask, table.values, np.nan), columns=table.columns)
+    frame.insert(0, "t_host_ns", table.t_host_ns)
+    frame.insert(0, "frame", table.frame)
+    frame.to_csv(_tmp(paths["csv"]), index=False, float_format="%.6g")
+    _tmp(paths["json"]).write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
+    for path in paths.values():
+        os.replace(_tmp(path), path)
+    return paths
+
+
+def read_aligned(session_path: Path | str) -> AlignedTable:
+    """Read ``derived/aligned.npz`` and its JSON sidecar; SessionError if ``midas align`` has not run."""
+    base = Path(session_path) / ALIGNED_STEM
+    npz_path, json_path = base.with_suffix(".npz"), base.with_suffix(".json")
+    if not npz_path.is_file():
+        raise SessionError(f"{session_path} has no {npz_path.name}: run `midas align {session_path}` first")
+    try:
+        with np.load(npz_path, allow_pickle=False) as data:
+            table = AlignedTable(data["frame"], data["t_host_ns"], data["columns"].tolist(), data["values"],
+                                 data["mask"])
+        table.meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
+    except (OSError, KeyError, ValueError) as exc:
+        raise SessionError(f"cannot read {npz_path}: {exc}") from exc
+    return table
+
+
+def calib_path(session_path: Path | str, name: str) -> Path:
+    """``calib/<name>`` inside the session (the folder is created if missing)."""
+    folder = Path(session_path) / CALIB_DIR
+    folder.mkdir(exist_ok=True)
+    return folder / name
+
+
+def find_calibration(session_path: Path | str, name: str) -> Path | None:
+    """``calib/<name>`` if it exists, else None."""
+    path = Path(session_path) / CALIB_DIR / name
+    return path if path.is_file() else None
+
+
+def output_dir(session_path: Path | str, kind: str) -> Path:
+    """``derived/eval`` (kind "eval") or ``derived/plots`` (kind "plots"), created if missing."""
+    folder = Path(session_path) / {"eval": EVAL_DIR, "plots": PLOTS_DIR}[kind]
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def read_pedals_ground_truth(session_path: Path | str) -> pd.DataFrame | None:
+    """``derived/pedals_gt.csv`` (frame, t_host_ns, one 0/1 column per pedal name) or None if absent."""
+    path = Path(session_path) / PEDALS_GT
+    if not path.is_file():
+        return None
+    try:
+        frame = pd.read_csv(path)
+    except (OSError, ValueError, pd.errors.ParserError) as exc:
+        raise SessionError(f"cannot read {path}: {exc}") from exc
+    if "frame" not in frame.columns:
+        raise SessionError(f"{path} has no 'frame' column (columns: {', '.join(frame.columns)})")
+    return frame
+
+
+def _tmp(path: Path) -> Path:
+    return path.with_name(path.name + ".tmp")

@@ -1,0 +1,82 @@
+"""Pedal ground truth read from the console video: where it lives and how it is written.
+
+* A session's recordings are the video files in ``video/`` (MKV, MP4, AVI, MOV).
+* Frame times come from the session's video stream (``seq`` = 0-based frame index, ``t_host_ns`` =
+  host clock), the stream named "video" or else the stream of a device of kind "video".
+* Results: ``derived/pedals_gt.csv`` (``frame,t_host_ns,<pedal>...``, 0/1 per pedal, empty time where
+  the stream has no row for a frame) with ``derived/pedals_gt.json`` beside it stating the frame
+  convention, the source video and the layout. A bare video gets the same pair of files elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from midas_cli.errors import SessionError
+from midas_cli.session.derived import PEDALS_GT
+from midas_cli.session.labels import FRAME_CONVENTION
+from midas_cli.session.manifest import MANIFEST_NAME
+from midas_cli.session.reader import Session
+
+VIDEO_DIR = "video"
+VIDEO_SUFFIXES = (".mkv", ".mp4", ".avi", ".mov")
+
+__all__ = ["FRAME_CONVENTION", "PEDALS_GT", "session_of_video", "session_videos", "video_frame_times",
+           "pedals_gt_path", "write_pedals_gt"]
+
+
+def session_videos(session_path: Path | str) -> list[Path]:
+    """Video files in the session's ``video/`` folder, sorted by name."""
+    folder = Path(session_path) / VIDEO_DIR
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
+
+
+def session_of_video(video_path: Path | str) -> Path | None:
+    """The session folder a video file sits in (``<session>/video/<file>``), or None for a bare file."""
+    parent = Path(video_path).resolve().parent
+    if parent.name == VIDEO_DIR and (parent.parent / MANIFEST_NAME).is_file():
+        return parent.parent
+    return None
+
+
+def video_frame_times(session: Session) -> tuple[str | None, pd.Series]:
+    """(stream name, t_host_ns indexed by frame seq) of the session's video stream; (None, empty) if none."""
+    names = [n for n in session.stream_names if n == "video"] or [
+        n for n in session.stream_names
+        if session.manifest["devices"].get(session.manifest["streams"][n].get("device"), {}).get("kind") == "video"]
+    if not names:
+        return None, pd.Series(dtype="int64")
+    frame = session.read_stream(names[0], allow_incomplete=True)
+    times = frame.drop_duplicates("seq").set_index("seq")["t_host_ns"]
+    return names[0], times
+
+
+def pedals_gt_path(session_path: Path | str) -> Path:
+    """``derived/pedals_gt.csv`` of a session."""
+    return Path(session_path) / PEDALS_GT
+
+
+def write_pedals_gt(csv_path: Path | str, table: pd.DataFrame, meta: dict[str, Any]) -> tuple[Path, Path]:
+    """Write ``table`` as CSV and ``meta`` (plus the frame convention) as the JSON sidecar, atomically."""
+    csv_path = Path(csv_path)
+    if "frame" not in table.columns:
+        raise SessionError("a pedal ground-truth table needs a 'frame' column")
+    json_path = csv_path.with_suffix(".json")
+    tmp_csv, tmp_json = (p.with_name(p.name + ".tmp") for p in (csv_path, json_path))
+    try:
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
+        table.to_csv(tmp_csv, index=False)
+        full = {"frame_convention": FRAME_CONVENTION, **meta}
+        tmp_json.write_text(json.dumps(full, indent=2, default=str) + "\n", encoding="utf-8")
+        os.replace(tmp_csv, csv_path)
+        os.replace(tmp_json, json_path)
+    except OSError as exc:
+        raise SessionError(f"cannot write {csv_path}: {exc}") from exc
+    return csv_path, json_path

@@ -1,0 +1,32 @@
+# Gesture-recognition ablation table (paper Appendix B layout: model x modality x features -> Acc, F1,
+# Prec., Rec.) from a folder of labelled sessions. Included from the Makefile (needs $(BIN), `install`).
+#   make gestures-table                        simulated Raven-II peg transfer (15 trials), paper grid
+#   make gestures-table DATA=path/to/dataset   any folder of labelled session folders
+#   make gestures-table GESTURES_EPOCHS=5 GESTURES_GRID="emht:pos,ori,vel:exclude-clutch"   quick look
+# The dataset and its .simulated stamp are the same as `make tables` uses, so both share one simulation.
+# Runs already in $(GESTURES_DIR)/runs/ are reused (delete the folder to retrain).
+TABLES_DIR ?= results
+TABLES_SEED ?= 1
+MIDAS_BIN ?= $(BIN)/midas
+GESTURES_DATA ?= $(if $(DATA),$(DATA),$(TABLES_DIR)/simulated/raven-ii)
+GESTURES_DIR ?= $(TABLES_DIR)/gestures/$(notdir $(GESTURES_DATA))
+GESTURES_MODELS ?= transformer,mstcn
+GESTURES_EPOCHS ?= 50
+GESTURES_SPLIT ?= gesture
+GESTURES_DEVICE ?= cpu
+GESTURES_GRID ?=
+
+.PHONY: gestures-table
+
+gestures-table: install
+	@if [ -z "$(DATA)" ] && [ ! -f $(GESTURES_DATA)/.simulated ]; then \
+		$(MIDAS_BIN) simulate dataset --platform raven-ii --trials 15 --seed $(TABLES_SEED) \
+			--out $(GESTURES_DATA) > /dev/null && touch $(GESTURES_DATA)/.simulated || exit 1; \
+	fi
+	@for s in $(GESTURES_DATA)/*/; do \
+		[ -f "$$s/derived/aligned.json" ] || $(MIDAS_BIN) align "$$s" > /dev/null || exit 1; \
+	done
+	$(MIDAS_BIN) train ablation $(GESTURES_DATA) --models $(GESTURES_MODELS) --epochs $(GESTURES_EPOCHS) \
+		--split $(GESTURES_SPLIT) --device $(GESTURES_DEVICE) $(if $(GESTURES_GRID),--grid "$(GESTURES_GRID)",) \
+		--out $(GESTURES_DIR) > /dev/null
+	@echo "gesture table: $(GESTURES_DIR)/table.md (.tex, .csv)"

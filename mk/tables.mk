@@ -1,0 +1,63 @@
+# `make tables`: the paper's validation tables end to end (simulate -> calibrate -> align -> eval) into
+# results/. Included from the Makefile (needs $(BIN) and the `install` target from there).
+#   make tables -j2                        simulated Raven-II (15 trials) + da Vinci Xi (17 trials)
+#   make tables DATA=path/to/dataset -j8   any folder of session folders (no simulation)
+#   make tables TABLES_MAX_SECONDS=60      short simulated trials (demos, CI)
+# Per-session steps (align) are separate targets, so `make -j N` runs N sessions at once.
+TABLES_DIR ?= results
+TABLES_SEED ?= 1
+TABLES_RAVEN_TRIALS ?= 15
+TABLES_DAVINCI_TRIALS ?= 17
+TABLES_MAX_SECONDS ?=
+MIDAS_BIN ?= $(BIN)/midas
+_TABLES_SIM := $(TABLES_DIR)/simulated
+_TABLES_LIMIT := $(if $(TABLES_MAX_SECONDS),--max-seconds $(TABLES_MAX_SECONDS),)
+
+ifdef DATA
+_TABLES_DATASETS := $(DATA)
+else
+_TABLES_DATASETS := $(_TABLES_SIM)/raven-ii $(_TABLES_SIM)/davinci-xi
+endif
+
+.PHONY: tables tables-dataset
+
+tables: install $(if $(DATA),,$(_TABLES_SIM)/raven-ii/.simulated $(_TABLES_SIM)/davinci-xi/.simulated)
+	@for d in $(_TABLES_DATASETS); do \
+		$(MAKE) --no-print-directory tables-dataset TABLES_DATA="$$d" TABLES_NAME="$$(basename $$d)" || exit 1; \
+	done
+	@echo "tables written under $(TABLES_DIR)/ (see each folder's *.md)"
+
+$(_TABLES_SIM)/%/.simulated:
+	$(MIDAS_BIN) simulate dataset --platform $* --seed $(TABLES_SEED) --out $(@D) $(_TABLES_LIMIT) \
+		--trials $(if $(filter raven-ii,$*),$(TABLES_RAVEN_TRIALS),$(TABLES_DAVINCI_TRIALS)) > /dev/null
+	touch $@
+
+# ---- one dataset (invoked recursively once its session folders exist) -------------------------------
+_SESSIONS := $(patsubst %/manifest.json,%,$(wildcard $(TABLES_DATA)/*/manifest.json))
+_ALIGNED := $(_SESSIONS:%=%/derived/aligned.json)
+_RESULTS := $(TABLES_DIR)/$(TABLES_NAME)
+_HAS_ROBOT = $(MIDAS_BIN) session info --json $(firstword $(_SESSIONS)) | grep -q '"mtm"'
+
+tables-dataset: $(_RESULTS)/pedals.md $(_RESULTS)/.correlation
+
+# calibrations use every session at once (leave-one-trial-out), then each session is aligned alone
+$(TABLES_DATA)/.calibrated: $(_SESSIONS:%=%/manifest.json)
+	if $(_HAS_ROBOT); then \
+		for source in emht handkp; do for target in mtm psm; do \
+			$(MIDAS_BIN) calibrate $$source $(_SESSIONS) --target $$target --out $(_RESULTS)/calib/$${source}_to_$${target}.json > /dev/null || exit 1; \
+		done; done; \
+	fi
+	touch $@
+
+%/derived/aligned.json: %/manifest.json $(TABLES_DATA)/.calibrated
+	$(MIDAS_BIN) align $* > /dev/null
+
+$(_RESULTS)/.correlation: $(_ALIGNED)
+	mkdir -p $(_RESULTS)
+	if $(_HAS_ROBOT); then $(MIDAS_BIN) eval correlation $(_SESSIONS) --out $(_RESULTS) > $(_RESULTS)/correlation.txt; fi
+	touch $@
+
+$(_RESULTS)/pedals.md: $(_ALIGNED)
+	mkdir -p $(_RESULTS)
+	$(MIDAS_BIN) eval pedals $(_SESSIONS) --out $(_RESULTS) > $(_RESULTS)/pedals.txt
+	$(MIDAS_BIN) calibrate fps-optimize $(_SESSIONS) --out $(_RESULTS)/fps_optimized.json > $(_RESULTS)/fps_optimized.txt

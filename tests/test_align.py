@@ -1,0 +1,111 @@
+"""`midas align`: association, masks, gap filling, downsampling, lag estimation, written files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from midas_cli.analysis.align import (AlignOptions, align_and_write, associate, downsample_rows, estimate_lag,
+                                      fill_gaps)
+from midas_cli.session.derived import read_aligned
+from tests.analysis_sessions import raven_session
+from tests.conftest import midas
+
+MS = 1_000_000
+
+
+def test_causal_takes_latest_sample_at_or_before_the_frame() -> None:
+    samples = np.array([0, 10, 20, 30]) * MS
+    frames = np.array([-5, 0, 9, 10, 14, 16, 95]) * MS
+    idx, valid, delta = associate(samples, frames, "causal", stale_ns=25 * MS)
+    assert valid.tolist() == [False, True, True, True, True, True, False]  # before start / too stale
+    assert idx[valid].tolist() == [0, 0, 1, 1, 1]
+    assert delta[valid].tolist() == [0.0, -9.0, 0.0, -4.0, -6.0]
+    assert np.isnan(delta[0]) and np.isnan(delta[-1])
+
+
+def test_nearest_takes_the_closest_sample_either_side() -> None:
+    samples = np.array([0, 10, 20]) * MS
+    frames = np.array([-2, 4, 6, 19]) * MS
+    idx, valid, delta = associate(samples, frames, "nearest", stale_ns=5 * MS)
+    assert idx.tolist() == [0, 0, 1, 2]
+    assert valid.all()
+    assert delta.tolist() == [2.0, -4.0, 4.0, 1.0]
+
+
+def test_gap_filling_spline_for_short_gaps_forward_fill_for_long() -> None:
+    t = np.arange(0, 4.0, 0.1)
+    values = np.column_stack([t ** 2, -t])
+    values[[0, 1]] = np.nan  # leading gap: nothing to fill from
+    values[10:14] = np.nan  # 0.5 s gap: spline
+    values[20:35] = np.nan  # 1.6 s gap: forward fill
+    filled, code = fill_gaps(t, values, max_spline_gap_s=1.0)
+    assert code[:2].tolist() == [-1, -1] and np.isnan(filled[:2]).all()
+    assert (code[10:14] == 1).all()
+    np.testing.assert_allclose(filled[10:14], np.column_stack([t[10:14] ** 2, -t[10:14]]), atol=1e-6)
+    assert (code[20:35] == 2).all()
+    np.testing.assert_array_equal(filled[20:35], np.repeat(values[19:20], 15, axis=0))
+    assert (code[35:] == 0).all()
+
+
+def test_downsampling_keeps_first_frame_of_each_bin() -> None:
+    t_ns = (np.arange(30) * 1e9 / 30).astype(np.int64)
+    assert downsample_rows(t_ns, 10.0).tolist() == list(range(0, 30, 3))
+    assert len(downsample_rows(t_ns, None)) == 30
+
+
+def test_lag_estimator_recovers_a_sub_sample_shift() -> None:
+    rng = np.random.default_rng(1)
+    t = np.arange(0, 60, 1 / 30)
+    signal = np.convolve(rng.normal(size=len(t) + 200), np.ones(15) / 15, mode="same")
+    late = np.interp(t - 0.05, t, signal[: len(t)])  # 50 ms late = 1.5 frames
+    assert estimate_lag(signal[: len(t)], late, 30.0) == pytest.approx(0.05, abs=0.01)
+
+
+def test_align_cli_writes_masked_table_with_features(tmp_path: Path) -> None:
+    session = raven_session(tmp_path, duration_s=20.0, latency_ms=40.0)
+    result = midas("align", str(session), "--json", check=True)
+    summary = json.loads(result.stdout)[0]
+    table = read_aligned(session)
+    assert summary["frames"] == len(table.frame) == 600
+    assert table.frame.tolist() == list(range(600))
+    emht_delta = table.column("emht_delta_ms")
+    assert np.isnan(emht_delta[:2]).all()  # EmHT rows start 40 ms after the first frame: masked, not filled
+    assert np.nanmax(emht_delta) <= 0 and np.nanmin(emht_delta) > -1000 / 240 - 1e-6
+    for name in ("emht.left_hand_x_mm", "emht.right_grasper_mm", "emht.left_vx_mm_s", "handkp.left_hand_x_mm",
+                 "handkp.left_filled", "clutch", "mtm.left_yaw_deg"):
+        assert table.has(name), name
+    assert set(np.unique(table.column("handkp.left_filled")[~np.isnan(table.column("handkp.left_filled"))])) <= {0, 1, 2}
+    csv = pd.read_csv(session / "derived" / "aligned.csv")
+    assert csv["emht.s1_x_mm"].isna().sum() == int((~table.mask[:, table.columns.index("emht.s1_x_mm")]).sum())
+    meta = json.loads((session / "derived" / "aligned.json").read_text())
+    assert meta["method"] == "causal" and meta["sources"]["emht"]
+    assert {c["name"]: c["unit"] for c in meta["columns"]}["emht.left_vx_mm_s"] == "mm/s"
+
+
+def test_aligned_lag_estimate_within_one_frame_of_injected_latency(tmp_path: Path) -> None:
+    session = raven_session(tmp_path, duration_s=30.0, latency_ms=60.0)
+    align_and_write(session, AlignOptions(rate_hz=30.0))
+    table = read_aligned(session)
+    em = np.column_stack([table.column(f"emht.left_hand_{a}_mm") for a in "xyz"])
+    robot = np.column_stack([table.column(f"mtm.left_{a}_mm") for a in "xyz"])
+    speed = lambda p: np.r_[np.nan, np.linalg.norm(np.diff(p, axis=0), axis=1)]  # noqa: E731
+    lag = estimate_lag(speed(robot), speed(em), 30.0)
+    assert abs(lag - 0.060) < 1 / 30
+
+
+def test_align_refuses_a_session_without_video(small_session: Path) -> None:
+    result = midas("align", str(small_session))
+    assert result.returncode == 4
+    assert "video" in result.stderr
+
+
+def test_downsampling_keeps_regular_frames_despite_ns_rounding() -> None:
+    from midas_cli.analysis.align import downsample_rows
+
+    frame_ns = np.round(np.arange(90) * 1e9 / 30).astype(np.int64)  # frame 3 is at 99 999 999 ns
+    assert downsample_rows(frame_ns, 10.0).tolist() == list(range(0, 90, 3))

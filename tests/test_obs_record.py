@@ -1,0 +1,135 @@
+"""`midas record` against a real OBS Studio (headless, see obs_fixture.py): the MKV, one timestamp row
+per encoded frame, the stop-time check, the sync marker, and the password kept out of every output."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import midas
+from midas_cli.analysis.video_marker import marker_offsets_ms, marker_onsets, region_brightness
+from obs_fixture import FPS, MARKER, MARKER_ROI, ObsServer, running_obs
+
+pytestmark = pytest.mark.slow
+PASSWORD = "obs-test-Pa55word-7d1f"
+DURATION_S = 6.0
+
+
+@pytest.fixture(scope="module")
+def obs(tmp_path_factory) -> ObsServer:
+    with running_obs(tmp_path_factory.mktemp("obs-home"), PASSWORD) as server:
+        yield server
+
+
+def _record(obs: ObsServer, out: Path, query: str = "", duration: float = DURATION_S):
+    return midas("record", "--device", f"video=obs://127.0.0.1:{obs.port}{query}", "--duration", str(duration),
+                 "--out", str(out), "--subject", "1", "--task", "obs", "--trial", "1", "--no-tui", timeout=240)
+
+
+@pytest.fixture(scope="module")
+def recorded(obs: ObsServer, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    out = tmp_path_factory.mktemp("sessions")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("MIDAS_OBS_PASSWORD", PASSWORD)
+        result = _record(obs, out, f"?fps={FPS}&marker={MARKER}&marker_at=1&marker_every=2")
+    assert result.returncode == 0, result.stderr
+    return Path(result.stdout.strip().splitlines()[-1]), result
+
+
+def _ffprobe_frames(path: Path) -> dict:
+    result = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-count_frames", "-show_entries",
+                             "stream=codec_name,nb_read_frames,r_frame_rate", "-of", "json", str(path)],
+                            capture_output=True, text=True, check=True)
+    return json.loads(result.stdout)["streams"][0]
+
+
+def test_the_mkv_plays_and_has_one_timestamp_row_per_encoded_frame(recorded) -> None:
+    session, _ = recorded
+    videos = sorted((session / "video").glob("*.mkv"))
+    assert len(videos) == 1
+    probe = _ffprobe_frames(videos[0])
+    frames = int(probe["nb_read_frames"])
+    assert probe["codec_name"] == "h264" and probe["r_frame_rate"] == f"{FPS}/1"
+    assert frames >= (DURATION_S - 1) * FPS
+    decode = subprocess.run(["ffmpeg", "-v", "error", "-i", str(videos[0]), "-f", "null", "-"],
+                            capture_output=True, text=True)
+    assert decode.returncode == 0 and decode.stderr == ""
+    rows = pd.read_csv(session / "streams" / "video.csv")
+    assert len(rows) == frames
+    assert rows["seq"].tolist() == list(range(frames))
+    np.testing.assert_allclose(rows["t_device_s"], rows["seq"] / FPS, atol=1e-6)
+    steps = np.diff(rows["t_host_ns"].to_numpy())
+    assert steps.min() >= 33_333_333 and steps.max() <= 33_333_334
+
+
+def test_manifest_reports_the_start_event_and_the_stop_check(recorded) -> None:
+    session, _ = recorded
+    manifest = json.loads((session / "manifest.json").read_text())
+    info = manifest["devices"]["video"]["info"]
+    rows = pd.read_csv(session / "streams" / "video.csv")
+    assert info["obs_version"].startswith(("29.", "30.", "31.")) and info["fps"] == f"{FPS}/1"
+    assert info["start_request_host_ns"] <= info["started_host_ns"] == rows["t_host_ns"].iloc[0]
+    check = info["recording"]
+    assert check["status"] == "ok", check
+    assert check["frames_in_file"] == len(rows) == check["rows_live"] + check["rows_at_stop"]
+    assert check["file"].startswith("video/video_") and (session / check["file"]).is_file()
+    assert check["stopped_host_ns"] > check["stop_request_host_ns"] > info["started_host_ns"]
+    assert set(check["obs_counters"]) == {"output_skipped_frames", "render_lagged_frames"}
+    assert info["password_from"] == "$MIDAS_OBS_PASSWORD"
+    assert midas("session", "verify", str(session)).returncode == 0
+
+
+def test_sync_marker_is_found_in_the_pixels_near_its_host_time(recorded) -> None:
+    session, _ = recorded
+    toggles = pd.read_csv(session / "streams" / "video_marker.csv")
+    assert toggles["enabled"].tolist()[:4] == [1, 0, 1, 0]
+    assert (toggles["t_ack_ns"] >= toggles["t_host_ns"]).all()
+    video = next((session / "video").glob("*.mkv"))
+    onsets = marker_onsets(region_brightness(video, MARKER_ROI))
+    frames = pd.read_csv(session / "streams" / "video.csv")["t_host_ns"].to_numpy()
+    shown = toggles.loc[toggles["enabled"] == 1, "t_host_ns"].to_numpy()
+    offsets = marker_offsets_ms(frames, onsets, shown)
+    assert len(onsets) == len(shown) and not np.isnan(offsets).any()
+    assert np.all(np.abs(offsets) < 500), offsets  # found next to its own toggle, not a neighbour's
+
+
+def test_the_password_never_reaches_outputs_and_obs_settings_are_restored(recorded, obs: ObsServer) -> None:
+    session, result = recorded
+    for path in [session / "manifest.json", session / "logs" / "midas.log", *session.glob("streams/*.csv")]:
+        assert PASSWORD not in path.read_text(), path
+    assert PASSWORD not in result.stdout + result.stderr
+    import obsws_python
+
+    client = obsws_python.ReqClient(host="127.0.0.1", port=obs.port, password=PASSWORD, timeout=5)
+    try:
+        def value(category: str, name: str):
+            return client.send("GetProfileParameter", {"parameterCategory": category, "parameterName": name},
+                               raw=True)["parameterValue"]
+
+        assert value("SimpleOutput", "FilePath") == str(obs.default_folder)
+        assert value("SimpleOutput", "RecFormat") == "flv"
+        enabled = client.send("GetSceneItemEnabled", {"sceneName": "Scene", "sceneItemId": 2}, raw=True)
+        assert enabled["sceneItemEnabled"] is False
+    finally:
+        client.disconnect()
+
+
+@pytest.mark.parametrize("password, expected", [("not-the-password", "refused the connection"),
+                                                (None, "requires a password")])
+def test_bad_or_missing_password_fails_before_recording(obs: ObsServer, tmp_path: Path, monkeypatch,
+                                                        password, expected) -> None:
+    if password is None:
+        monkeypatch.delenv("MIDAS_OBS_PASSWORD", raising=False)
+    else:
+        monkeypatch.setenv("MIDAS_OBS_PASSWORD", password)
+    result = _record(obs, tmp_path, duration=30)
+    assert result.returncode == 3, result.stderr
+    assert expected in result.stderr and "Traceback" not in result.stderr
+    assert password is None or password not in result.stderr + result.stdout
+    session = next(tmp_path.iterdir())
+    assert not list((session / "video").iterdir())

@@ -1,0 +1,103 @@
+"""Training runs: a tiny configuration trains on CPU, is deterministic, and its folder describes it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import midas
+from gesture_sessions import write_gesture_dataset
+from midas_cli.errors import ConfigError
+from midas_cli.models.ablation import GridRow, parse_grid
+from midas_cli.models.data import DatasetConfig
+from midas_cli.models.splits import instances
+from midas_cli.models.train import TrainConfig, evaluate_checkpoint, shuffled_instance_labels, train_run
+
+TINY_MSTCN = {"pg_layers": 4, "refinement_stages": 1, "refinement_layers": 4, "feature_maps": 16}
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory) -> list[Path]:
+    return write_gesture_dataset(tmp_path_factory.mktemp("train"), n_trials=4, subjects=2, n_frames=300)
+
+
+def tiny_run(sessions, out: Path, **overrides):
+    config = TrainConfig(**{"model": "mstcn", "epochs": 3, "seed": 5, "lr": 5e-3, "model_options": TINY_MSTCN,
+                            **overrides})
+    return train_run(sessions, DatasetConfig(("emht",), ("pos", "vel")), config, out)
+
+
+def test_tiny_run_learns_and_writes_a_self_describing_folder(sessions, tmp_path):
+    result = tiny_run(sessions, tmp_path / "run")
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["split"]["kind"] == "gesture" and run["split"]["seed"] == 5 and run["split"]["test"]
+    assert len(run["data_fingerprint"]) == 64 and run["code"]["models_sha256"]
+    assert run["model_config"]["feature_maps"] == 16 and len(run["history"]) == 3
+    assert run["history"][-1]["loss"] < run["history"][0]["loss"]
+    saved = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+    assert saved["classes"] == ["G1", "G2", "G3", "G4"] and "state_dict" in saved
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["test"]["summary"]["frames"] > 0 and len(metrics["test"]["confusion"]) == 4
+    assert result.metrics["test"]["summary"]["accuracy"] > 0.4  # 4 classes: chance is 0.25
+    assert (tmp_path / "run" / "plots" / "confusion.png").stat().st_size > 0
+    assert list((tmp_path / "run" / "predictions").glob("*.csv"))
+
+
+def test_same_seed_same_run_and_eval_only_reproduces(sessions, tmp_path):
+    first = tiny_run(sessions, tmp_path / "a", epochs=2)
+    second = tiny_run(sessions, tmp_path / "b", epochs=2)
+    assert first.metrics["test"] == second.metrics["test"]
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    again = evaluate_checkpoint(sessions, tmp_path / "a" / "checkpoint.pt", tmp_path / "eval")
+    assert again.metrics["test"]["summary"] == first.metrics["test"]["summary"]
+    with pytest.raises(ConfigError, match="already holds a run"):
+        tiny_run(sessions, tmp_path / "a")
+
+
+def test_shuffled_instance_labels_keep_structure_but_break_the_mapping():
+    y = [np.array([0, 0, 1, 1, 1, 2, -1, 3, 3]), np.array([1, 1, 0, 0, 2, 2, 3])]
+    shuffled = shuffled_instance_labels(y, seed=0)
+    for before, after in zip(y, shuffled):
+        assert ((before == -1) == (after == -1)).all()
+        runs = np.flatnonzero(np.diff(before)) + 1
+        for segment in np.split(after, runs):
+            assert len(set(segment.tolist())) == 1  # each instance still has one class
+    found = [(i, cls, a) for i, y_i in enumerate(y) for cls, a, _ in instances(y_i)]
+    after = sorted(int(shuffled[i][a]) for i, _, a in found)
+    assert after == sorted(cls for _, cls, _ in found)  # the same instance classes, dealt to other instances
+    assert any((a != b).any() for a, b in zip(y, shuffled))
+
+
+def test_grid_rows_parse_and_title_like_the_paper():
+    rows = parse_grid("emht:pos,ori,vel:exclude-clutch;emht:pos,ori,vel;mtm:pos,ori:exclude-clutch;emht+image:pos,vel")
+    assert rows[0] == GridRow(("emht",), ("pos", "ori", "vel"), True)
+    assert [r.modality_title() for r in rows] == ["EmHT", "EmHT-NC", "MTM-NG", "EmHT, Image-NC"]
+    assert rows[3].feature_title() == "pos., vel., RGB"
+    assert len(parse_grid(None)) == 14
+    with pytest.raises(ConfigError):
+        parse_grid("emht")
+
+
+def test_cli_train_eval_only_and_ablation(sessions, tmp_path):
+    root = str(sessions[0].parent)
+    run = midas("train", "gestures", root, "--model", "transformer", "--epochs", "1", "--seed", "1",
+                "--out", str(tmp_path / "run"), "--json", check=True)
+    summary = json.loads(run.stdout)["test"]
+    assert 0.0 <= summary["accuracy"] <= 1.0 and "f1@50" in summary
+    assert "epochs" in run.stderr  # progress bar on stderr
+    again = midas("train", "gestures", root, "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
+                  "--out", str(tmp_path / "eval"), "--json", check=True)
+    assert json.loads(again.stdout)["test"] == summary
+    table = midas("train", "ablation", root, "--models", "transformer", "--epochs", "1",
+                  "--grid", "emht:pos:exclude-clutch;psm:pos", "--out", str(tmp_path / "abl"), check=True)
+    assert "| MTRSAP | EmHT | pos. |" in table.stdout and "Skipped" in table.stdout  # no PSM stream
+    assert (tmp_path / "abl" / "table.tex").read_text().count("\\\\") >= 2
+    assert (tmp_path / "abl" / "table.csv").read_text().splitlines()[0].startswith("Dataset,Model,Modality")
+    bad = midas("train", "gestures", root, "--model", "lstm", "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "lstm" in bad.stderr
