@@ -3,6 +3,8 @@
 #   make tables -j2                        simulated Raven-II (15 trials) + da Vinci Xi (17 trials)
 #   make tables DATA=path/to/dataset -j8   any folder of session folders (no simulation)
 #   make tables TABLES_MAX_SECONDS=60      short simulated trials (demos, CI)
+# It ends with the gesture-recognition table (mk/gestures.mk: training on CPU takes a while; see
+# GESTURES_EPOCHS / GESTURES_GRID / GESTURES_DEVICE=cuda there).
 # Per-session steps (align) are separate targets, so `make -j N` runs N sessions at once.
 TABLES_DIR ?= results
 TABLES_SEED ?= 1
@@ -26,6 +28,7 @@ tables: install $(if $(DATA),,$(_TABLES_SIM)/raven-ii/.simulated $(_TABLES_SIM)/
 		$(MAKE) --no-print-directory tables-dataset TABLES_DATA="$$d" TABLES_NAME="$$(basename $$d)" || exit 1; \
 	done
 	@echo "tables written under $(TABLES_DIR)/ (see each folder's *.md)"
+	$(MAKE) --no-print-directory gestures-table
 
 $(_TABLES_SIM)/%/.simulated:
 	$(MIDAS_BIN) simulate dataset --platform $* --seed $(TABLES_SEED) --out $(@D) $(_TABLES_LIMIT) \

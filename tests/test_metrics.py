@@ -14,10 +14,13 @@ NAN = float("nan")
 
 
 def test_cosine_similarity_hand_computed_and_ignores_masked_frames() -> None:
-    # p = (1, 2, 2), g = (2, 0, 1): p.g = 4, |p| = 3, |g| = sqrt(5) -> 4 / (3 sqrt 5)
-    assert cosine_similarity(np.array([1, 2, 2, NAN]), np.array([2, 0, 1, 7])) == pytest.approx(4 / (3 * math.sqrt(5)))
-    # not a Pearson correlation: a constant offset keeps CoS high, a sign flip gives -1
-    assert cosine_similarity(np.array([1.0, 2.0]), np.array([-1.0, -2.0])) == pytest.approx(-1.0)
+    # p = (1, 2, 2), g = (2, 0, 1), about mean(g) = 1: (0, 1, 1) . (1, -1, 0) = -1, norms sqrt2 sqrt2 -> -0.5
+    assert cosine_similarity(np.array([1, 2, 2, NAN]), np.array([2, 0, 1, 7])) == pytest.approx(-0.5)
+    g = np.array([100.0, 101.0, 102.0])  # far from the origin: raw cosine would be ~1 for anything nearby
+    assert cosine_similarity(g, g) == pytest.approx(1.0)
+    assert cosine_similarity(g[::-1].copy(), g) == pytest.approx(-1.0)
+    # not a Pearson correlation: an offset lowers it (about mean(g): (9, 10, 11) . (-1, 0, 1) = 2)
+    assert cosine_similarity(g + 10, g) == pytest.approx(2 / (math.sqrt(302) * math.sqrt(2)))
 
 
 def test_nrmse_is_rmse_over_ground_truth_range_in_percent() -> None:

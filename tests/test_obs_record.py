@@ -133,3 +133,35 @@ def test_bad_or_missing_password_fails_before_recording(obs: ObsServer, tmp_path
     assert password is None or password not in result.stderr + result.stdout
     session = next(tmp_path.iterdir())
     assert not list((session / "video").iterdir())
+
+
+def test_a_mixed_session_with_obs_emulators_and_lsl_verifies(obs: ObsServer, tmp_path: Path) -> None:
+    """Issue 4's mixed rig: simulated EmHT + the FPS board emulator + a real OBS + the Raven emulator
+    + an LSL stream, one `midas record`, one session that `midas session verify` accepts."""
+    from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
+    from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
+    from midas_cli.session.reader import Session
+    from tests.lsl_fixture import CounterOutlet, loopback_lsl_config
+    from tests.test_raven import free_udp_port
+
+    pytest.importorskip("pylsl", reason="pylsl is not installed")
+    loopback_lsl_config(tmp_path)
+    port = free_udp_port()
+    with pytest.MonkeyPatch.context() as patch, FpsEmulator(FpsEmulatorConfig(channels=9)) as board, \
+            RavenEmulator(RavenEmulatorConfig("127.0.0.1", port, rate_hz=200)), \
+            CounterOutlet("midas-test-obs-mixed", rate=50.0):
+        patch.setenv("MIDAS_OBS_PASSWORD", PASSWORD)
+        result = midas("record", "--device", "emht=sim://emht", "--device", f"fps=fps://{board.path}?rate=200",
+                       "--device", f"video=obs://127.0.0.1:{obs.port}?fps={FPS}",
+                       "--device", f"raven=raven://127.0.0.1:{port}?rate=200",
+                       "--device", "hr=lsl://?name=midas-test-obs-mixed", "--duration", "6", "--subject", "1",
+                       "--task", "mixed", "--trial", "1", "--out", str(tmp_path / "sessions"), "--no-tui",
+                       timeout=240)
+    assert result.returncode == 0, result.stderr
+    path = Path(result.stdout.strip().splitlines()[-1])
+    verify = midas("session", "verify", str(path))
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+    session = Session.open(path)
+    assert {"emht", "fps", "video", "raven", "hr"} <= set(session.stream_names)
+    assert all(session.manifest["streams"][name]["samples"] > 0 for name in session.stream_names)
+    assert len(list((path / "video").glob("*.mkv"))) == 1

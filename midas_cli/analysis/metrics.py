@@ -13,8 +13,15 @@ import numpy as np
 
 
 def cosine_similarity(prediction: np.ndarray, truth: np.ndarray) -> float:
-    """CoS of a whole one-axis trajectory: sum(p * g) / (|p| |g|) over frames where both are valid."""
+    """CoS of a whole one-axis trajectory about the ground truth's mean, over frames where both are valid:
+    with c = mean(g), CoS = sum((p - c)(g - c)) / (|p - c| |g - c|). Without centring, any two
+    trajectories far from the coordinate origin score ~1.000; about c, an offset or a wrong shape
+    lowers it (the paper's EmHT-MTM values are ~0.8-0.95, not 1)."""
     p, g = _paired(prediction, truth)
+    if len(g) == 0:
+        return float("nan")
+    centre = g.mean()
+    p, g = p - centre, g - centre
     denom = np.linalg.norm(p) * np.linalg.norm(g)
     return float(p @ g / denom) if denom > 0 else float("nan")
 
