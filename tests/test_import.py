@@ -36,6 +36,9 @@ def test_real_midas_folder_imports_and_verifies(tmp_path: Path) -> None:
     assert report["pds"]["host_times_adjusted"] == 40 and report["pds"]["all_placeholder_rows"] == 300
     assert report["synced_data"]["row_widths"] == {"41": 300}
     assert session.metadata["subject"] == "trakt" and session.metadata["trial"] == 1
+    aligned = midas("align", str(session_path), "--json")
+    assert aligned.returncode == 0, aligned.stderr
+    assert (session_path / "derived" / "aligned.npz").is_file()
 
 
 def _write_dcs_folder(root: Path) -> Path:
