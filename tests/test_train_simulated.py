@@ -13,7 +13,8 @@ from midas_cli.analysis.align import align_and_write
 from midas_cli.models.data import DatasetConfig
 from midas_cli.models.train import TrainConfig, train_run
 
-pytestmark = pytest.mark.slow
+# Training on CPU: ~2.5 min for MS-TCN++ on a quiet 2-core machine, several times that under load.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
 
 EMHT = DatasetConfig(("emht",), ("pos", "ori", "vel"), exclude_clutch=True)
 EPOCHS = 15
