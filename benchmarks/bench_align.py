@@ -1,0 +1,217 @@
+"""`midas align` vs a per-stream pandas ``merge_asof`` baseline (CSV in, CSV out), 10 min and 1 h sessions.
+
+A session (EmHT 4 sensors x 240 Hz, FPS 9 channels x 250 Hz, HandKP 30 Hz, 30 fps video clock, random-walk
+values, < 1 ms jitter) is written through midas_cli/session/writer.py with vectorised CSV formatting.
+Each side runs as its own subprocess, timed end to end (files on disk -> aligned output on disk), with
+its peak resident memory (``ru_maxrss`` of that child). Then every raw ``<stream>.<column>`` value the
+two produce for EmHT, FPS and HandKP is compared (same frames masked, values within 1e-9 relative).
+
+    .venv/bin/python benchmarks/bench_align.py            # 10 min and 60 min -> results/align.json
+    .venv/bin/python benchmarks/bench_align.py --quick    # 2 min
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import load_average, machine_info, write_result  # noqa: E402
+
+from midas_cli.clock import HostClock  # noqa: E402
+from midas_cli.devices.registry import describe_device  # noqa: E402
+from midas_cli.session.writer import SessionMetadata, SessionWriter  # noqa: E402
+
+URLS = {"video": "sim://video?rate=30", "emht": "sim://emht?rate=240&sensors=4",
+        "handkp": "sim://handkp?rate=30", "fps": "sim://fps?rate=250&channels=9"}
+RATES = {"video": 30.0, "emht": 240.0, "handkp": 30.0, "fps": 250.0}
+COMPARED = ("emht", "fps", "handkp")
+STALE_PERIODS = 3.0  # midas align's default: a sample more than 3 nominal periods old is masked
+CHUNK = 20_000
+START_NS = 1_800_000_000 * 10**9
+
+BASELINE = r'''
+import sys, pandas as pd
+session, out, stale = sys.argv[1], sys.argv[2], float(sys.argv[3])
+rates = {"emht": 240.0, "fps": 250.0, "handkp": 30.0}
+merged = pd.read_csv(f"{session}/streams/video.csv")[["seq", "t_host_ns"]].rename(columns={"seq": "frame"})
+for name, rate in rates.items():
+    df = pd.read_csv(f"{session}/streams/{name}.csv").sort_values("t_host_ns")
+    df = df.rename(columns={c: f"{name}.{c}" for c in df.columns if c != "t_host_ns"})
+    df[f"{name}.t_host_ns"] = df["t_host_ns"]
+    merged = pd.merge_asof(merged, df, on="t_host_ns", direction="backward", tolerance=int(stale * 1e9 / rate))
+merged.to_csv(out, index=False)
+'''
+
+
+def write_session(root: Path, minutes: float, seed: int = 1) -> Path:
+    """A session of ``minutes`` with every stream at its full rate; returns the folder."""
+    rng = np.random.default_rng(seed)
+    specs = {name: describe_device(name, url).streams[0] for name, url in URLS.items()}
+    devices = {name: {"kind": name, "url": url, "settings": {}, "streams": [name]} for name, url in URLS.items()}
+    writer = SessionWriter.create(root, SessionMetadata("1", "bench", 1), HostClock(START_NS - 10**12), devices,
+                                  list(specs.values()), {"generator": "benchmarks/bench_align.py"}, start_ns=START_NS)
+    for name, spec in specs.items():
+        n = int(minutes * 60 * RATES[name])
+        k = np.arange(n, dtype=np.int64)
+        host = START_NS + np.round(k * 1e9 / RATES[name] + rng.uniform(0, 1e6, n)).astype(np.int64)
+        for begin in range(0, n, CHUNK):
+            end = min(n, begin + CHUNK)
+            writer.append(name, format_chunk(spec, k[begin:end], host[begin:end], rng))
+    writer.finalize("complete", "benchmark", int(host[-1]) + 50_000_000, {})
+    return writer.folder
+
+
+def format_chunk(spec, k: np.ndarray, host: np.ndarray, rng: np.random.Generator) -> str:
+    """CSV text for rows k with random values, formatted per column like StreamSpec.format_rows."""
+    columns = [k.astype(str), host.astype(str)]
+    for column in spec.columns[2:]:
+        if column.dtype == "int":
+            values = rng.integers(0, 2 if column.name.endswith("pressed") else 1024, len(k))
+            columns.append(values.astype(str))
+        else:
+            values = np.cumsum(rng.normal(0, 0.5, len(k))) + 100.0
+            if column.name.endswith("_mm") and spec.name == "handkp":
+                values[rng.random(len(k)) < 0.02] = np.nan
+            text = np.char.mod(f"%.{column.decimals}f", values)
+            columns.append(np.where(np.isnan(values), "", text))
+    lines = columns[0]
+    for c in columns[1:]:
+        lines = np.char.add(np.char.add(lines, ","), c)
+    return "\n".join(lines.tolist()) + "\n"
+
+
+PEAK_WRAPPER = r'''
+import runpy, sys
+peak_file, mode, target, *args = sys.argv[1:]
+sys.argv = [target, *args]
+try:
+    runpy.run_module(target, run_name="__main__") if mode == "module" else runpy.run_path(target, run_name="__main__")
+finally:
+    hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM:")][0].split()[1]
+    open(peak_file, "w").write(hwm)
+'''
+
+
+def timed(mode: str, target: str, args: list[str]) -> dict:
+    """Run a module or script as a child; wall seconds and its own peak RSS (VmHWM, MiB: per process
+    image, so not inherited from this parent the way ru_maxrss is across fork/exec)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        peak_file, log_file = Path(tmp) / "peak", Path(tmp) / "log"
+        t0 = time.monotonic()
+        with open(log_file, "wb") as log:
+            code = subprocess.call([sys.executable, "-c", PEAK_WRAPPER, str(peak_file), mode, target, *args],
+                                   stdout=subprocess.DEVNULL, stderr=log)
+        wall = time.monotonic() - t0
+        if code != 0:
+            raise RuntimeError(f"{target} {args} failed: {log_file.read_text(errors='replace')[-2000:]}")
+        peak_mib = int(peak_file.read_text()) / 1024
+    return {"wall_s": round(wall, 2), "peak_rss_mib": round(peak_mib, 1), "load_average_after": load_average()}
+
+
+def compare(session: Path, baseline_csv: Path) -> dict:
+    """Every raw <stream>.<column> of COMPARED streams: same mask, equal values (rtol 1e-9)."""
+    with np.load(session / "derived" / "aligned.npz") as data:
+        columns, values, mask = data["columns"].tolist(), data["values"], data["mask"]
+    base = pd.read_csv(baseline_csv)
+    compared, mismatched, mask_diff = 0, [], 0
+    for i, name in enumerate(columns):
+        stream = name.split(".", 1)[0]
+        if stream not in COMPARED or name not in base.columns:
+            continue
+        ref = base[name].to_numpy(dtype=float)
+        ok = mask[:, i]
+        mask_diff += int(np.sum(ok != ~np.isnan(ref)))
+        both = ok & ~np.isnan(ref)
+        if not np.allclose(values[both, i], ref[both], rtol=1e-9, atol=0):
+            mismatched.append(name)
+        compared += 1
+    return {"columns_compared": compared, "frames": int(len(base)), "midas_columns": len(columns) + 2,
+            "baseline_columns": int(len(base.columns)), "mismatched_columns": mismatched,
+            "mask_disagreements": mask_diff, "equal": not mismatched and mask_diff == 0,
+            "rule": "raw <stream>.<column> of emht, fps, handkp (seq, t_host_ns, device time, values); a frame is "
+                    "masked in midas iff the baseline left it empty (merge_asof backward, tolerance 3 periods); "
+                    "unmasked values equal within rtol 1e-9"}
+
+
+STAGES = {"read_streams": "read stream CSVs (Session.read_stream)", "reference_frames": "read video frame clock",
+          "add_raw_streams": "associate raw streams with frames", "add_emht_features": "EmHT hand points/velocity",
+          "add_handkp_features": "HandKP gap filling", "add_clutch": "clutch", "build_table": "build table",
+          "savez_compressed": "write aligned.npz (compressed)", "to_csv": "write aligned.csv (pandas, %.6g)"}
+
+
+def profile_align(session: Path) -> dict:
+    """cProfile of align_and_write in this process (the work `midas align` does after start-up), and
+    the CLI's own start-up (``python -m midas_cli --help``)."""
+    import cProfile
+    import pstats
+
+    from midas_cli.analysis.align import AlignOptions, align_and_write
+
+    profiler = cProfile.Profile()
+    t0 = time.monotonic()
+    profiler.runcall(align_and_write, session, AlignOptions())
+    total = time.monotonic() - t0
+    stats = pstats.Stats(profiler).stats
+    stages = {}
+    for (file, _, function), v in stats.items():
+        if function in STAGES and (function != "to_csv" or file.endswith("generic.py")):
+            stages[STAGES[function]] = round(stages.get(STAGES[function], 0.0) + v[3], 3)
+    startup = timed("module", "midas_cli", ["--help"])
+    return {"align_and_write_s_profiled": round(total, 2), "stages_cumulative_s": stages,
+            "cli_startup_s": startup["wall_s"]}
+
+
+def run_size(minutes: float, profile: bool = False) -> dict:
+    with tempfile.TemporaryDirectory(prefix="midas-bench-align-") as tmp:
+        t0 = time.monotonic()
+        made = subprocess.run([sys.executable, __file__, "--generate", tmp, str(minutes)], check=True,
+                              capture_output=True, text=True)  # keeps this process small (see timed)
+        session = Path(made.stdout.strip().splitlines()[-1])
+        generate_s = time.monotonic() - t0
+        size_mb = sum(p.stat().st_size for p in (session / "streams").glob("*.csv")) / 1e6
+        baseline_csv = Path(tmp) / "baseline.csv"
+        script = Path(tmp) / "baseline_merge_asof.py"
+        script.write_text(BASELINE, encoding="utf-8")
+        base = timed("path", str(script), [str(session), str(baseline_csv), str(STALE_PERIODS)])
+        midas = timed("module", "midas_cli", ["align", str(session), "--json"])
+        check = compare(session, baseline_csv)
+        where = profile_align(session) if profile else None
+    return {"minutes": minutes, "stream_csv_mb": round(size_mb, 1), "generate_s": round(generate_s, 1),
+            "baseline_merge_asof": base, "midas_align": midas,
+            "speedup": round(base["wall_s"] / midas["wall_s"], 2), "check": check, "profile": where}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one 2-minute session")
+    parser.add_argument("--minutes", type=float, nargs="+", default=[10.0, 60.0])
+    parser.add_argument("--generate", nargs=2, metavar=("ROOT", "MINUTES"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.generate:
+        print(write_session(Path(args.generate[0]), float(args.generate[1])))
+        return
+    sizes = [2.0] if args.quick else args.minutes
+    runs = []
+    for minutes in sizes:
+        print(f"align: {minutes:g} min session ...", file=sys.stderr)
+        runs.append({"load_average_before": load_average(), **run_size(minutes, profile=minutes == sizes[-1])})
+    slope = None
+    if len(runs) >= 2:
+        a, b = runs[0], runs[-1]
+        slope = {side: round((b[side]["wall_s"] - a[side]["wall_s"]) / (b["minutes"] - a["minutes"]), 3)
+                 for side in ("baseline_merge_asof", "midas_align")}
+    write_result("align", {"machine": machine_info(), "quick": args.quick, "runs": runs,
+                           "seconds_per_session_minute": slope})
+
+
+if __name__ == "__main__":
+    main()
