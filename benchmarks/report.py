@@ -75,14 +75,14 @@ def record_profile(r: dict) -> list[str]:
     out = ["### Where the recording latency goes", "",
            "Three measurements split the path read -> disk (load " +
            "–".join(f"{x:g}" for x in p["load_average_before_after"]) + "):", "",
-           "1. **Worker batch window** — each device alone, in one process, through the worker's own loop "
+           "1. **Worker loop** — each device alone, in one process, through the worker's own loop "
            "(`record/worker.py` `_pump`) with a queue that only stamps the hand-off time: what batching and "
            "the device's blocking `read()` add before anything crosses a process.",
            f"2. **mp.Queue transit** — a spawned process puts FPS-sized `DataBatch`es ({transit['rows_per_batch']} rows) "
            f"at {transit['rate_hz']:g} Hz; parent `get()` time − put time.",
            "3. **In the recorder** — a `Recorder` subclass stamps each batch when its writer thread receives it "
            "and after `SessionWriter.append` (all devices, display-like `snapshot()` every 0.25 s).", "",
-           "| stream | 1. batch window p50 / p99 ms | 3. read -> writer thread p50 / p99 ms | 3. write p50 / p99 ms "
+           "| stream | 1. worker loop p50 / p99 ms | 3. read -> writer thread p50 / p99 ms | 3. write p50 / p99 ms "
            "| rows per batch | rows' spread in a batch p99 ms |", "|---|---|---|---|---|---|"]
     for name, s in p["streams"].items():
         w = window.get(name) or {}
@@ -96,32 +96,21 @@ def record_profile(r: dict) -> list[str]:
 
 RECORD_ANALYSIS = [
     "**Reading.** Writing is not the problem (`write` p99 under 1 ms). The worker loop alone (column 1) "
-    "already accounts for most of the latency seen by the writer thread (column 3), so the time is spent "
-    "*before* the queue, by the structure of `_pump`:",
+    "accounts for most of the latency seen by the writer thread (column 3): the time is spent *before* "
+    "the queue, in how long a row waits inside its worker.",
     "",
-    f"* A batch is flushed only when `now - last_flush >= BATCH_S` (5 ms) is checked, and that check runs "
-    "only after `device.read()` returns. `read()` blocks: serial backends for up to `READ_TIMEOUT_S` = 5 ms "
-    "(pyserial timeout), simulated backends sleep up to `MAX_SLEEP_S` = 10 ms until the next sample is due. "
-    "A row read just after a flush therefore waits for the next read to time out *and* the window to "
-    "expire: ~5 ms typical, up to ~10–15 ms for EmHT (one 4-sensor cycle every 5 ms, rows spread up to "
-    "10 ms within one batch) and ~10 ms for every 30 Hz row (video, HandKP: one row per batch, held for "
-    "one 10 ms sleep).",
+    "* Until commit 5ec329c the worker flushed only when a 5 ms batch window had passed, checked after "
+    "each blocking `read()` (serial: up to 5 ms; simulated: up to 10 ms), so a row could wait for both: "
+    "p99 7–15 ms. Now `_pump` hands rows over as soon as a `read()` returns them; a quick check on the "
+    "simulated rig moved p99 from ~12 ms to ~5 ms (load ~2 from a concurrent test run).",
     "* The multiprocessing queue adds a fraction of a millisecond typically (pickle + pipe + feeder "
     "thread), with a tail of a few ms when the machine is loaded (the writer thread shares the GIL with "
     "the display thread's `snapshot()` and with unpickling).",
     "",
-    "**Change proposed** (in `record/worker.py`, not made here: the benchmark only measures):",
-    "",
-    "1. Flush as soon as a `read()` returns rows unless the oldest pending row is younger than a much "
-    "shorter window (e.g. 1 ms), and bound each `read()`'s blocking time by the time left until the oldest "
-    "pending row's deadline (`serial.timeout` set per call, or `select()` on the port's fd); simulated "
-    "devices should sleep only until the next sample is due *or* the flush deadline, whichever is first. "
-    "Expected effect from the table above: the batch-window term drops from ~5–15 ms to ~1 ms, leaving "
-    "queue transit (~0.3 ms p50, a few ms p99 under load) — p99 within 5 ms on an unloaded machine.",
-    "2. If the p99 tail then remains above 5 ms under load, replace the per-batch pickled `DataBatch` "
-    "with the CSV text and two int64 arrays written into a `multiprocessing.shared_memory` ring per device "
-    "(no pickling, no feeder thread), and give the writer thread priority over the display (the display "
-    "reads a snapshot the writer publishes instead of taking the stats lock).",
+    "**Next, if p99 stays above 5 ms under load:** bound each serial `read()`'s blocking time (select on "
+    "the port's fd) and replace the pickled `DataBatch` with a `multiprocessing.shared_memory` ring per "
+    "device (no pickling, no feeder thread); let the display read a snapshot the writer publishes instead "
+    "of taking the stats lock.",
     "",
 ]
 

@@ -26,7 +26,6 @@ from midas_cli.record.messages import DataBatch, DeviceEvent
 
 log = logging.getLogger(__name__)
 
-BATCH_S = 0.005
 BACKOFF_START_S = 0.25
 BACKOFF_MAX_S = 1.0  # a returning device is retried within 1 s (issue 3: reconnect within 2 s)
 
@@ -87,10 +86,13 @@ def _serve(job: WorkerJob, out, stop, clock: HostClock, totals: dict[str, int]) 
 
 
 def _pump(device: Device, job: WorkerJob, out, stop, totals: dict[str, int]) -> None:
-    """Read until told to stop; raise DeviceError-like MidasError if the device goes silent."""
+    """Read until told to stop; raise DeviceError-like MidasError if the device goes silent.
+
+    Rows are sent as soon as a read returns them: what arrived together travels together, and no
+    batching window adds to the host-read -> disk latency (benchmarks/: it was the largest part)."""
     specs = {spec.name: spec for spec in device.streams}
     pending: dict[str, list[tuple]] = {name: [] for name in specs}
-    last_flush = last_data = time.monotonic()
+    last_data = time.monotonic()
     while not stop.is_set() and os.getppid() == job.parent_pid:
         rows_by_stream = device.read()
         now = time.monotonic()
@@ -98,9 +100,7 @@ def _pump(device: Device, job: WorkerJob, out, stop, totals: dict[str, int]) -> 
             if rows:
                 pending[name].extend(rows)
                 last_data = now
-        if now - last_flush >= BATCH_S:
-            _flush(device, specs, pending, out, totals)
-            last_flush = now
+        _flush(device, specs, pending, out, totals)
         if now - last_data > job.stall_timeout_s:
             _flush(device, specs, pending, out, totals)
             raise DeviceError(f"{job.device}: no data for {job.stall_timeout_s:.2f} s")
