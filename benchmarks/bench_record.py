@@ -252,7 +252,7 @@ def main() -> None:
     print("record: in-process stage profile ...", file=sys.stderr)
     load = load_average()
     profile = profile_stages(3.0 if args.quick else 10.0)
-    print("record: worker batch window and queue transit ...", file=sys.stderr)
+    print("record: worker loop and queue transit ...", file=sys.stderr)
     window = _with_emulators(lambda urls: pump_window(urls, 2.0 if args.quick else 5.0))
     transit = {"idle_parent": queue_transit(200.0, 2.0 if args.quick else 5.0, 5)}
     write_result("record", {"machine": machine_info(), "quick": args.quick, "paper_mean_ms": PAPER_MEAN_MS,
