@@ -68,7 +68,7 @@ def test_lag_estimator_recovers_a_sub_sample_shift() -> None:
 
 def test_align_cli_writes_masked_table_with_features(tmp_path: Path) -> None:
     session = raven_session(tmp_path, duration_s=20.0, latency_ms=40.0)
-    result = midas("align", str(session), "--json", check=True)
+    result = midas("align", str(session), "--json", "--csv", check=True)
     summary = json.loads(result.stdout)[0]
     table = read_aligned(session)
     assert summary["frames"] == len(table.frame) == 600

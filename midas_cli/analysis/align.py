@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 from scipy.interpolate import CubicSpline
 
 from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, load_calibration
@@ -104,16 +103,25 @@ def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns
     return idx, valid, np.where(valid, offset / 1e6, np.nan)
 
 
-def associate_stream(frame: pd.DataFrame, spec_columns: list[str], frame_ns: np.ndarray, method: str,
+def associate_stream(table: np.ndarray, spec_columns: list[str], frame_ns: np.ndarray, method: str,
                      stale_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Values (N, C) of ``spec_columns`` at each frame (NaN where masked) and delta_ms (N,)."""
-    order = np.argsort(frame["t_host_ns"].to_numpy(), kind="stable")
-    sample_ns = frame["t_host_ns"].to_numpy()[order]
+    """Values (N, C) float64 of ``spec_columns`` of a stream (structured array, see
+    ``Session.read_columns``) at each frame (NaN where masked) and delta_ms (N,). Only the chosen rows
+    are read, so a memory-mapped stream is never copied whole."""
+    sample_ns = np.asarray(table["t_host_ns"], dtype=np.int64)
+    order = None
+    if len(sample_ns) > 1 and (np.diff(sample_ns) < 0).any():
+        order = np.argsort(sample_ns, kind="stable")
+        sample_ns = sample_ns[order]
     idx, valid, delta = associate(sample_ns, frame_ns, method, stale_ns)
-    raw = frame[spec_columns].to_numpy(dtype=float, na_value=np.nan)[order]
-    values = raw[idx] if len(raw) else np.full((len(frame_ns), len(spec_columns)), np.nan)
-    values[~valid] = np.nan
-    return values, delta
+    values = np.full((len(spec_columns), len(frame_ns)), np.nan)  # one contiguous row per column
+    if len(sample_ns):
+        rows = idx if order is None else order[idx]
+        plain = table.view(np.ndarray)
+        for j, name in enumerate(spec_columns):
+            values[j] = plain[name][rows]
+        values[:, ~valid] = np.nan
+    return values.T, delta
 
 
 def value_columns(session: Session, stream: str) -> list[Any]:
@@ -130,19 +138,20 @@ def reference_frames(session: Session) -> tuple[np.ndarray, np.ndarray]:
     """Video frame indices (N,) and host times (N,) ns: the reference clock, sorted by time."""
     if REFERENCE not in session.stream_names:
         raise SessionError(f"{session.path} has no {REFERENCE!r} stream: it is the frame clock `align` needs")
-    video = session.read_stream(REFERENCE)
-    if video.empty:
+    video = session.read_columns(REFERENCE)
+    if len(video) == 0:
         raise SessionError(f"{session.path}: the video stream has no frames")
-    video = video.sort_values("t_host_ns", kind="stable")
-    return video["seq"].to_numpy(np.int64), video["t_host_ns"].to_numpy(np.int64)
+    order = np.argsort(video["t_host_ns"], kind="stable")
+    return np.asarray(video["seq"], np.int64)[order], np.asarray(video["t_host_ns"], np.int64)[order]
 
 
-def read_streams(session: Session) -> dict[str, pd.DataFrame]:
-    """Every stream except the reference, read once."""
-    return {name: session.read_stream(name) for name in session.stream_names if name != REFERENCE}
+def read_streams(session: Session) -> dict[str, np.ndarray]:
+    """Every stream except the reference as a structured array (memory-mapped binary copy, or the CSV
+    parsed when the session has none)."""
+    return {name: session.read_columns(name) for name in session.stream_names if name != REFERENCE}
 
 
-def add_raw_streams(session: Session, data: dict[str, pd.DataFrame], columns: ColumnSet, frame_ns: np.ndarray,
+def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: ColumnSet, frame_ns: np.ndarray,
                     options: AlignOptions, shifts_ns: dict[str, int]) -> None:
     """Associate every stream in ``data`` with the frames; a stream in ``shifts_ns`` is associated at
     frame time + shift (compensating a known latency)."""
@@ -267,7 +276,10 @@ def downsample_rows(t_ns: np.ndarray, rate_hz: float | None) -> np.ndarray:
 def build_table(frames: np.ndarray, frame_ns: np.ndarray, columns: ColumnSet, rows: np.ndarray,
                 meta: dict[str, Any]) -> AlignedTable:
     names = list(columns.values)
-    values = columns.stack(names)[rows] if names else np.zeros((len(rows), 0))
+    values = np.empty((len(rows), len(names)))
+    every_frame = len(rows) == columns.n
+    for k, name in enumerate(names):
+        values[:, k] = columns.values[name] if every_frame else columns.values[name][rows]
     meta = {**meta, "frames": int(len(rows)), "columns": [{"name": n, **columns.meta[n]} for n in names]}
     return AlignedTable(frames[rows], frame_ns[rows], names, values, np.isfinite(values), meta)
 
@@ -314,7 +326,7 @@ def load_session_calibrations(session_path: Path) -> list[Calibration]:
     return [load_calibration(path) for path in found if path is not None]
 
 
-def add_calibrated(session: Session, data: dict[str, pd.DataFrame], columns: ColumnSet, frame_ns: np.ndarray,
+def add_calibrated(session: Session, data: dict[str, np.ndarray], columns: ColumnSet, frame_ns: np.ndarray,
                    calibration: Calibration, options: AlignOptions) -> None:
     """Columns ``<source>_<target>_<model>.<hand>_*`` from one calibration (EmHT re-associated at
     frame time + the calibration's lag, so the estimate refers to the frame's true time)."""
@@ -392,10 +404,11 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions()) -> A
     return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
 
 
-def align_and_write(path: Path | str, options: AlignOptions = AlignOptions()) -> dict[str, Any]:
-    """Align one session and write ``derived/aligned.*``; returns a summary (paths, frames, columns)."""
+def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), csv: bool = False) -> dict[str, Any]:
+    """Align one session and write ``derived/aligned.{npz,json}`` (+ ``.csv`` when ``csv``); returns a
+    summary (paths, frames, columns)."""
     table = align_session(path, options)
-    written = write_aligned(path, table)
+    written = write_aligned(path, table, csv=csv)
     masked = {s: float(1 - table.mask[:, i].mean()) for i, s in enumerate(table.columns) if s.endswith("_delta_ms")}
     return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
             "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},

@@ -1,4 +1,4 @@
-"""`midas align SESSION...`: every stream onto the video frame clock -> derived/aligned.{npz,csv,json}."""
+"""`midas align SESSION...`: every stream onto the video frame clock -> derived/aligned.{npz,json} (+ csv)."""
 
 from __future__ import annotations
 
@@ -22,18 +22,21 @@ def align(
     rate: Optional[float] = typer.Option(None, "--rate", help="Downsample the frame clock to this rate (Hz), "
                                          "e.g. 10; default: every video frame."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
+    csv: bool = typer.Option(False, "--csv", help="Also write derived/aligned.csv (6 significant digits; "
+                             "slow for long sessions: the npz holds the exact values)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Align every stream of each session onto its video frame clock (causal or nearest sample,
     per-stream delta, HandKP gaps filled, masks instead of sentinels, calibrations in calib/ applied,
-    velocity / grasper distance / clutch derived) and write derived/aligned.npz, .csv and .json.
+    velocity / grasper distance / clutch derived) and write derived/aligned.npz and .json (and .csv
+    with --csv). Streams are read from their binary copies (streams/*.npy) when they match the CSVs.
 
     Example: midas align sessions/*/ --rate 10 --jobs 2
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
     options = AlignOptions(method=method, rate_hz=rate)
-    results = _run(sessions, options, jobs)
+    results = _run(sessions, options, jobs, csv)
     if as_json:
         print_json(results)
         return
@@ -45,7 +48,7 @@ def align(
     out.print(table)
 
 
-def _run(sessions: list[Path], options: AlignOptions, jobs: int) -> list[dict[str, Any]]:
+def _run(sessions: list[Path], options: AlignOptions, jobs: int, csv: bool) -> list[dict[str, Any]]:
     """Align each session (in ``jobs`` processes), with a progress bar on stderr; input order kept."""
     columns = (TextColumn("aligning"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     results: dict[Path, dict[str, Any]] = {}
@@ -53,11 +56,11 @@ def _run(sessions: list[Path], options: AlignOptions, jobs: int) -> list[dict[st
         task = progress.add_task("align", total=len(sessions))
         if jobs == 1:
             for path in sessions:
-                results[path] = align_and_write(path, options)
+                results[path] = align_and_write(path, options, csv)
                 progress.advance(task)
         else:
             with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futures = {pool.submit(align_and_write, path, options): path for path in sessions}
+                futures = {pool.submit(align_and_write, path, options, csv): path for path in sessions}
                 for future in as_completed(futures):
                     results[futures[future]] = future.result()
                     progress.advance(task)

@@ -1,12 +1,13 @@
-"""Derived files of a session: ``derived/aligned.{npz,csv,json}``, ``calib/*`` and ``derived/eval/``.
+"""Derived files of a session: ``derived/aligned.{npz,json}`` (+ ``.csv`` on request), ``calib/*`` and ``derived/eval/``.
 
 Only this module (with the rest of ``midas_cli/session/``) knows where these files live.
 
 Aligned table (written by ``midas align``):
   * ``derived/aligned.npz``: ``frame`` (N,) int64 video frame index (= video ``seq``), ``t_host_ns``
-    (N,) int64 frame time on the host clock, ``values`` (N, C) float64 (NaN where masked), ``mask``
-    (N, C) bool (True = valid sample), ``columns`` (C,) str.
-  * ``derived/aligned.csv``: ``frame,t_host_ns,<columns>``; a masked value is an empty field.
+    (N,) int64 frame time on the host clock, ``values`` (N, C) float64 (NaN where masked: the mask,
+    True = valid sample, is ``isfinite(values)``), ``columns`` (C,) str. Uncompressed.
+  * ``derived/aligned.csv`` (only with ``midas align --csv``): ``frame,t_host_ns,<columns>``; a masked
+    value is an empty field.
   * ``derived/aligned.json``: column metadata (unit, frame, source, description), method, rate, source
     stream sha256s, calibrations applied.
 """
@@ -20,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from midas_cli.errors import SessionError
 
@@ -58,22 +58,35 @@ class AlignedTable:
         return (self.t_host_ns - self.t_host_ns[0]) / 1e9 if len(self.t_host_ns) else np.zeros(0)
 
 
-def write_aligned(session_path: Path | str, table: AlignedTable) -> dict[str, Path]:
-    """Write ``derived/aligned.{npz,csv,json}`` atomically (each via a temporary file and rename)."""
+def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = False) -> dict[str, Path]:
+    """Write ``derived/aligned.{npz,json}`` (and ``aligned.csv`` when ``csv``) atomically, each via a
+    temporary file and rename. The npz is uncompressed: it is written and memory-read at disk speed,
+    where compression cost more than the alignment itself (benchmarks/). A CSV from an earlier run is
+    removed when ``csv`` is off, so no stale table is left beside the new one."""
     base = Path(session_path) / ALIGNED_STEM
     base.parent.mkdir(exist_ok=True)
-    paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "csv", "json")}
+    paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "json", *(("csv",) if csv else ()))}
     with open(_tmp(paths["npz"]), "wb") as fh:
-        np.savez_compressed(fh, frame=table.frame, t_host_ns=table.t_host_ns, values=table.values,
-                            mask=table.mask, columns=np.asarray(table.columns, dtype=str))
-    frame = pd.DataFrame(np.where(table.mask, table.values, np.nan), columns=table.columns)
-    frame.insert(0, "t_host_ns", table.t_host_ns)
-    frame.insert(0, "frame", table.frame)
-    frame.to_csv(_tmp(paths["csv"]), index=False, float_format="%.6g")
+        np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, values=table.values,
+                 columns=np.asarray(table.columns, dtype=str))
+    if csv:
+        write_aligned_csv(_tmp(paths["csv"]), table)
     _tmp(paths["json"]).write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
     for path in paths.values():
         os.replace(_tmp(path), path)
+    if not csv:
+        base.with_suffix(".csv").unlink(missing_ok=True)
     return paths
+
+
+def write_aligned_csv(path: Path, table: AlignedTable) -> None:
+    """``frame,t_host_ns,<columns>`` with 6 significant digits; a masked value is an empty field."""
+    import pandas as pd
+
+    frame = pd.DataFrame(np.where(table.mask, table.values, np.nan), columns=table.columns)
+    frame.insert(0, "t_host_ns", table.t_host_ns)
+    frame.insert(0, "frame", table.frame)
+    frame.to_csv(path, index=False, float_format="%.6g")
 
 
 def read_aligned(session_path: Path | str) -> AlignedTable:
@@ -84,8 +97,9 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
         raise SessionError(f"{session_path} has no {npz_path.name}: run `midas align {session_path}` first")
     try:
         with np.load(npz_path, allow_pickle=False) as data:
-            table = AlignedTable(data["frame"], data["t_host_ns"], data["columns"].tolist(), data["values"],
-                                 data["mask"])
+            values = data["values"]
+            mask = data["mask"] if "mask" in data.files else np.isfinite(values)  # older files stored it
+            table = AlignedTable(data["frame"], data["t_host_ns"], data["columns"].tolist(), values, mask)
         table.meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
     except (OSError, KeyError, ValueError) as exc:
         raise SessionError(f"cannot read {npz_path}: {exc}") from exc
@@ -117,6 +131,8 @@ def read_pedals_ground_truth(session_path: Path | str) -> pd.DataFrame | None:
     path = Path(session_path) / PEDALS_GT
     if not path.is_file():
         return None
+    import pandas as pd
+
     try:
         frame = pd.read_csv(path)
     except (OSError, ValueError, pd.errors.ParserError) as exc:

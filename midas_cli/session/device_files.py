@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Iterator, Sequence
 
 from midas_cli.errors import SessionError
+from midas_cli.session.columnar import BINARY_KEY, write_binary_copy
 from midas_cli.session.manifest import check_inside, load_manifest, write_manifest
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
@@ -108,6 +109,7 @@ def add_stream(session_path: Path | str, spec: StreamSpec, rows: Sequence[Sequen
     tmp.write_text(spec.header_line() + spec.format_rows(rows), encoding="utf-8")
     os.replace(tmp, path)
     entry = {**spec.to_manifest(), **summarize_stream(path, spec).manifest_fields(), "derived_by": derived_by}
+    entry[BINARY_KEY] = write_binary_copy(folder, spec, entry["sha256"])
     manifest["streams"][spec.name] = entry
     write_manifest(folder, manifest)
     return path

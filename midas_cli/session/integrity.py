@@ -10,6 +10,7 @@ from typing import Any
 
 from midas_cli import __version__
 from midas_cli.errors import SessionError
+from midas_cli.session.columnar import add_binary_copies, copy_differences
 from midas_cli.session.manifest import load_manifest, write_manifest
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
@@ -37,7 +38,8 @@ class VerifyReport:
 
 def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
     """Check every stream file against the manifest: presence, header, whole lines, sample count,
-    sha256, strictly increasing host time, and sequence gaps. Gaps the manifest declares (a device
+    sha256, strictly increasing host time, sequence gaps, and that its binary copy (if any) holds
+    exactly what the CSV holds. Gaps the manifest declares (a device
     outage the recorder saw) are notes, or problems with ``strict``; undeclared gaps are problems."""
     session = Session.open(path)
     report = VerifyReport(session.path)
@@ -64,6 +66,8 @@ def _verify_stream(session: Session, name: str, report: VerifyReport, strict: bo
     if session.status in FINISHED:
         problems += _manifest_mismatches(entry, found)
     problems += _gap_findings(entry, found, strict, report.notes, name)
+    if not problems:
+        problems += copy_differences(session.path, name, entry)
     report.problems.extend(f"{name}: {p}" for p in problems)
 
 
@@ -140,6 +144,7 @@ def repair_session(path: Path | str) -> RepairReport:
         entry["seq_gaps"]["note"] = "derived from the file by repair"
         if found.last_t_host_ns is not None:
             last_times.append(found.last_t_host_ns)
+    add_binary_copies(folder, manifest)
     stop_ns = max(last_times, default=manifest["start"]["host_ns"])
     manifest.update(
         status="recovered",

@@ -6,9 +6,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
 import pandas as pd
 
 from midas_cli.errors import SessionError
+from midas_cli.session.columnar import load_binary_copy, parse_csv_columns
 from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
 from midas_cli.session.schema import StreamSpec
 
@@ -53,10 +55,7 @@ class Session:
 
     def read_stream(self, name: str, allow_incomplete: bool = False) -> pd.DataFrame:
         """One stream as a DataFrame: int columns as int64 (exact ns times), floats with NaN = missing."""
-        if self.status == "recording" and not allow_incomplete:
-            raise SessionError(
-                f"{self.path} is still marked 'recording' (crashed or running): run `midas session repair {self.path}`"
-            )
+        self._refuse_unfinished(allow_incomplete)
         spec = self.stream_spec(name)
         dtypes = {c.name: ("Int64" if c.dtype == "int" else "float64") for c in spec.columns}
         dtypes.update(seq="int64", t_host_ns="int64")
@@ -67,6 +66,19 @@ class Session:
         if list(frame.columns) != spec.column_names:
             raise SessionError(f"stream {name!r} of {self.path}: header does not match the manifest columns")
         return frame
+
+    def read_columns(self, name: str, allow_incomplete: bool = False) -> np.ndarray:
+        """One stream as a structured array (one field per column, ints int64, floats float64 with NaN =
+        missing): its binary copy memory-mapped when that still matches the CSV, else the CSV parsed."""
+        self._refuse_unfinished(allow_incomplete)
+        table = load_binary_copy(self.path, name, self._stream_entry(name))
+        return parse_csv_columns(self.stream_path(name), self.stream_spec(name)) if table is None else table
+
+    def _refuse_unfinished(self, allow_incomplete: bool) -> None:
+        if self.status == "recording" and not allow_incomplete:
+            raise SessionError(
+                f"{self.path} is still marked 'recording' (crashed or running): run `midas session repair {self.path}`"
+            )
 
     def _stream_entry(self, name: str) -> dict[str, Any]:
         try:

@@ -21,6 +21,7 @@ from typing import Any, Iterable
 from midas_cli import __version__
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session.columnar import add_binary_copies
 from midas_cli.session.manifest import SCHEMA_VERSION, write_manifest
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
@@ -162,6 +163,7 @@ class SessionWriter:
             entry = self.manifest["streams"][name]
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
             entry.update(extra.get(name, {}))
+        add_binary_copies(self.folder, self.manifest)
         self.manifest.update(status=status, stop_reason=stop_reason, stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns})
         write_manifest(self.folder, self.manifest)
         return self.manifest

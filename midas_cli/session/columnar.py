@@ -1,0 +1,128 @@
+"""Binary column copies of the stream CSVs: ``streams/<name>.npy`` (session format v1, optional).
+
+The CSV stays the archival record. When a session is finalised (recorder stop, simulate, import,
+repair) each stream CSV is parsed once more and written as a NumPy structured array, one field per
+CSV column in the same order, row for row: int columns as int64 (float64 with NaN where an int column
+has missing values, exact below 2**53), float columns as float64 holding exactly the values a CSV
+reader gets. The manifest's stream entry then carries
+
+    "binary": {"file": "streams/<name>.npy", "rows": N, "csv_sha256": "<sha256 of the CSV it copies>"}
+
+A reader uses the copy only while it still matches: ``csv_sha256`` equals the manifest's ``sha256``,
+the CSV still has the manifest's size, and the array has the CSV's columns and row count; otherwise
+it parses the CSV (so a hand-edited CSV is never shadowed by a stale copy that `verify` would not
+see). Analysis that reads whole streams (``midas align``) memory-maps the copy instead of parsing text.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from midas_cli.errors import SessionError
+from midas_cli.session.manifest import check_inside
+from midas_cli.session.schema import StreamSpec
+
+log = logging.getLogger(__name__)
+
+BINARY_KEY = "binary"
+
+
+def binary_file(spec: StreamSpec) -> str:
+    """``streams/<name>.npy``: the copy's path relative to the session folder."""
+    return f"streams/{spec.name}.npy"
+
+
+def parse_csv_columns(path: Path, spec: StreamSpec) -> np.ndarray:
+    """Parse a stream CSV into a structured array (fields = the spec's columns); SessionError if the
+    file cannot be read or its header differs from the spec."""
+    import pandas as pd
+
+    dtypes = {c.name: ("Int64" if c.dtype == "int" else "float64") for c in spec.columns}
+    dtypes.update(seq="int64", t_host_ns="int64")
+    try:
+        frame = pd.read_csv(path, dtype=dtypes, engine="c")
+    except (OSError, ValueError, pd.errors.ParserError) as exc:
+        raise SessionError(f"cannot read stream {spec.name!r} ({path}): {exc}") from exc
+    if list(frame.columns) != spec.column_names:
+        raise SessionError(f"stream {spec.name!r} ({path}): header does not match the manifest columns")
+    fields = {}
+    for column in spec.columns:
+        series = frame[column.name]
+        if column.dtype == "int" and not series.hasnans:
+            fields[column.name] = series.to_numpy(np.int64)
+        else:
+            fields[column.name] = series.to_numpy(np.float64, na_value=np.nan)
+    table = np.empty(len(frame), dtype=[(name, values.dtype) for name, values in fields.items()])
+    for name, values in fields.items():
+        table[name] = values
+    return table
+
+
+def write_binary_copy(folder: Path, spec: StreamSpec, csv_sha256: str) -> dict[str, Any]:
+    """Write ``streams/<name>.npy`` from the stream's CSV (via a temporary file and rename) and return
+    the manifest's ``binary`` entry."""
+    table = parse_csv_columns(Path(folder) / spec.file, spec)
+    target = Path(folder) / binary_file(spec)
+    tmp = target.with_name(target.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.save(fh, table, allow_pickle=False)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, target)
+    return {"file": binary_file(spec), "rows": int(len(table)), "csv_sha256": csv_sha256}
+
+
+def add_binary_copies(folder: Path, manifest: dict[str, Any]) -> None:
+    """Give every stream of a finished ``manifest`` its binary copy (entries updated in place). A stream
+    whose CSV cannot be parsed (damaged lines) keeps no copy; readers then parse the CSV and report."""
+    for name, entry in manifest["streams"].items():
+        spec = StreamSpec.from_manifest(name, entry)
+        try:
+            entry[BINARY_KEY] = write_binary_copy(Path(folder), spec, entry["sha256"])
+        except (SessionError, KeyError) as exc:
+            entry.pop(BINARY_KEY, None)
+            log.warning("no binary copy of stream %s: %s", name, exc)
+
+
+def load_binary_copy(folder: Path, name: str, entry: dict[str, Any]) -> np.ndarray | None:
+    """The stream's copy memory-mapped read-only, or None when there is none or it no longer matches
+    its CSV (see the module docstring)."""
+    binary = entry.get(BINARY_KEY)
+    if not isinstance(binary, dict) or binary.get("csv_sha256") != entry.get("sha256"):
+        return None
+    csv_path = check_inside(Path(folder), entry["file"])
+    try:
+        if csv_path.stat().st_size != entry.get("bytes"):
+            return None
+        table = np.load(check_inside(Path(folder), binary["file"]), mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning("binary copy of stream %s unusable (%s); reading the CSV", name, exc)
+        return None
+    spec = StreamSpec.from_manifest(name, entry)
+    if table.dtype.names != tuple(spec.column_names) or len(table) != binary.get("rows"):
+        return None
+    return table
+
+
+def copy_differences(folder: Path, name: str, entry: dict[str, Any]) -> list[str]:
+    """What is wrong with a stream's binary copy, checked against its CSV parsed again (for `verify`);
+    empty when the stream has none or it matches exactly."""
+    binary = entry.get(BINARY_KEY)
+    if binary is None:
+        return []
+    remedy = "delete it and readers parse the CSV"
+    try:
+        copy = np.load(check_inside(Path(folder), binary["file"]), mmap_mode="r", allow_pickle=False)
+        parsed = parse_csv_columns(check_inside(Path(folder), entry["file"]), StreamSpec.from_manifest(name, entry))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        return [f"binary copy {binary.get('file')!r} unreadable ({exc}); {remedy}"]
+    if binary.get("csv_sha256") != entry.get("sha256"):
+        return [f"binary copy {binary['file']} was made from another version of the CSV; {remedy}"]
+    same = copy.dtype.names == parsed.dtype.names and len(copy) == len(parsed) and all(
+        np.array_equal(copy[f], parsed[f], equal_nan=parsed[f].dtype.kind == "f") for f in parsed.dtype.names)
+    return [] if same else [f"binary copy {binary['file']} differs from the CSV; {remedy}"]
