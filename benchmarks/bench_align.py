@@ -1,13 +1,16 @@
-"""`midas align` vs a per-stream pandas ``merge_asof`` baseline (CSV in, CSV out), 10 min and 1 h sessions.
+"""`midas align` vs a per-stream pandas ``merge_asof`` baseline (CSV in, CSV out), 10, 30 and 60 min sessions.
 
 A session (EmHT 4 sensors x 240 Hz, FPS 9 channels x 250 Hz, HandKP 30 Hz, 30 fps video clock, random-walk
-values, < 1 ms jitter) is written through midas_cli/session/writer.py with vectorised CSV formatting.
-Each side runs as its own subprocess, timed end to end (files on disk -> aligned output on disk), with
-its peak resident memory (``ru_maxrss`` of that child). Then every raw ``<stream>.<column>`` value the
-two produce for EmHT, FPS and HandKP is compared (same frames masked, values within 1e-9 relative).
+values, < 1 ms jitter) is written through midas_cli/session/writer.py with vectorised CSV formatting and
+finalised like a recording (so it has its binary stream copies). Each side runs in a fresh child
+process, three times (the median is kept): ``work_s`` from the first file read to the aligned output on
+disk (after imports), ``process_s`` the whole child, and its peak resident memory. midas also runs once
+with ``--csv`` and once with the binary copies moved away (parsing the CSVs). Then every raw
+``<stream>.<column>`` value the two produce for EmHT, FPS and HandKP is compared (same frames masked,
+values within 1e-9 relative).
 
-    .venv/bin/python benchmarks/bench_align.py            # 10 min and 60 min -> results/align.json
-    .venv/bin/python benchmarks/bench_align.py --quick    # 2 min
+    .venv/bin/python benchmarks/bench_align.py            # 10, 30, 60 min -> results/align.json
+    .venv/bin/python benchmarks/bench_align.py --quick    # 2 min, one repeat
 """
 
 from __future__ import annotations
@@ -89,38 +92,56 @@ def format_chunk(spec, k: np.ndarray, host: np.ndarray, rng: np.random.Generator
     return "\n".join(lines.tolist()) + "\n"
 
 
-PEAK_WRAPPER = r'''
-import runpy, sys
-peak_file, mode, target, *args = sys.argv[1:]
-sys.argv = [target, *args]
-try:
-    runpy.run_module(target, run_name="__main__") if mode == "module" else runpy.run_path(target, run_name="__main__")
-finally:
-    hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM:")][0].split()[1]
-    open(peak_file, "w").write(hwm)
-'''
+WORK_WRAPPER = r"""
+import json, runpy, sys, time
+result_file, side, *args = sys.argv[1:]
+if side == "baseline":
+    import pandas  # noqa: F401 - the baseline's only import, loaded before the clock starts
+    script, session, out, stale = args
+    sys.argv = [script, session, out, stale]
+    t0 = time.perf_counter()
+    runpy.run_path(script, run_name="__main__")
+else:
+    from midas_cli.analysis.align import AlignOptions, align_and_write
+    session, csv = args
+    t0 = time.perf_counter()
+    align_and_write(session, AlignOptions(), csv=csv == "csv")
+work = time.perf_counter() - t0
+hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM:")][0].split()[1]
+json.dump({"work_s": work, "peak_kib": int(hwm)}, open(result_file, "w"))
+"""
 
 
-def timed(mode: str, target: str, args: list[str]) -> dict:
-    """Run a module or script as a child; wall seconds and its own peak RSS (VmHWM, MiB: per process
-    image, so not inherited from this parent the way ru_maxrss is across fork/exec)."""
+def timed(side: str, args: list[str]) -> dict:
+    """Run one side in a fresh child: ``work_s`` = from the first file read to the output on disk (after
+    its imports: the baseline's pandas, midas's align module), ``process_s`` = the whole child including
+    interpreter start-up and imports, and the child's own peak RSS (VmHWM, MiB: per process image, so
+    not inherited from this parent the way ru_maxrss is across fork/exec)."""
     with tempfile.TemporaryDirectory() as tmp:
-        peak_file, log_file = Path(tmp) / "peak", Path(tmp) / "log"
+        result_file, log_file = Path(tmp) / "result.json", Path(tmp) / "log"
         t0 = time.monotonic()
         with open(log_file, "wb") as log:
-            code = subprocess.call([sys.executable, "-c", PEAK_WRAPPER, str(peak_file), mode, target, *args],
+            code = subprocess.call([sys.executable, "-c", WORK_WRAPPER, str(result_file), side, *args],
                                    stdout=subprocess.DEVNULL, stderr=log)
-        wall = time.monotonic() - t0
+        process_s = time.monotonic() - t0
         if code != 0:
-            raise RuntimeError(f"{target} {args} failed: {log_file.read_text(errors='replace')[-2000:]}")
-        peak_mib = int(peak_file.read_text()) / 1024
-    return {"wall_s": round(wall, 2), "peak_rss_mib": round(peak_mib, 1), "load_average_after": load_average()}
+            raise RuntimeError(f"{side} {args} failed: {log_file.read_text(errors='replace')[-2000:]}")
+        result = json.loads(result_file.read_text())
+    return {"work_s": round(result["work_s"], 3), "process_s": round(process_s, 2),
+            "peak_rss_mib": round(result["peak_kib"] / 1024, 1), "load_average_after": load_average()}
+
+
+def repeated(side: str, args: list[str], repeats: int) -> dict:
+    """``timed`` ``repeats`` times; the run with the median work time, plus every work time."""
+    runs = sorted((timed(side, args) for _ in range(repeats)), key=lambda r: r["work_s"])
+    return {**runs[len(runs) // 2], "work_s_all": [r["work_s"] for r in runs], "repeats": repeats}
 
 
 def compare(session: Path, baseline_csv: Path) -> dict:
     """Every raw <stream>.<column> of COMPARED streams: same mask, equal values (rtol 1e-9)."""
     with np.load(session / "derived" / "aligned.npz") as data:
-        columns, values, mask = data["columns"].tolist(), data["values"], data["mask"]
+        columns, values = data["columns"].tolist(), data["values"]
+    mask = np.isfinite(values)
     base = pd.read_csv(baseline_csv)
     compared, mismatched, mask_diff = 0, [], 0
     for i, name in enumerate(columns):
@@ -142,15 +163,16 @@ def compare(session: Path, baseline_csv: Path) -> dict:
                     "unmasked values equal within rtol 1e-9"}
 
 
-STAGES = {"read_streams": "read stream CSVs (Session.read_stream)", "reference_frames": "read video frame clock",
-          "add_raw_streams": "associate raw streams with frames", "add_emht_features": "EmHT hand points/velocity",
-          "add_handkp_features": "HandKP gap filling", "add_clutch": "clutch", "build_table": "build table",
-          "savez_compressed": "write aligned.npz (compressed)", "to_csv": "write aligned.csv (pandas, %.6g)"}
+STAGES = {"read_streams": "open the stream copies (memory-map)", "reference_frames": "read video frame clock",
+          "add_raw_streams": "associate raw streams with frames (reads the chosen rows)",
+          "add_emht_features": "EmHT hand points/velocity", "add_handkp_features": "HandKP gap filling",
+          "add_robot_orientation": "robot orientation", "add_clutch": "clutch", "build_table": "build table",
+          "write_aligned": "write aligned.npz + aligned.json"}
 
 
 def profile_align(session: Path) -> dict:
-    """cProfile of align_and_write in this process (the work `midas align` does after start-up), and
-    the CLI's own start-up (``python -m midas_cli --help``)."""
+    """cProfile of align_and_write in this process (the work `midas align` does after start-up) and the
+    CLI's start-up (``python -m midas_cli --help``)."""
     import cProfile
     import pstats
 
@@ -163,14 +185,15 @@ def profile_align(session: Path) -> dict:
     stats = pstats.Stats(profiler).stats
     stages = {}
     for (file, _, function), v in stats.items():
-        if function in STAGES and (function != "to_csv" or file.endswith("generic.py")):
+        if function in STAGES and "midas_cli" in file:
             stages[STAGES[function]] = round(stages.get(STAGES[function], 0.0) + v[3], 3)
-    startup = timed("module", "midas_cli", ["--help"])
-    return {"align_and_write_s_profiled": round(total, 2), "stages_cumulative_s": stages,
-            "cli_startup_s": startup["wall_s"]}
+    t0 = time.monotonic()
+    subprocess.run([sys.executable, "-m", "midas_cli", "--help"], capture_output=True, check=True)
+    return {"align_and_write_s_profiled": round(total, 3), "stages_cumulative_s": stages,
+            "cli_startup_s": round(time.monotonic() - t0, 2)}
 
 
-def run_size(minutes: float, profile: bool = False) -> dict:
+def run_size(minutes: float, profile: bool = False, repeats: int = 3) -> dict:
     with tempfile.TemporaryDirectory(prefix="midas-bench-align-") as tmp:
         t0 = time.monotonic()
         made = subprocess.run([sys.executable, __file__, "--generate", tmp, str(minutes)], check=True,
@@ -178,22 +201,59 @@ def run_size(minutes: float, profile: bool = False) -> dict:
         session = Path(made.stdout.strip().splitlines()[-1])
         generate_s = time.monotonic() - t0
         size_mb = sum(p.stat().st_size for p in (session / "streams").glob("*.csv")) / 1e6
+        copies_s = time_binary_copies(session)
+        copies_mb = sum(p.stat().st_size for p in (session / "streams").glob("*.npy")) / 1e6
         baseline_csv = Path(tmp) / "baseline.csv"
         script = Path(tmp) / "baseline_merge_asof.py"
         script.write_text(BASELINE, encoding="utf-8")
-        base = timed("path", str(script), [str(session), str(baseline_csv), str(STALE_PERIODS)])
-        midas = timed("module", "midas_cli", ["align", str(session), "--json"])
+        base = repeated("baseline", [str(script), str(session), str(baseline_csv), str(STALE_PERIODS)], repeats)
+        with_csv = timed("midas", [str(session), "csv"])
+        from_csv = without_copies(session, lambda: timed("midas", [str(session), "npz"]))
+        midas = repeated("midas", [str(session), "npz"], repeats)
+        output_mb = (session / "derived" / "aligned.npz").stat().st_size / 1e6
+        t0 = time.monotonic()
+        subprocess.run([sys.executable, "-m", "midas_cli", "align", str(session), "--json"], check=True,
+                       capture_output=True)
+        cli_s = time.monotonic() - t0
         check = compare(session, baseline_csv)
         where = profile_align(session) if profile else None
-    return {"minutes": minutes, "stream_csv_mb": round(size_mb, 1), "generate_s": round(generate_s, 1),
-            "baseline_merge_asof": base, "midas_align": midas,
-            "speedup": round(base["wall_s"] / midas["wall_s"], 2), "check": check, "profile": where}
+    return {"minutes": minutes, "stream_csv_mb": round(size_mb, 1), "stream_copies_mb": round(copies_mb, 1),
+            "aligned_npz_mb": round(output_mb, 1), "generate_s": round(generate_s, 1),
+            "binary_copies_at_finalise_s": copies_s,
+            "baseline_merge_asof": base, "midas_align": midas, "midas_align_csv_too": with_csv,
+            "midas_align_from_csv": from_csv, "midas_cli_process_s": round(cli_s, 2),
+            "speedup_work": round(base["work_s"] / midas["work_s"], 1),
+            "speedup_process": round(base["process_s"] / midas["process_s"], 1),
+            "speedup_from_csv": round(base["work_s"] / from_csv["work_s"], 1), "check": check, "profile": where}
+
+
+def time_binary_copies(session: Path) -> float:
+    """Seconds to (re)write every binary stream copy, as finalise does when a recording stops: the cost
+    moved from every `midas align` to the end of the recording."""
+    from midas_cli.session.columnar import add_binary_copies
+    from midas_cli.session.manifest import load_manifest
+
+    t0 = time.monotonic()
+    add_binary_copies(session, load_manifest(session))
+    return round(time.monotonic() - t0, 2)
+
+
+def without_copies(session: Path, body):  # noqa: ANN001, ANN201
+    """Run ``body`` with the session's binary copies moved aside (align then parses the CSVs)."""
+    copies = sorted((session / "streams").glob("*.npy"))
+    for path in copies:
+        path.rename(path.with_suffix(".npy.off"))
+    try:
+        return body()
+    finally:
+        for path in copies:
+            path.with_suffix(".npy.off").rename(path)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="one 2-minute session")
-    parser.add_argument("--minutes", type=float, nargs="+", default=[10.0, 60.0])
+    parser.add_argument("--quick", action="store_true", help="one 2-minute session, one repeat")
+    parser.add_argument("--minutes", type=float, nargs="+", default=[10.0, 30.0, 60.0])
     parser.add_argument("--generate", nargs=2, metavar=("ROOT", "MINUTES"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.generate:
@@ -203,14 +263,19 @@ def main() -> None:
     runs = []
     for minutes in sizes:
         print(f"align: {minutes:g} min session ...", file=sys.stderr)
-        runs.append({"load_average_before": load_average(), **run_size(minutes, profile=minutes == sizes[-1])})
+        runs.append({"load_average_before": load_average(),
+                     **run_size(minutes, profile=minutes == sizes[-1], repeats=1 if args.quick else 3)})
     slope = None
     if len(runs) >= 2:
-        a, b = runs[0], runs[-1]
-        slope = {side: round((b[side]["wall_s"] - a[side]["wall_s"]) / (b["minutes"] - a["minutes"]), 3)
-                 for side in ("baseline_merge_asof", "midas_align")}
+        slope = {side: fit_slope([r["minutes"] for r in runs], [r[side]["work_s"] for r in runs])
+                 for side in ("baseline_merge_asof", "midas_align", "midas_align_from_csv", "midas_align_csv_too")}
     write_result("align", {"machine": machine_info(), "quick": args.quick, "runs": runs,
-                           "seconds_per_session_minute": slope})
+                           "work_seconds_per_session_minute": slope})
+
+
+def fit_slope(x: list[float], y: list[float]) -> float:
+    """Least-squares slope of y against x (seconds per session minute)."""
+    return round(float(np.polyfit(np.asarray(x), np.asarray(y), 1)[0]), 4)
 
 
 if __name__ == "__main__":

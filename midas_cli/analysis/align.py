@@ -18,6 +18,8 @@ calibration in ``calib/`` maps a source (emht, handkp) into a robot frame (mtm, 
 from __future__ import annotations
 
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -116,10 +118,9 @@ def associate_stream(table: np.ndarray, spec_columns: list[str], frame_ns: np.nd
     idx, valid, delta = associate(sample_ns, frame_ns, method, stale_ns)
     values = np.full((len(spec_columns), len(frame_ns)), np.nan)  # one contiguous row per column
     if len(sample_ns):
-        rows = idx if order is None else order[idx]
-        plain = table.view(np.ndarray)
+        chosen = table.view(np.ndarray)[idx if order is None else order[idx]]  # whole rows, one pass
         for j, name in enumerate(spec_columns):
-            values[j] = plain[name][rows]
+            values[j] = chosen[name]
         values[:, ~valid] = np.nan
     return values.T, delta
 
@@ -155,10 +156,17 @@ def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: Colu
                     options: AlignOptions, shifts_ns: dict[str, int]) -> None:
     """Associate every stream in ``data`` with the frames; a stream in ``shifts_ns`` is associated at
     frame time + shift (compensating a known latency)."""
-    for stream, frame in data.items():
-        cols = value_columns(session, stream)
-        values, delta = associate_stream(frame, [c.name for c in cols], frame_ns + shifts_ns.get(stream, 0),
-                                         options.method, stale_ns_for(session, stream, options))
+    cols_of = {stream: value_columns(session, stream) for stream in data}
+
+    def one(stream: str) -> tuple[np.ndarray, np.ndarray]:
+        return associate_stream(data[stream], [c.name for c in cols_of[stream]], frame_ns + shifts_ns.get(stream, 0),
+                                options.method, stale_ns_for(session, stream, options))
+
+    # numpy's searchsorted and gathers release the GIL: streams are associated on every core
+    with ThreadPoolExecutor(max_workers=max(1, min(len(data), os.cpu_count() or 1))) as pool:
+        results = dict(zip(data, pool.map(one, data)))
+    for stream, cols in cols_of.items():
+        values, delta = results[stream]
         for j, col in enumerate(cols):
             columns.add(f"{stream}.{col.name}", values[:, j], col.unit, stream, frame=col.frame,
                         description=col.description)
@@ -276,7 +284,7 @@ def downsample_rows(t_ns: np.ndarray, rate_hz: float | None) -> np.ndarray:
 def build_table(frames: np.ndarray, frame_ns: np.ndarray, columns: ColumnSet, rows: np.ndarray,
                 meta: dict[str, Any]) -> AlignedTable:
     names = list(columns.values)
-    values = np.empty((len(rows), len(names)))
+    values = np.empty((len(rows), len(names)), order="F")  # column-major: columns are read whole
     every_frame = len(rows) == columns.n
     for k, name in enumerate(names):
         values[:, k] = columns.values[name] if every_frame else columns.values[name][rows]
