@@ -3,7 +3,8 @@
 Runs the real CLI (`python -m midas_cli record`) against `midas emulate trakstar` (fob://, 4 sensors x
 200 Hz over 115200 baud) and `midas emulate fps` (9 channels at 850 Hz, the most 500000 baud carries),
 plus `sim://video?rate=30` and `sim://handkp?rate=30`, at two durations. Then a short in-process run
-splits each batch's latency into "worker -> writer thread" and "write" (profile).
+splits each batch's latency, inside its device worker (which writes its own rows), into "read -> the
+write starts" and "write", and measures the bookkeeping hop to the recorder that follows (profile).
 
     .venv/bin/python benchmarks/bench_record.py            # 10 s and 30 s  -> results/record.json
     .venv/bin/python benchmarks/bench_record.py --quick    # 5 s smoke run
@@ -107,8 +108,10 @@ def stream_figures(name: str, entry: dict, summaries: dict) -> dict:
 
 
 def profile_stages(duration_s: float) -> dict:
-    """In-process Recorder whose writer thread also stamps each batch's arrival: splits latency into
-    (oldest/newest row read -> batch received by the writer thread) and (received -> written)."""
+    """In-process Recorder whose bookkeeping thread also stamps each message's arrival. Each worker
+    writes its rows itself, and its message carries the rows' commit times and the write's duration,
+    so each row's latency splits into (read -> the worker's write starts) and (write); the hop to the
+    recorder (committed -> received) comes after the rows are on disk and is no part of the latency."""
     from midas_cli.record.recorder import Recorder, RecordPlan
     from midas_cli.session.writer import SessionMetadata
 
@@ -117,10 +120,10 @@ def profile_stages(duration_s: float) -> dict:
             super().__init__(plan)
             self.stamps: list[tuple] = []
 
-        def _write_batch(self, batch):  # noqa: ANN001 - same signature as Recorder._write_batch
+        def _account(self, batch):  # noqa: ANN001 - same signature as Recorder._account
             received = self.clock.now_ns()
-            super()._write_batch(batch)
-            self.stamps.append((batch.stream, received, self.clock.now_ns(), batch.t_host_ns))
+            super()._account(batch)
+            self.stamps.append((batch.stream, received, batch.committed_ns, batch.write_ns, batch.t_host_ns))
 
     with tempfile.TemporaryDirectory(prefix="midas-bench-prof-") as tmp:
         folder = Path(tmp)
@@ -155,56 +158,73 @@ def _display_like_load(recorder, duration_s: float) -> None:
 
 
 def summarise_stamps(stamps: list) -> dict:
+    """Per stream, from (stream, received_ns, committed_ns[rows], write_ns, t_host_ns[rows]) stamps.
+    ``read_to_writer_thread_ms``: a row's read -> its worker's write starts (the worker is the writer
+    now; the key keeps report.py's name); ``write_ms``: the append; ``read_to_committed_ms``: the
+    recorded latency; ``committed_to_recorder_ms``: the bookkeeping hop, after the rows are on disk."""
     result = {}
     for stream in sorted({s[0] for s in stamps}):
         rows = [s for s in stamps if s[0] == stream]
-        to_writer = np.concatenate([(r[1] - r[3]) / 1e6 for r in rows])
-        write = np.array([(r[2] - r[1]) / 1e6 for r in rows])
-        spread = np.array([(r[3][-1] - r[3][0]) / 1e6 for r in rows])
-        sizes = np.array([len(r[3]) for r in rows])
+        to_write = np.concatenate([(r[2] - r[3] - r[4]) / 1e6 for r in rows])
+        latency = np.concatenate([(r[2] - r[4]) / 1e6 for r in rows])
+        write = np.array([r[3] / 1e6 for r in rows])
+        hop = np.array([(r[1] - int(r[2][-1])) / 1e6 for r in rows])
+        spread = np.array([(r[4][-1] - r[4][0]) / 1e6 for r in rows])
+        sizes = np.array([len(r[4]) for r in rows])
         result[stream] = {"batches": len(rows), "rows_per_batch_mean": round(float(sizes.mean()), 2),
-                          "read_to_writer_thread_ms": _percentiles(to_writer), "write_ms": _percentiles(write),
+                          "read_to_writer_thread_ms": _percentiles(to_write), "write_ms": _percentiles(write),
+                          "read_to_committed_ms": _percentiles(latency),
+                          "committed_to_recorder_ms": _percentiles(hop),
                           "rows_spread_within_batch_ms": _percentiles(spread)}
     return result
 
 
 def pump_window(urls: dict[str, str], seconds: float) -> dict:
-    """Each device alone, in this process, through the worker's own read/batch loop (record/worker.py
-    ``_pump``) with a queue that only stamps: latency from a row's host read to its batch's hand-off,
-    i.e. what the device's blocking read adds before any queue or disk."""
+    """Each device alone, in this process, through the worker's own read/write loop (record/worker.py
+    ``_pump``, appending to scratch stream files) with a queue that only stamps: latency from a row's
+    host read to its append returning, i.e. the whole recorded latency without the other devices."""
     from midas_cli.clock import HostClock
     from midas_cli.devices.registry import create_device
-    from midas_cli.record.worker import WorkerJob, _pump
+    from midas_cli.record.worker import WorkerJob, WorkerOutput, _pump
 
-    result: dict = {"flush": "rows handed over as soon as a read returns them"}
-    for name, url in urls.items():
-        clock = HostClock.anchored_now()
-        device = create_device(name, url, clock, clock.now_ns(), 0)
-        device.open()
-        out, stop = _StampQueue(clock), threading.Event()
-        threading.Timer(seconds, stop.set).start()
-        job = WorkerJob(name, url, clock.anchor_ns, clock.now_ns(), 0, 5.0, os.getppid())
-        try:
-            _pump(device, job, out, stop, {"dropped": 0, "corrupt": 0})
-        finally:
-            device.close()
-        result[name] = _percentiles(np.concatenate(out.latencies_ms)) if out.latencies_ms else None
+    result: dict = {"flush": "rows written by the worker as soon as a read returns them"}
+    with tempfile.TemporaryDirectory(prefix="midas-bench-pump-") as tmp:
+        for name, url in urls.items():
+            clock = HostClock.anchored_now()
+            device = create_device(name, url, clock, clock.now_ns(), 0)
+            files = {spec.name: Path(tmp) / f"{spec.name}.csv" for spec in device.streams}
+            for spec in device.streams:
+                files[spec.name].write_text(spec.header_line())
+            output = WorkerOutput(name, _StampQueue(), clock)
+            output.open({stream: str(path) for stream, path in files.items()})
+            device.open()
+            stop = threading.Event()
+            threading.Timer(seconds, stop.set).start()
+            job = WorkerJob(name, url, clock.anchor_ns, clock.now_ns(), 0, 5.0, os.getppid())
+            try:
+                _pump(device, job, output, stop)
+            finally:
+                device.close()
+                output.close()
+            latencies = output.out.latencies_ms
+            result[name] = _percentiles(np.concatenate(latencies)) if latencies else None
     return result
 
 
 class _StampQueue:
-    """Stands in for the worker's mp.Queue: records hand-off time minus each row's host read time."""
+    """Stands in for the worker's mp.Queue: keeps each row's commit time minus its host read time."""
 
-    def __init__(self, clock) -> None:  # noqa: ANN001
-        self.clock, self.latencies_ms = clock, []
+    def __init__(self) -> None:
+        self.latencies_ms: list[np.ndarray] = []
 
     def put_nowait(self, batch) -> None:  # noqa: ANN001
-        self.latencies_ms.append((self.clock.now_ns() - batch.t_host_ns) / 1e6)
+        self.latencies_ms.append((batch.committed_ns - batch.t_host_ns) / 1e6)
 
 
 def queue_transit(rate_hz: float, seconds: float, rows: int) -> dict:
-    """A spawned process puts DataBatch messages (``rows`` FPS-like rows each) on an mp.Queue at
-    ``rate_hz``; the parent's get() time minus the put time is the queue's own share of the latency."""
+    """A spawned process puts DataBatch messages (``rows`` rows each) on an mp.Queue at ``rate_hz``;
+    the parent's get() time minus the put time: the bookkeeping hop's own cost (no longer part of the
+    recorded latency: the rows are on disk before their message is put)."""
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
@@ -224,11 +244,10 @@ def queue_transit(rate_hz: float, seconds: float, rows: int) -> dict:
 def _put_batches(q, rate_hz: float, seconds: float, rows: int) -> None:  # noqa: ANN001
     from midas_cli.record.messages import DataBatch
 
-    text = ("123,1795245433215655939,4497634,2,12,7,14,16,19,4,16,35,0,0,0,0,0,0,0,0,0\n" * rows)
     end = time.monotonic() + seconds
     while time.monotonic() < end:
-        seq = np.arange(rows, dtype=np.int64)
-        q.put(DataBatch("fps", "fps", text, seq, np.full(rows, time.time_ns(), dtype=np.int64), (1, 2), 0, 0))
+        seq, now = np.arange(rows, dtype=np.int64), np.full(rows, time.time_ns(), dtype=np.int64)
+        q.put(DataBatch("fps", "fps", seq, now, now, (1, 2), 75 * rows, 50_000, 0))
         time.sleep(1.0 / rate_hz)
     q.put(None)
 

@@ -163,6 +163,10 @@ def test_status_json_lines_for_scripts(tmp_path: Path) -> None:
     objects = [json.loads(line) for line in lines[:-1]]
     assert len(objects) >= 2
     assert {d["name"] for d in objects[-1]["devices"]} == {"emht", "fps", "video", "handkp"}
+    for stream in (s for d in objects[-1]["devices"] for s in d["streams"]):
+        window, cumulative = stream["latency_window_ms"], stream["latency_ms"]
+        assert 0 < window["n"] <= stream["samples"] and 0 < window["p50"] <= window["p99"] <= window["max"], stream
+        assert set(cumulative) == {"p50", "p99", "max"} and cumulative["max"] >= window["max"], stream
     assert Path(lines[-1]).is_dir()
 
 
@@ -236,3 +240,5 @@ def test_a_full_disk_stops_cleanly_and_keeps_whole_lines(tmp_path: Path) -> None
     assert session.status == "interrupted" and "File too large" in session.manifest["stop_reason"]
     assert midas("session", "verify", str(path)).returncode == 0
     assert len(session.read_stream("emht")) > 240
+    assert not list((path / "streams").glob("*.tmp")), "a binary copy that did not fit leaves nothing behind"
+    assert "binary" not in session.manifest["streams"]["emht"]  # readers parse the CSV

@@ -1,8 +1,11 @@
-"""The recorder: spawns one worker per device, writes their batches, tracks health, finalises.
+"""The recorder: creates the session, spawns one worker per device, tracks health, finalises.
 
-Threads in the main process: the writer thread drains the bounded queue into the session files
-(and fsyncs about once a second); the caller's thread polls ``snapshot()`` for the display and
-decides when to ``stop()``.
+Each worker appends its own streams' rows to the files this process created (record/worker.py), so
+the host read -> disk path never crosses a process. Threads in the main process: the bookkeeping
+thread drains the workers' bounded queue of bookkeeping messages and events into the live stats
+(and fsyncs every stream file about once a second, through this process's own fds); the caller's
+thread polls ``snapshot()`` for the display and decides when to ``stop()``. At stop the manifest
+is finalised from what is on disk.
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ class Recorder:
         self._queue = self._ctx.Queue(maxsize=plan.queue_size)
         self._stop_workers = self._ctx.Event()
         self._lock = threading.Lock()
-        self._writer_done = threading.Event()
+        self._bookkeeping_done = threading.Event()
         self._processes: list = []
         self.devices: dict[str, DeviceRecord] = {}
         self.streams: dict[str, StreamStats] = {}
@@ -67,6 +70,7 @@ class Recorder:
         self.writer: SessionWriter | None = None
         self._started_mono = 0.0
         self._rate_probe = (0.0, 0)
+        self.bytes_written = 0  # stream bytes on disk: headers + what the workers reported
         self._log_handler: logging.Handler | None = None
         self.fatal_error: str | None = None
 
@@ -88,25 +92,30 @@ class Recorder:
         return self.writer.folder
 
     def start(self) -> Path:
-        """Create the session folder, start the workers and the writer thread; return the folder."""
+        """Create the session folder and every stream file (with its header), start the workers and
+        the bookkeeping thread; return the folder."""
         specs = [stats.spec for stats in self.streams.values()]
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
                                            self.plan.rig)
         self._attach_log()
+        self.bytes_written = self.writer.bytes_written
         start_ns = self.writer.manifest["start"]["host_ns"]
+        folder = self.path.resolve()
         with _terminal_signals_ignored():
             for name, url in self.plan.devices.items():
+                files = {s: str(folder / self.streams[s].spec.file) for s in self.devices[name].streams}
                 job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
-                                session_dir=str(self.path.resolve()))
+                                session_dir=str(folder), stream_files=files)
                 process = self._ctx.Process(target=run_worker, args=(job, self._queue, self._stop_workers),
                                             name=f"midas-{name}", daemon=True)
                 process.start()
                 self._processes.append(process)
         self._started_mono = time.monotonic()
-        self._writer_thread = threading.Thread(target=self._write_loop, name="midas-writer", daemon=True)
-        self._writer_thread.start()
+        self._bookkeeping_thread = threading.Thread(target=self._bookkeeping_loop, name="midas-bookkeeping",
+                                                    daemon=True)
+        self._bookkeeping_thread.start()
         log.info("recording %s with devices %s", self.writer.folder, ", ".join(self.devices))
         return self.writer.folder
 
@@ -137,16 +146,21 @@ class Recorder:
         logging.getLogger("midas_cli").setLevel(logging.INFO)
         self._log_handler = handler
 
-    # -- writer thread ------------------------------------------------------------------------
-    def _write_loop(self) -> None:
+    # -- bookkeeping thread -------------------------------------------------------------------
+    def _bookkeeping_loop(self) -> None:
         try:
             self._drain_until_workers_exit()
-        except OSError as exc:  # disk full, I/O error: stop cleanly, keep what is on disk
-            self.fatal_error = f"writing the session failed: {exc}"
-            log.error("%s; stopping the recording", self.fatal_error)
-            self._stop_workers.set()
+        except OSError as exc:  # fsync failed (I/O error): stop cleanly, keep what is on disk
+            self._fail(f"writing the session failed: {exc}")
         finally:
-            self._writer_done.set()
+            self._bookkeeping_done.set()
+
+    def _fail(self, reason: str) -> None:
+        """Stop the recording because of ``reason`` (the first one given is kept)."""
+        if self.fatal_error is None:
+            self.fatal_error = reason
+            log.error("%s; stopping the recording", reason)
+        self._stop_workers.set()
 
     def _drain_until_workers_exit(self) -> None:
         last_sync = time.monotonic()
@@ -157,7 +171,7 @@ class Recorder:
             except queue.Empty:
                 message = None
             if isinstance(message, DataBatch):
-                self._write_batch(message)
+                self._account(message)
             elif isinstance(message, DeviceEvent):
                 self._on_event(message)
                 if message.event == "exited":
@@ -169,11 +183,11 @@ class Recorder:
                 log.error("devices %s did not stop in time", ", ".join(set(self.devices) - exited))
                 return
 
-    def _write_batch(self, batch: DataBatch) -> None:
-        self.writer.append(batch.stream, batch.text)
-        committed = self.clock.now_ns()
+    def _account(self, batch: DataBatch) -> None:
+        """Rows a worker has already written: into the live stats (latency = its commit times)."""
         with self._lock:
-            self.streams[batch.stream].add(batch, committed)
+            self.streams[batch.stream].add(batch, batch.committed_ns)
+            self.bytes_written += batch.nbytes
 
     def _on_event(self, event: DeviceEvent) -> None:
         with self._lock:
@@ -194,9 +208,13 @@ class Recorder:
             elif event.event == "exited":
                 record.exited = True
                 record.state = "stopped"
-        level = {"lost": logging.WARNING, "open_failed": logging.WARNING, "crashed": logging.ERROR}.get(
-            event.event, logging.INFO)
+            elif event.event == "write_failed":  # its worker exits; the whole recording stops
+                self.streams[event.info["stream"]].dropped += event.info["rows"]
+        level = {"lost": logging.WARNING, "open_failed": logging.WARNING, "crashed": logging.ERROR,
+                 "write_failed": logging.ERROR}.get(event.event, logging.INFO)
         log.log(level, "%s: %s %s", event.device, event.event, event.message)
+        if event.event == "write_failed":
+            self._fail(f"writing the session failed: {event.message}")
 
     # -- status -------------------------------------------------------------------------------
     def snapshot(self, duration_s: float | None = None, stopping: bool = False) -> RecorderSnapshot:
@@ -211,13 +229,13 @@ class Recorder:
             duration_s=duration_s,
             disk_free_bytes=shutil.disk_usage(self.path).free,
             write_rate_bps=self._write_rate(),
-            bytes_written=self.writer.bytes_written,
+            bytes_written=self.bytes_written,
             devices=devices,
             stopping=stopping,
         )
 
     def _write_rate(self) -> float:
-        now, written = time.monotonic(), self.writer.bytes_written
+        now, written = time.monotonic(), self.bytes_written
         then, before = self._rate_probe
         self._rate_probe = (now, written)
         return (written - before) / (now - then) if then and now > then else 0.0
@@ -234,17 +252,20 @@ class Recorder:
         if stats.last_row is not None:
             latest = dict(zip(stats.spec.column_names[2:], stats.last_row[2:]))
         rate = stats.measured_rate_hz() if age is not None and age < STALE_RATE_S else None
+        cumulative = stats.latency_ms()
         return StreamStatus(stats.spec.name, stats.spec.nominal_rate_hz, rate, stats.samples,
                             age, stats.dropped, stats.corrupt, stats.missing_outage + stats.missing_unexplained,
-                            latest)
+                            latest, {k: cumulative[k] for k in ("p50", "p99", "max")},
+                            stats.latency_window_ms(now_ns))
 
     # -- stopping -----------------------------------------------------------------------------
     def stop(self, status: str = "complete", reason: str = "stopped") -> dict[str, Any]:
-        """Stop the workers, write what they still had, and finalise the manifest."""
+        """Stop the workers (they write what they still had), and finalise the manifest from the
+        files on disk."""
         self._stop_deadline = time.monotonic() + STOP_GRACE_S
         self._stop_workers.set()
-        self._writer_done.wait(STOP_GRACE_S + 1.0)
-        self._writer_thread.join(timeout=1.0)
+        self._bookkeeping_done.wait(STOP_GRACE_S + 1.0)
+        self._bookkeeping_thread.join(timeout=1.0)
         for process in self._processes:
             process.join(timeout=1.0)
             if process.is_alive():

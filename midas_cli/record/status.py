@@ -13,6 +13,9 @@ STATES = ("starting", "ok", "degraded", "lost", "stopped")
 
 @dataclass(frozen=True)
 class StreamStatus:
+    """One stream's live figures. ``latency_ms``: host read -> handed to the OS, cumulative p50/p99/max
+    (ms); ``latency_window_ms``: the same over about the last 10 s, with ``n`` (rows in the window)."""
+
     name: str
     nominal_rate_hz: float
     measured_rate_hz: float | None
@@ -22,6 +25,8 @@ class StreamStatus:
     corrupt: int
     seq_missing: int
     latest: dict[str, float | int | None] = field(default_factory=dict)
+    latency_ms: dict[str, float | None] = field(default_factory=dict)
+    latency_window_ms: dict[str, float | int | None] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

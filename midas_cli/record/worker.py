@@ -1,8 +1,15 @@
-"""A device worker process: open the device, read, batch, hand batches to the recorder.
+"""A device worker process: open the device, read, append the rows to the session, tell the recorder.
 
-Runs in its own process so a slow or wedged device cannot stall the others. It ignores SIGINT and
-SIGHUP (the recorder decides when to stop and tells it through ``stop``), reconnects with
-exponential back-off when its device fails or goes silent, and exits if the recorder disappears.
+Runs in its own process so a slow or wedged device cannot stall the others. Right after each read it
+formats the rows and appends them to its streams' files itself (the recorder created them, with
+their headers): no second process stands between a device read and the disk. The recorder gets
+bookkeeping only (sequence numbers, times, bytes) and fsyncs the files about once a second, so a
+worker never blocks on fsync.
+
+It ignores SIGINT and SIGHUP (the recorder decides when to stop and tells it through ``stop``),
+reconnects with exponential back-off when its device fails or goes silent, and exits if the
+recorder disappears. A failed write (disk full, file too large) ends the worker with a
+``write_failed`` event: the recorder then stops the whole recording and keeps what is on disk.
 """
 
 from __future__ import annotations
@@ -14,7 +21,9 @@ import signal
 import sys
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,11 +32,14 @@ from midas_cli.devices.base import Device
 from midas_cli.devices.registry import create_device
 from midas_cli.errors import DeviceError, MidasError
 from midas_cli.record.messages import DataBatch, DeviceEvent
+from midas_cli.session.schema import StreamSpec
+from midas_cli.session.writer import StreamAppender
 
 log = logging.getLogger(__name__)
 
 BACKOFF_START_S = 0.25
 BACKOFF_MAX_S = 1.0  # a returning device is retried within 1 s (issue 3: reconnect within 2 s)
+EVENT_TIMEOUT_S = 2.0  # how long an event waits for room in the queue
 
 
 @dataclass(frozen=True)
@@ -42,101 +54,149 @@ class WorkerJob:
     stall_timeout_s: float
     parent_pid: int
     session_dir: str = ""  # absolute session folder, for devices that write files into it (obs:// video/)
+    stream_files: dict[str, str] = field(default_factory=dict)  # stream -> absolute path; the recorder created it
+
+
+class StreamWriteFailed(Exception):
+    """Appending to (or opening) a stream file failed: the recording cannot go on."""
+
+    def __init__(self, stream: str, rows: int, error: OSError) -> None:
+        super().__init__(f"stream {stream}: {error}")
+        self.stream, self.rows = stream, rows
+
+
+class WorkerOutput:
+    """Where a worker's rows go: appended to their stream files, then accounted to the recorder.
+
+    The rows are on disk before the recorder hears of them, so a full queue can only delay the
+    bookkeeping: a message it refuses is held and merged into that stream's next message, never
+    dropped. Events wait for the held messages to go first, so the recorder sees them in order."""
+
+    def __init__(self, device: str, out: "queue.Queue", clock: HostClock) -> None:
+        self.device, self.out, self.clock = device, out, clock
+        self.appenders: dict[str, StreamAppender] = {}
+        self.held: dict[str, DataBatch] = {}
+        self.corrupt_closed = 0  # corrupt records counted by earlier connections (counters restart per open)
+
+    def open(self, files: dict[str, str]) -> None:
+        """Open the existing stream files for appending (never creates one)."""
+        for stream, path in files.items():
+            try:
+                self.appenders[stream] = StreamAppender(Path(path))
+            except OSError as exc:
+                raise StreamWriteFailed(stream, 0, exc) from exc
+
+    def write(self, spec: StreamSpec, rows: list[tuple], corrupt: int) -> None:
+        """Append ``rows`` (seq, t_host_ns, ...) to the stream's file, then send their bookkeeping."""
+        text = spec.format_rows(rows)
+        started = self.clock.now_ns()
+        try:
+            nbytes = self.appenders[spec.name].append(text)
+        except OSError as exc:
+            raise StreamWriteFailed(spec.name, len(rows), exc) from exc
+        committed = self.clock.now_ns()
+        n = len(rows)
+        self.send(DataBatch(self.device, spec.name, np.fromiter((r[0] for r in rows), dtype=np.int64, count=n),
+                            np.fromiter((r[1] for r in rows), dtype=np.int64, count=n),
+                            np.full(n, committed, dtype=np.int64), rows[-1], nbytes, committed - started, corrupt))
+
+    def send(self, batch: DataBatch) -> None:
+        """Queue ``batch`` without waiting; if the queue is full, hold it (merged with what is held)."""
+        held = self.held.pop(batch.stream, None)
+        if held is not None:
+            batch = held.merged(batch)
+        try:
+            self.out.put_nowait(batch)
+        except queue.Full:
+            self.held[batch.stream] = batch
+
+    def event(self, event: str, message: str = "", info: dict[str, Any] | None = None) -> None:
+        """Send a device event after any held bookkeeping (waits up to EVENT_TIMEOUT_S for room)."""
+        for stream in list(self.held):
+            self._put_waiting(self.held.pop(stream))
+        self._put_waiting(DeviceEvent(self.device, event, self.clock.now_ns(), message, info or {}))
+
+    def _put_waiting(self, message: DataBatch | DeviceEvent) -> None:
+        try:
+            self.out.put(message, timeout=EVENT_TIMEOUT_S)
+        except queue.Full:
+            log.error("%s: recorder queue full for %.0f s, %s not delivered", self.device, EVENT_TIMEOUT_S,
+                      getattr(message, "event", "bookkeeping"))
+
+    def close(self) -> None:
+        for appender in self.appenders.values():
+            appender.close()
 
 
 def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
-    """Process entry point. A bug (any other exception) is reported to the recorder with its
-    traceback as a 'crashed' event, never swallowed, and the worker exits with status 1."""
+    """Process entry point. A failed write is reported as a 'write_failed' event (the worker then
+    exits normally); a bug (any other exception) as a 'crashed' event with its traceback, never
+    swallowed, and the worker exits with status 1."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    clock = HostClock(job.anchor_ns)
-    totals = {"dropped": 0, "corrupt": 0}
+    output = WorkerOutput(job.device, out, HostClock(job.anchor_ns))
+    status = 0
     try:
-        _serve(job, out, stop, clock, totals)
+        output.open(job.stream_files)
+        _serve(job, output, stop)
+    except StreamWriteFailed as exc:
+        output.event("write_failed", str(exc), {"stream": exc.stream, "rows": exc.rows})
     except Exception:
-        _send_event(out, job, clock, "crashed", traceback.format_exc(), totals)
-        _send_event(out, job, clock, "exited", totals=totals, block=True)
-        sys.exit(1)
-    _send_event(out, job, clock, "exited", totals=totals, block=True)
+        output.event("crashed", traceback.format_exc())
+        status = 1
+    output.event("exited")
+    output.close()
+    if status:
+        sys.exit(status)
 
 
-def _serve(job: WorkerJob, out, stop, clock: HostClock, totals: dict[str, int]) -> None:
+def _serve(job: WorkerJob, output: WorkerOutput, stop) -> None:
     """Open, pump, and reopen with exponential back-off until told to stop."""
     backoff = BACKOFF_START_S
     while not stop.is_set() and os.getppid() == job.parent_pid:
         try:
-            device = create_device(job.device, job.url, clock, job.start_ns, job.seed, job.session_dir)
+            device = create_device(job.device, job.url, output.clock, job.start_ns, job.seed, job.session_dir)
             info = device.open()
         except MidasError as exc:
-            _send_event(out, job, clock, "open_failed", str(exc), totals)
+            output.event("open_failed", str(exc))
             stop.wait(backoff)
             backoff = min(backoff * 2, BACKOFF_MAX_S)
             continue
         backoff = BACKOFF_START_S
-        _send_event(out, job, clock, "opened", info=info, totals=totals)
+        output.event("opened", info=info)
         try:
-            _pump(device, job, out, stop, totals)
+            _pump(device, job, output, stop)
             if device.final_info:
-                _send_event(out, job, clock, "finished", info=device.final_info, totals=totals)
+                output.event("finished", info=device.final_info)
         except MidasError as exc:
-            _send_event(out, job, clock, "lost", str(exc), totals)
+            output.event("lost", str(exc))
         finally:
-            totals["corrupt"] += device.counters.corrupt
+            output.corrupt_closed += device.counters.corrupt
             device.close()
 
 
-def _pump(device: Device, job: WorkerJob, out, stop, totals: dict[str, int]) -> None:
-    """Read until told to stop; raise DeviceError-like MidasError if the device goes silent.
+def _pump(device: Device, job: WorkerJob, output: WorkerOutput, stop) -> None:
+    """Read until told to stop; raise DeviceError if the device goes silent.
 
-    Rows are sent as soon as a read returns them: what arrived together travels together, and no
-    batching window adds to the host-read -> disk latency (benchmarks/: it was the largest part)."""
+    Rows are written as soon as a read returns them: what arrived together is written together, and
+    no batching window or process hop adds to the host-read -> disk latency (see benchmarks/)."""
     specs = {spec.name: spec for spec in device.streams}
-    pending: dict[str, list[tuple]] = {name: [] for name in specs}
     last_data = time.monotonic()
     while not stop.is_set() and os.getppid() == job.parent_pid:
         rows_by_stream = device.read()
         now = time.monotonic()
-        for name, rows in rows_by_stream.items():
-            if rows:
-                pending[name].extend(rows)
-                last_data = now
-        _flush(device, specs, pending, out, totals)
+        if any(rows_by_stream.values()):
+            last_data = now
+        _flush(device, specs, rows_by_stream, output)
         if now - last_data > job.stall_timeout_s:
-            _flush(device, specs, pending, out, totals)
             raise DeviceError(f"{job.device}: no data for {job.stall_timeout_s:.2f} s")
-    for name, rows in device.finish().items():
-        pending[name].extend(rows)
-    _flush(device, specs, pending, out, totals)
+    _flush(device, specs, device.finish(), output)
 
 
-def _flush(device: Device, specs, pending: dict[str, list[tuple]], out, totals: dict[str, int]) -> None:
-    for name, rows in pending.items():
-        if not rows:
-            continue
-        batch = DataBatch(
-            device=device.name,
-            stream=name,
-            text=specs[name].format_rows(rows),
-            seq=np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows)),
-            t_host_ns=np.fromiter((r[1] for r in rows), dtype=np.int64, count=len(rows)),
-            last_row=rows[-1],
-            dropped=totals["dropped"],
-            corrupt=totals["corrupt"] + device.counters.corrupt,
-        )
-        try:
-            out.put_nowait(batch)
-        except queue.Full:
-            totals["dropped"] += len(rows)
-            log.error("%s: recorder queue full, %d %s samples dropped", device.name, len(rows), name)
-        rows.clear()
-
-
-def _send_event(out, job: WorkerJob, clock: HostClock, event: str, message: str = "",
-                totals: dict[str, int] | None = None, info: dict | None = None, block: bool = False) -> None:
-    totals = totals or {}
-    msg = DeviceEvent(job.device, event, clock.now_ns(), message, info or {},
-                      totals.get("dropped", 0), totals.get("corrupt", 0))
-    try:
-        out.put(msg, timeout=2.0) if block else out.put_nowait(msg)
-    except queue.Full:
-        log.error("%s: recorder queue full, event %s not delivered", job.device, event)
+def _flush(device: Device, specs: dict[str, StreamSpec], rows_by_stream: dict[str, list[tuple]],
+           output: WorkerOutput) -> None:
+    """Write each stream's new rows (in the order the device returned the streams)."""
+    corrupt = output.corrupt_closed + device.counters.corrupt
+    for name, rows in rows_by_stream.items():
+        if rows:
+            output.write(specs[name], rows, corrupt)

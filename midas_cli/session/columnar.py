@@ -69,22 +69,27 @@ def write_binary_copy(folder: Path, spec: StreamSpec, csv_sha256: str) -> dict[s
     table = parse_csv_columns(Path(folder) / spec.file, spec)
     target = Path(folder) / binary_file(spec)
     tmp = target.with_name(target.name + ".tmp")
-    with open(tmp, "wb") as fh:
-        np.save(fh, table, allow_pickle=False)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, target)
+    try:
+        with open(tmp, "wb") as fh:
+            np.save(fh, table, allow_pickle=False)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except OSError:  # disk full, file-size limit: no copy, nothing half-written left behind
+        tmp.unlink(missing_ok=True)
+        raise
     return {"file": binary_file(spec), "rows": int(len(table)), "csv_sha256": csv_sha256}
 
 
 def add_binary_copies(folder: Path, manifest: dict[str, Any]) -> None:
     """Give every stream of a finished ``manifest`` its binary copy (entries updated in place). A stream
-    whose CSV cannot be parsed (damaged lines) keeps no copy; readers then parse the CSV and report."""
+    whose CSV cannot be parsed (damaged lines), or whose copy cannot be written (disk full), keeps none;
+    readers then parse the CSV."""
     for name, entry in manifest["streams"].items():
         spec = StreamSpec.from_manifest(name, entry)
         try:
             entry[BINARY_KEY] = write_binary_copy(Path(folder), spec, entry["sha256"])
-        except (SessionError, KeyError) as exc:
+        except (SessionError, KeyError, OSError) as exc:
             entry.pop(BINARY_KEY, None)
             log.warning("no binary copy of stream %s: %s", name, exc)
 

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
-import pandas as pd
 
 from midas_cli.errors import SessionError
 from midas_cli.session.columnar import load_binary_copy, parse_csv_columns
 from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
 from midas_cli.session.schema import StreamSpec
+
+if TYPE_CHECKING:  # pandas is imported where it is used: `midas align` reads binary copies without it
+    import pandas as pd
 
 
 @dataclass
@@ -55,6 +57,8 @@ class Session:
 
     def read_stream(self, name: str, allow_incomplete: bool = False) -> pd.DataFrame:
         """One stream as a DataFrame: int columns as int64 (exact ns times), floats with NaN = missing."""
+        import pandas as pd
+
         self._refuse_unfinished(allow_incomplete)
         spec = self.stream_spec(name)
         dtypes = {c.name: ("Int64" if c.dtype == "int" else "float64") for c in spec.columns}

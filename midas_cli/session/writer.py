@@ -80,6 +80,43 @@ def make_session_folder(out_root: Path, stem: str, host_ns: int) -> Path:
     raise SessionError(f"too many sessions named {base} in {out_root}")
 
 
+class StreamAppender:
+    """Appends whole CSV lines to one stream file, unbuffered (each append survives a process kill).
+
+    Used by ``SessionWriter`` and, while recording, by each device worker on the files the recorder
+    created: ``create=False`` opens an existing file only (O_WRONLY|O_APPEND, never O_CREAT), so a
+    missing file raises FileNotFoundError instead of writing somewhere unexpected."""
+
+    def __init__(self, path: Path, create: bool = False) -> None:
+        self.path = Path(path)
+        flags = os.O_WRONLY | os.O_APPEND | (os.O_CREAT if create else 0)
+        self.fd = os.open(self.path, flags, 0o644)
+        self.size = os.fstat(self.fd).st_size  # bytes in the file, always a whole number of lines
+
+    def append(self, text: str) -> int:
+        """Hand whole lines to the OS; return the bytes written.
+
+        If the OS refuses part of it (disk full, file too large) the file is cut back to its last
+        whole line and the OSError is raised, so a stream never holds a torn line."""
+        data = text.encode("utf-8")
+        view = memoryview(data)
+        try:
+            while view:
+                view = view[os.write(self.fd, view):]
+        except OSError:
+            os.ftruncate(self.fd, self.size)
+            raise
+        self.size += len(data)
+        return len(data)
+
+    def sync(self) -> None:
+        """fsync the file (flushes the inode's pages, whichever process's fd wrote them)."""
+        os.fsync(self.fd)
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
 class SessionWriter:
     """Owns one session folder while it is recorded."""
 
@@ -87,12 +124,10 @@ class SessionWriter:
         self.folder = folder
         self.manifest = manifest
         self.specs = {spec.name: spec for spec in specs}
-        self._fds: dict[str, int] = {}
-        self._sizes: dict[str, int] = {}
+        self._appenders: dict[str, StreamAppender] = {}
         self.bytes_written = 0
         for spec in self.specs.values():
-            self._fds[spec.name] = os.open(folder / spec.file, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-            self._sizes[spec.name] = 0
+            self._appenders[spec.name] = StreamAppender(folder / spec.file, create=True)
             self.append(spec.name, spec.header_line())
 
     @classmethod
@@ -135,21 +170,13 @@ class SessionWriter:
 
         Unbuffered: if the OS refuses part of it (disk full, file too large) the file is cut back to
         its last whole line and the OSError is raised, so a stream never holds a torn line."""
-        fd, data = self._fds[stream], text.encode("utf-8")
-        view = memoryview(data)
-        try:
-            while view:
-                view = view[os.write(fd, view):]
-        except OSError:
-            os.ftruncate(fd, self._sizes[stream])
-            raise
-        self._sizes[stream] += len(data)
-        self.bytes_written += len(data)
+        self.bytes_written += self._appenders[stream].append(text)
 
     def sync(self) -> None:
-        """fsync every stream file (survives power loss); called about once a second."""
-        for fd in self._fds.values():
-            os.fsync(fd)
+        """fsync every stream file (survives power loss); called about once a second. While
+        recording, the workers append through their own fds; this flushes their pages too."""
+        for appender in self._appenders.values():
+            appender.sync()
 
     def finalize(self, status: str, stop_reason: str, stop_ns: int, extra: dict[str, dict[str, Any]]) -> dict:
         """Close the files, describe each from what is on disk, and replace the manifest atomically.
@@ -157,8 +184,8 @@ class SessionWriter:
         ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages).
         """
         self.sync()
-        for fd in self._fds.values():
-            os.close(fd)
+        for appender in self._appenders.values():
+            appender.close()
         for name, spec in self.specs.items():
             entry = self.manifest["streams"][name]
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
