@@ -1,10 +1,12 @@
 """Speed of `midas ground-truth pedals` on synthetic da Vinci Xi console videos (not a test).
 
-Renders seeded videos with `midas simulate console-video`'s generator (1080p single view, and a
-side-by-side stereo recording of two 1080p views as OBS writes it), then measures on this machine:
-decoding alone (grab + retrieve of every frame), full extraction (decode + the davinci-xi layout), and
-two videos at once with --jobs 1 and 2. Speeds are frames per second and multiples of real time
-(30 fps). Agreement with the rendered schedule is recorded too. Results: benchmarks/results/pedal_gt.json.
+Renders seeded videos with `midas simulate console-video`'s generator (720p and 1080p single view,
+1080p again at twice the duration, and a side-by-side stereo recording of two 1080p views as OBS writes
+it), then measures on this machine: decoding alone (grab + retrieve of every frame), full extraction
+(decode + the davinci-xi layout), and two videos at once with --jobs 1 and 2. Speeds are frames per
+second and multiples of real time (30 fps); the cost per frame is fitted against the decoded frame's
+megapixels (µs per megapixel per frame) and compared between the two 1080p durations. Agreement with
+the rendered schedule is recorded too. Results: benchmarks/results/pedal_gt.json.
 
     .venv/bin/python benchmarks/bench_pedal_gt.py [--duration 30] [--seed 1]
 """
@@ -12,16 +14,14 @@ two videos at once with --jobs 1 and 2. Speeds are frames per second and multipl
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import shutil
+import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pandas as pd
 
 from midas_cli.analysis.pedal_video.agreement import compare
@@ -30,8 +30,10 @@ from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest, run_
 from midas_cli.analysis.pedal_video.layout import load_layout
 from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import load_average, machine_info, write_result  # noqa: E402
+
 REAL_TIME_FPS = 30.0
-RESULTS = Path(__file__).resolve().parent / "results" / "pedal_gt.json"
 
 
 def decode_fps(path: Path) -> float:
@@ -75,26 +77,40 @@ def measure_jobs(folder: Path, video: Path) -> dict:
     return result
 
 
+def pixel_slope(cases: list[dict]) -> dict:
+    """Least-squares cost per frame against the decoded frame's megapixels, over the cases of one
+    duration (µs per megapixel per frame; intercept = the per-frame cost that does not scale with pixels)."""
+    frames = cases[0]["frames"]
+    same = [c for c in cases if c["frames"] == frames]
+    mp = np.array([c["frame_size"][0] * c["frame_size"][1] / 1e6 for c in same])
+    result = {"cases": [c["video"] for c in same], "megapixels": mp.round(3).tolist()}
+    for key in ("decode_only_fps", "extract_fps"):
+        slope, intercept = np.polyfit(mp, [1e6 / c[key] for c in same], 1)
+        result[key.replace("_fps", "")] = {"us_per_megapixel_per_frame": round(float(slope), 1),
+                                           "intercept_us_per_frame": round(float(intercept), 1)}
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of video per case")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
-    load_before = os.getloadavg()
+    load_before = load_average()
+    d, seed = args.duration, args.seed
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        cases = [measure_video(folder, "mono_1080p", ConsoleVideoSpec(args.duration, args.seed)),
-                 measure_video(folder, "stereo_2x1080p", ConsoleVideoSpec(args.duration, args.seed, stereo=True))]
+        cases = [measure_video(folder, "mono_720p", ConsoleVideoSpec(d, seed, size=(1280, 720))),
+                 measure_video(folder, "mono_1080p", ConsoleVideoSpec(d, seed)),
+                 measure_video(folder, "stereo_2x1080p", ConsoleVideoSpec(d, seed, stereo=True)),
+                 measure_video(folder, "mono_1080p_2x_frames", ConsoleVideoSpec(2 * d, seed))]
         jobs = measure_jobs(folder, folder / "mono_1080p.mkv")
-    report = {"benchmark": "midas ground-truth pedals (davinci-xi layout, mp4v in MKV)",
-              "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                          "opencv": cv2.__version__, "opencv_threads": cv2.getNumThreads(),
-                          "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)]},
-              "real_time_fps": REAL_TIME_FPS, "cases": cases, "two_videos_mono_1080p": jobs}
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(json.dumps(report, indent=2))
+    machine = {**machine_info(), "opencv": cv2.__version__, "opencv_threads": cv2.getNumThreads(),
+               "load_average_1min_before_after": [load_before, load_average()]}
+    write_result("pedal_gt", {"benchmark": "midas ground-truth pedals (davinci-xi layout, mp4v in MKV)",
+                              "date_utc": machine["date_utc"], "machine": machine, "real_time_fps": REAL_TIME_FPS,
+                              "cases": cases, "pixel_slope": pixel_slope(cases),
+                              "two_videos_mono_1080p": jobs})
 
 
 if __name__ == "__main__":

@@ -1,14 +1,19 @@
-"""Training epoch time / peak memory of MS-TCN++ and the transformer on CPU, and online inference latency.
+"""Training epoch time / peak memory of MS-TCN++ and the transformer on CPU on the simulated Raven-II
+dataset, and online inference latency.
 
-Each (model, trial length) case runs in its own subprocess (peak memory = that process's VmHWM): 15
-trials of seeded random features with the simulated dataset's layout (EmHT, MTM and PSM 18 features
-each, 32 image features; 10 gesture classes), through the real training loop (``models.train.fit``:
-Adam, batch size 4, no validation), one epoch timed after one warm-up epoch. Online inference: one
-forward pass per new frame over a trailing context (the transformer's 64-frame window; 1024 frames for
-MS-TCN++), batch 1, one torch thread, ``torch.no_grad``, 100 calls.
+Data: `midas simulate dataset --platform raven-ii --trials 15 --seed 1` (peg transfer, full-length
+trials) and `midas align` of every session, both through the CLI and timed (the data preparation a user
+pays once). Then each (model, number of trials) case runs in its own subprocess (peak memory = that
+process's VmHWM, which includes building the dataset): the first N sessions (sorted by name) go through
+``models.data.build_dataset`` (emht, mtm, psm and image modalities; pos, ori, vel and grasper feature
+sets; Raven-II's 10 Hz as in the paper), are normalised over all their frames and trained as whole
+trials with the real training loop (``models.train.fit``: Adam, batch size 4, no validation), timed
+over the epochs after one warm-up epoch. Online inference: one forward pass per new frame over a
+trailing context (the transformer's 64-frame window; 1024 frames for MS-TCN++), batch 1, one torch
+thread, ``torch.no_grad``, 100 calls. Sizes 5, 10 and 15 trials give the slope per 1000 frames.
 
-    .venv/bin/python benchmarks/bench_train.py            # trials of 900 and 2700 frames -> results/train.json
-    .venv/bin/python benchmarks/bench_train.py --quick    # 150 frames
+    .venv/bin/python benchmarks/bench_train.py            # 15 trials; 5, 10, 15 -> results/train.json
+    .venv/bin/python benchmarks/bench_train.py --quick    # 3 trials cut to 40 s; 2 and 3
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -25,31 +31,76 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load_average, machine_info, write_result  # noqa: E402
 
-TRIALS, CLASSES = 15, 10
-MODALITY_DIMS = {"emht": 18, "mtm": 18, "psm": 18, "image": 32}
+PLATFORM, SEED = "raven-ii", 1
+MODALITIES = ("emht", "mtm", "psm", "image")
+FEATURES = ("pos", "ori", "vel", "grasper")
 ONLINE_CONTEXT = {"mstcn": 1024, "transformer": 64}
 
 
-def case(model_name: str, frames: int, epochs: int) -> dict:
-    """Runs inside the child: time ``epochs`` epochs after a warm-up, then online inference."""
+def prepare_dataset(folder: Path, trials: int, max_seconds: float | None) -> dict:
+    """Simulate and align ``trials`` sessions into ``folder`` through the CLI; wall times and sizes."""
+    limit = ["--max-seconds", str(max_seconds)] if max_seconds else []
+    t0 = time.monotonic()
+    made = _cli("simulate", "dataset", "--platform", PLATFORM, "--trials", str(trials), "--seed", str(SEED),
+                "--out", str(folder), "--jobs", "2", "--json", *limit)
+    simulate_s = time.monotonic() - t0
+    sessions = [r["path"] for r in json.loads(made)]
+    t0 = time.monotonic()
+    aligned = json.loads(_cli("align", *sessions, "--jobs", "2", "--json"))
+    align_s = time.monotonic() - t0
+    size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+    return {"platform": PLATFORM, "seed": SEED, "trials": trials, "max_seconds_per_trial": max_seconds,
+            "simulate_s": round(simulate_s, 2), "align_s": round(align_s, 2), "jobs": 2,
+            "video_frames_total": int(sum(a["frames"] for a in aligned)), "dataset_mb": round(size / 1e6, 1)}
+
+
+def _cli(*args: str) -> str:
+    proc = subprocess.run([sys.executable, "-m", "midas_cli", *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"midas {' '.join(args[:2])} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return proc.stdout
+
+
+def sessions_in(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if (p / "manifest.json").is_file())
+
+
+def case(model_name: str, folder: Path, n_trials: int, epochs: int) -> dict:
+    """Runs inside the child: build the dataset, time ``epochs`` epochs after a warm-up, then online inference."""
     import torch
 
+    from midas_cli.models.data import DatasetConfig, build_dataset
     from midas_cli.models.train import Sequences, TrainConfig, build_model, fit
 
     torch.manual_seed(0)
-    rng = np.random.default_rng(0)
-    dim = sum(MODALITY_DIMS.values())
-    seqs = Sequences([("t", i, 0) for i in range(TRIALS)],
-                     [rng.normal(size=(frames, dim)).astype(np.float32) for _ in range(TRIALS)],
-                     [rng.integers(0, CLASSES, frames) for _ in range(TRIALS)])
-    empty = Sequences([], [], [])
-    model, _ = build_model(model_name, MODALITY_DIMS, CLASSES, {})
+    t0 = time.monotonic()
+    dataset = build_dataset(sessions_in(folder)[:n_trials], DatasetConfig(MODALITIES, FEATURES))
+    build_s = time.monotonic() - t0
+    seqs, empty = whole_trials(dataset), Sequences([], [], [])
+    model, _ = build_model(model_name, dataset.modality_dims, len(dataset.classes), {})
     fit(model, seqs, empty, TrainConfig(model=model_name, epochs=1), torch.device("cpu"))  # warm-up
     t0 = time.monotonic()
     fit(model, seqs, empty, TrainConfig(model=model_name, epochs=epochs), torch.device("cpu"))
     epoch_s = (time.monotonic() - t0) / epochs
-    return {"model": model_name, "frames_per_trial": frames, "trials": TRIALS, "epoch_s": round(epoch_s, 3),
-            "torch_threads": torch.get_num_threads(), "online": online_latency(model, dim, ONLINE_CONTEXT[model_name])}
+    frames = [len(y) for y in seqs.y]
+    return {"model": model_name, "trials": len(frames), "frames_total": int(sum(frames)),
+            "frames_per_trial_mean": round(float(np.mean(frames)), 1), "rate_hz": dataset.trials[0].rate_hz,
+            "modality_dims": dataset.modality_dims, "classes": len(dataset.classes),
+            "dataset_build_s": round(build_s, 2), "epoch_s": round(epoch_s, 3), "timed_epochs": epochs,
+            "torch_threads": torch.get_num_threads(),
+            "online": online_latency(model, seqs.x[0].shape[1], ONLINE_CONTEXT[model_name])}
+
+
+def whole_trials(dataset):  # noqa: ANN001, ANN201 - GestureDataset -> Sequences
+    """Every trial as one training unit, normalised over all frames (the loop's input: (T, D) float32)."""
+    from midas_cli.models.data import Normaliser
+    from midas_cli.models.train import Sequences
+
+    order = list(dataset.config.modalities)
+    blocks = [t.stacked(order) for t in dataset.trials]
+    normaliser = Normaliser.fit(blocks)
+    return Sequences([(t.name, 0, len(t.labels)) for t in dataset.trials], [normaliser.apply(b) for b in blocks],
+                     [t.labels for t in dataset.trials])
 
 
 def online_latency(model, dim: int, context: int, calls: int = 100) -> dict:  # noqa: ANN001
@@ -71,31 +122,50 @@ def online_latency(model, dim: int, context: int, calls: int = 100) -> dict:  # 
             "p99_ms": round(float(np.percentile(ms, 99)), 3), "max_ms": round(float(ms.max()), 3)}
 
 
-def run_child(model_name: str, frames: int, epochs: int) -> dict:
+def run_child(model_name: str, folder: Path, n_trials: int, epochs: int) -> dict:
     load = load_average()
-    proc = subprocess.run([sys.executable, __file__, "--case", model_name, str(frames), str(epochs)],
-                          capture_output=True, text=True, check=True)
+    proc = subprocess.run([sys.executable, __file__, "--case", model_name, str(folder), str(n_trials), str(epochs)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"case {model_name} x {n_trials} trials failed: {proc.stderr[-2000:]}")
     return {"load_average_before_after": [load, load_average()], **json.loads(proc.stdout.strip().splitlines()[-1])}
+
+
+def slopes(runs: list[dict]) -> dict:
+    """Per model: least-squares epoch seconds and peak MiB per 1000 training frames, over the sizes."""
+    out = {}
+    for model in sorted({r["model"] for r in runs}):
+        rs = [r for r in runs if r["model"] == model]
+        if len(rs) >= 2:
+            k = np.array([r["frames_total"] for r in rs]) / 1000.0
+            out[model] = {"epoch_s_per_1000_frames": round(float(np.polyfit(k, [r["epoch_s"] for r in rs], 1)[0]), 4),
+                          "peak_mib_per_1000_frames": round(float(np.polyfit(k, [r["peak_rss_mib"] for r in rs], 1)[0]), 2)}
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="150-frame trials")
-    parser.add_argument("--case", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help="3 trials cut to 40 s; sizes 2 and 3")
+    parser.add_argument("--case", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.case:
-        result = case(args.case[0], int(args.case[1]), int(args.case[2]))
+        result = case(args.case[0], Path(args.case[1]), int(args.case[2]), int(args.case[3]))
         hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM:")][0].split()[1]
         print(json.dumps({**result, "peak_rss_mib": round(int(hwm) / 1024, 1)}))
         return
-    sizes, epochs = ([150], 1) if args.quick else ([900, 2700], 1)
-    runs = []
-    for model_name in ("mstcn", "transformer"):
-        for frames in sizes:
-            print(f"train: {model_name}, {TRIALS} trials x {frames} frames ...", file=sys.stderr)
-            runs.append(run_child(model_name, frames, epochs))
-    write_result("train", {"machine": machine_info(), "quick": args.quick, "modality_dims": MODALITY_DIMS,
-                           "classes": CLASSES, "timed_epochs": epochs, "runs": runs})
+    trials, max_seconds, sizes, epochs = (3, 40.0, [2, 3], 1) if args.quick else (15, None, [5, 10, 15], 2)
+    with tempfile.TemporaryDirectory(prefix="midas-bench-train-") as tmp:
+        print(f"train: simulating and aligning {trials} {PLATFORM} trials ...", file=sys.stderr)
+        load = load_average()
+        data = {**prepare_dataset(Path(tmp), trials, max_seconds), "load_average_before_after": [load, load_average()]}
+        runs = []
+        for model_name in ("mstcn", "transformer"):
+            for n in sizes:
+                print(f"train: {model_name}, {n} trials ...", file=sys.stderr)
+                runs.append(run_child(model_name, Path(tmp), n, epochs))
+    write_result("train", {"machine": machine_info(), "quick": args.quick, "data": data,
+                           "dataset_config": {"modalities": list(MODALITIES), "features": list(FEATURES)},
+                           "timed_epochs": epochs, "runs": runs, "slopes": slopes(runs)})
 
 
 if __name__ == "__main__":

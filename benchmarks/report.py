@@ -9,6 +9,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import RESULTS, machine_info  # noqa: E402
+from report_align import align_section  # noqa: E402
+from report_soak import soak_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TARGET_P99_MS = 5.0
@@ -30,10 +32,13 @@ def header() -> list[str]:
             f"* Rendered: {m['date_utc']}", "",
             "Commands (each also runs alone; `--quick` is a short smoke mode):", "", "```sh",
             "make bench                                      # all of the below, then this file",
+            "make soak                                       # the 30-minute soak alone (SOAK_MIN=30), then this file",
             ".venv/bin/python benchmarks/bench_record.py     # recording latency/loss/CPU, 10 s and 30 s",
-            ".venv/bin/python benchmarks/bench_align.py      # align vs merge_asof, 10 min and 60 min sessions",
+            ".venv/bin/python benchmarks/bench_soak.py --minutes 5 --name soak-short   # the soak inside make bench",
+            ".venv/bin/python benchmarks/bench_soak.py       # make soak: 30 min -> results/soak.json",
+            ".venv/bin/python benchmarks/bench_align.py      # align vs merge_asof, 10, 30 and 60 min sessions",
             ".venv/bin/python benchmarks/bench_pedal_gt.py --duration 10   # pedal ground truth from video",
-            ".venv/bin/python benchmarks/bench_train.py      # MS-TCN++ / transformer epoch time, online latency",
+            ".venv/bin/python benchmarks/bench_train.py      # simulate + align 15 trials; MS-TCN++ / transformer",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -130,116 +135,85 @@ def record_growth(r: dict) -> list[str]:
             f"recorded s. p99 latency: {p99}."]
 
 
-ALIGN_ANALYSIS = [
-    "**Reading.** Reading the stream files and aligning them (read + association + derived columns) is a "
-    "small part of `midas align`'s time. Most of it is (a) writing `aligned.csv` through pandas "
-    "`to_csv(float_format='%.6g')` — with a `float_format` pandas formats every cell with a Python format call, "
-    "while the baseline's default float output stays in pandas' C writer — plus the compressed "
-    "`aligned.npz`, and (b) the CLI's start-up (importing typer, rich, pandas, scipy and every command "
-    "module), a fixed ~2 s. The baseline imports only pandas.",
-    "",
-    "**Change proposed** (in `session/derived.py` / `analysis/align.py`, owned elsewhere, not made here): make "
-    "`aligned.npz` (uncompressed) the primary output and write `aligned.csv` only on request (`--csv`), or "
-    "without `float_format` (round the values first), or column-wise with numpy; import scipy/pandas lazily "
-    "in the CLI so `midas align` does not pay for other commands' imports.",
-]
-
-
-def align_bound(run: dict) -> list[str]:
-    """What the CSV input alone allows: the baseline's time over midas' time to parse the same files."""
-    prof = run["profile"]
-    read_s = prof["stages_cumulative_s"].get("read stream CSVs (Session.read_stream)")
-    core = sum(v for k, v in prof["stages_cumulative_s"].items() if not k.startswith("write"))
-    if not read_s:
-        return []
-    base = run["baseline_merge_asof"]["wall_s"]
-    return ["", f"**The 20× bar with CSV stream files as input.** Parsing the session's stream CSVs alone takes "
-            f"{read_s:g} s here (under cProfile), against the whole baseline's {base:g} s: even a `midas align` "
-            f"that did nothing else could be at most ~{base / read_s:.1f}× faster. Read + align without "
-            f"writing ({core:.2f} s under cProfile) is ~{base / core:.1f}× the baseline. Reaching 20× needs "
-            "inputs that are not parsed text: e.g. a binary sidecar per stream (`.npy` columns written at "
-            "`finalize`, checked against the CSV's sha256) that align memory-maps, with the CSV kept as the "
-            "archival format. This is a format decision (DESIGN.md section 5), not a tuning change."]
-
-
-def align_section(a: dict) -> list[str]:
-    out = ["## 2. Align: `midas align` vs per-stream pandas `merge_asof` (`bench_align.py`)", "",
-           "A session (EmHT 4 × 240 Hz, FPS 9 ch × 250 Hz, HandKP 30 Hz, 30 fps video clock) is generated "
-           "through `midas_cli/session/writer.py`; each side then runs as its own process, timed from the "
-           "stream files on disk to its aligned output on disk; peak memory is that child's own `VmHWM` (read "
-           "in the child at exit; `ru_maxrss` would inherit this parent's high-water mark). Baseline (the "
-           "original system's approach): `pd.read_csv` of each stream CSV, "
-           "`pd.merge_asof(direction='backward', tolerance=3 sample periods)` onto the video frame times, "
-           "one CSV out. `midas align` writes `derived/aligned.{npz,csv,json}` and also computes the derived "
-           "columns (hand points, velocities, grasper distance, clutch, HandKP gap filling).", "",
-           "| session | load 1 min | stream CSV MB | frames | baseline s | baseline peak MiB | midas align s | "
-           "midas peak MiB | speedup (baseline / midas) | output equal |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
-    for run in a["runs"]:
-        b, m, c = run["baseline_merge_asof"], run["midas_align"], run["check"]
-        out.append(f"| {run['minutes']:g} min | {run['load_average_before']:g} | {run['stream_csv_mb']:g} | "
-                   f"{c['frames']} | {b['wall_s']:g} | {b['peak_rss_mib']:g} | {m['wall_s']:g} | {m['peak_rss_mib']:g} | "
-                   f"**{run['speedup']:g}×** | {'yes' if c['equal'] else 'NO'} ({c['columns_compared']} columns) |")
-    check = a["runs"][0]["check"]
-    out += ["", f"* Equality rule: {check['rule']}."]
-    if "midas_columns" in check:
-        out.append(f"* Output width: midas `aligned.csv` {check['midas_columns']} columns (raw, per-stream delta, "
-                   f"derived), baseline {check['baseline_columns']}.")
-    if a.get("seconds_per_session_minute"):
-        s = a["seconds_per_session_minute"]
-        out.append(f"* Slope (seconds per minute of session): baseline {s['baseline_merge_asof']:g}, "
-                   f"midas align {s['midas_align']:g}.")
-    out.append("* The issue's bar is >= 20× faster than the baseline. "
-               + ("Met." if all(run["speedup"] >= 20 for run in a["runs"]) else "**Not met** on this run: see below."))
-    big = next((run for run in a["runs"] if run.get("profile")), None)
-    if big:
-        prof = big["profile"]
-        out += ["", f"### Where `midas align` spends its time ({big['minutes']:g} min session)", "",
-                f"cProfile of `align_and_write` in-process: {prof['align_and_write_s_profiled']:g} s in all; "
-                f"CLI start-up alone (`python -m midas_cli --help`): {prof['cli_startup_s']:g} s.", "",
-                "| stage | cumulative s |", "|---|---|"]
-        out += [f"| {stage} | {sec:g} |" for stage, sec in sorted(prof["stages_cumulative_s"].items(),
-                                                               key=lambda kv: -kv[1])]
-        out += ["", *ALIGN_ANALYSIS, *align_bound(big)]
-    return out + [""]
-
-
 def pedal_section(p: dict) -> list[str]:
     load = p["machine"].get("load_average_1min_before_after", [])
     out = ["## 3. Pedal ground truth from video (`bench_pedal_gt.py`)", "",
            f"Seeded synthetic da Vinci Xi console video, davinci-xi layout, {p['cases'][0]['frames']} frames per case "
-           f"(date {p['date_utc']}, load {'–'.join(f'{x:g}' for x in load)}). Real time is {p['real_time_fps']:g} fps.",
-           "", "| video | frame | decode only fps | extraction fps | × real time | min F1 | max onset error (frames) |",
-           "|---|---|---|---|---|---|---|"]
+           f"unless named (date {p['date_utc']}, load {'–'.join(f'{x:g}' for x in load)}). Real time is "
+           f"{p['real_time_fps']:g} fps.", "",
+           "| video | frame | frames | decode only fps | extraction fps | × real time | min F1 | max onset error (frames) |",
+           "|---|---|---|---|---|---|---|---|"]
     for c in p["cases"]:
-        out.append(f"| {c['video']} | {c['frame_size'][0]}×{c['frame_size'][1]} | {c['decode_only_fps']:g} | "
-                   f"{c['extract_fps']:g} | {c['x_real_time']:g} | {c['min_f1']:g} | {c['max_onset_error_frames']} |")
-    return out + ["", "See benchmarks/README.md for the reading of these figures.", ""]
+        out.append(f"| {c['video']} | {c['frame_size'][0]}×{c['frame_size'][1]} | {c['frames']} | "
+                   f"{c['decode_only_fps']:g} | {c['extract_fps']:g} | {c['x_real_time']:g} | {c['min_f1']:g} | "
+                   f"{c['max_onset_error_frames']} |")
+    return out + [""] + pedal_growth(p) + ["", "See benchmarks/README.md for the reading of these figures.", ""]
+
+
+def pedal_growth(p: dict) -> list[str]:
+    """How the cost grows with pixels (fitted slope) and with the number of frames (two 1080p lengths)."""
+    out = []
+    slope = p.get("pixel_slope")
+    if slope:
+        ex, de = slope["extract"], slope["decode_only"]
+        out.append(f"* Cost per frame against the decoded frame's size ({', '.join(slope['cases'])}: "
+                   f"{', '.join(f'{x:g}' for x in slope['megapixels'])} MP; least squares): extraction "
+                   f"{ex['us_per_megapixel_per_frame']:g} µs per megapixel per frame {ex['intercept_us_per_frame']:+g} µs; "
+                   f"decoding alone {de['us_per_megapixel_per_frame']:g} µs per megapixel "
+                   f"{de['intercept_us_per_frame']:+g} µs (the stereo video is decoded whole, its left view "
+                   f"measured). A 1080p frame (2.07 MP) is ~"
+                   f"{(ex['us_per_megapixel_per_frame'] * 2.0736 + ex['intercept_us_per_frame']) / 1e3:.1f} ms of the "
+                   f"33.3 ms a real-time frame allows.")
+    by_size = [c for c in p["cases"] if c["frame_size"] == [1920, 1080] and c["video"].startswith("mono")]
+    if len(by_size) >= 2:
+        ordered = sorted(by_size, key=lambda c: c["frames"])
+        a, b = ordered[0], ordered[-1]
+        ms_a, ms_b = 1e3 / a["extract_fps"], 1e3 / b["extract_fps"]
+        verdict = ("the same within 15 %: time grows linearly with the video's length" if abs(ms_b / ms_a - 1) <= 0.15
+                   else f"{100 * (ms_b / ms_a - 1):+.0f} % per frame for the longer video; short videos are "
+                        "dominated by start-up and load noise, compare at similar load")
+        out.append(f"* Frames: 1080p at {a['frames']} and {b['frames']} frames, {ms_a:.2f} and {ms_b:.2f} ms per "
+                   f"extracted frame: {verdict}.")
+    jobs = p.get("two_videos_mono_1080p")
+    if jobs:
+        out.append(f"* Two 1080p videos at once: {jobs['jobs_1_fps']:g} fps aggregate with `--jobs 1`, "
+                   f"{jobs['jobs_2_fps']:g} fps with `--jobs 2`.")
+    return out
 
 
 def train_section(t: dict) -> list[str]:
+    if "data" not in t:
+        return ["## 4. Gesture models on CPU (`bench_train.py`)", "",
+                "results/train.json comes from an older bench_train.py (random features): run "
+                "`.venv/bin/python benchmarks/bench_train.py` again.", ""]
+    d, r0 = t["data"], t["runs"][0]
+    cut = f"cut to {d['max_seconds_per_trial']:g} s each" if d["max_seconds_per_trial"] else "full length"
+    prep_load = "–".join(f"{x:g}" for x in d["load_average_before_after"])
     out = ["## 4. Gesture models on CPU (`bench_train.py`)", "",
-           f"{t['runs'][0]['trials']} trials of seeded random features in the simulated dataset's layout "
-           f"({', '.join(f'{k} {v}' for k, v in t['modality_dims'].items())} features; {t['classes']} classes), "
-           "the real training loop (`models.train.fit`, Adam, batch 4), one epoch timed after a warm-up, each "
-           "case in its own process (peak = its VmHWM). Online: one forward pass per new frame over a trailing "
-           "context, batch 1, one torch thread; the paper's budget is a 400–900 ms human reaction window.", "",
-           "| model | frames per trial | load 1 min | epoch s | torch threads | peak MiB | online context | "
-           "online p50 ms | online p99 ms |", "|---|---|---|---|---|---|---|---|---|"]
+           f"Data: `midas simulate dataset --platform {d['platform']} --trials {d['trials']} --seed {d['seed']}` "
+           f"(trials {cut}; {d['video_frames_total']} video frames, {d['dataset_mb']:g} MB) took "
+           f"{d['simulate_s']:g} s, `midas align` of every session {d['align_s']:g} s (both `--jobs {d['jobs']}`, "
+           f"load {prep_load}). Each case then reads the first N aligned sessions through "
+           f"`models.data.build_dataset` ({' + '.join(t['dataset_config']['modalities'])}; "
+           f"{', '.join(t['dataset_config']['features'])}; {', '.join(f'{k} {v}' for k, v in r0['modality_dims'].items())} "
+           f"features; up to {max(r['classes'] for r in t['runs'])} gesture classes; {r0['rate_hz']:g} Hz as in "
+           "the paper), normalises, and trains whole trials with the real loop (`models.train.fit`, Adam, batch "
+           f"4): {t['timed_epochs']} epoch{'s' if t['timed_epochs'] > 1 else ''} timed after a warm-up, each case "
+           "in its own process (peak = its VmHWM, dataset included). "
+           "Online: one forward pass per new frame over a trailing context, batch 1, one torch thread; the "
+           "paper's budget is a 400–900 ms human reaction window.", "",
+           "| model | trials | frames (mean per trial) | load 1 min | build dataset s | epoch s | torch threads | "
+           "peak MiB | online context | online p50 ms | online p99 ms |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in t["runs"]:
         o = r["online"]
         load = "–".join(f"{x:g}" for x in r["load_average_before_after"])
-        out.append(f"| {r['model']} | {r['frames_per_trial']} | {load} | {r['epoch_s']:g} | {r['torch_threads']} | "
-                   f"{r['peak_rss_mib']:g} | {o['context_frames']} | {o['p50_ms']:g} | {o['p99_ms']:g} |")
+        out.append(f"| {r['model']} | {r['trials']} | {r['frames_total']} ({r['frames_per_trial_mean']:g}) | {load} | "
+                   f"{r['dataset_build_s']:g} | {r['epoch_s']:g} | {r['torch_threads']} | {r['peak_rss_mib']:g} | "
+                   f"{o['context_frames']} | {o['p50_ms']:g} | {o['p99_ms']:g} |")
     out.append("")
-    by_model: dict[str, list[dict]] = {}
-    for r in t["runs"]:
-        by_model.setdefault(r["model"], []).append(r)
-    for model, rs in by_model.items():
-        if len(rs) >= 2:
-            a, b = rs[0], rs[-1]
-            slope = (b["epoch_s"] - a["epoch_s"]) / (b["frames_per_trial"] - a["frames_per_trial"]) * 1000
-            out.append(f"* {model}: {slope:.2f} s per epoch per 1000 more frames per trial.")
+    for model, sl in t["slopes"].items():
+        out.append(f"* {model}: {sl['epoch_s_per_1000_frames']:.3f} s per epoch and "
+                   f"{sl['peak_mib_per_1000_frames']:.1f} MiB peak per 1000 training frames (least squares over the sizes).")
     return out + ["* Training uses torch's default thread count (one per core). On a machine already loaded beyond "
                   "its cores, OpenMP's waiting threads made the same epochs an order of magnitude slower in a "
                   "trial run; compare at similar load, and keep online inference at one thread.", ""]
@@ -248,17 +222,14 @@ def train_section(t: dict) -> list[str]:
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
-    quick = [name for name in ("record", "align", "train") if (load(name) or {}).get("quick")]
+    quick = [name for name in ("record", "align", "train", "soak", "soak-short") if (load(name) or {}).get("quick")]
     if quick:
         lines += [f"**Smoke run** (`--quick`) for {', '.join(quick)}: short sizes, not for comparison.", ""]
     for name, section in (("record", record_section), ("align", align_section), ("pedal_gt", pedal_section),
                           ("train", train_section)):
         result = load(name)
         lines += section(result) if result else [f"## {name}: no results yet (run its script)", ""]
-    lines += ["## Not measured yet", "",
-              "* Soak (issue 8 item 2: 30 min at full rate, loss, memory, latency over time) has no script yet.",
-              "* Training runs on random features shaped like the simulated dataset, not on `midas simulate "
-              "dataset` output (generating and aligning 15 trials would take most of the 30-minute budget).", ""]
+    lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
 
