@@ -139,9 +139,10 @@ def repeated(side: str, args: list[str], repeats: int) -> dict:
 
 def compare(session: Path, baseline_csv: Path) -> dict:
     """Every raw <stream>.<column> of COMPARED streams: same mask, equal values (rtol 1e-9)."""
-    with np.load(session / "derived" / "aligned.npz") as data:
-        columns, values = data["columns"].tolist(), data["values"]
-    mask = np.isfinite(values)
+    from midas_cli.session.derived import read_aligned
+
+    table = read_aligned(session)
+    columns, values, mask = table.columns, table.values, table.mask
     base = pd.read_csv(baseline_csv)
     compared, mismatched, mask_diff = 0, [], 0
     for i, name in enumerate(columns):
@@ -167,7 +168,7 @@ STAGES = {"read_streams": "open the stream copies (memory-map)", "reference_fram
           "add_raw_streams": "associate raw streams with frames (reads the chosen rows)",
           "add_emht_features": "EmHT hand points/velocity", "add_handkp_features": "HandKP gap filling",
           "add_robot_orientation": "robot orientation", "add_clutch": "clutch", "build_table": "build table",
-          "write_aligned": "write aligned.npz + aligned.json"}
+          "write_aligned": "write aligned.npz, .values.npy, .json"}
 
 
 def profile_align(session: Path) -> dict:
@@ -210,7 +211,7 @@ def run_size(minutes: float, profile: bool = False, repeats: int = 3) -> dict:
         with_csv = timed("midas", [str(session), "csv"])
         from_csv = without_copies(session, lambda: timed("midas", [str(session), "npz"]))
         midas = repeated("midas", [str(session), "npz"], repeats)
-        output_mb = (session / "derived" / "aligned.npz").stat().st_size / 1e6
+        output_mb = sum(p.stat().st_size for p in (session / "derived").glob("aligned.*")) / 1e6
         t0 = time.monotonic()
         subprocess.run([sys.executable, "-m", "midas_cli", "align", str(session), "--json"], check=True,
                        capture_output=True)
@@ -218,7 +219,7 @@ def run_size(minutes: float, profile: bool = False, repeats: int = 3) -> dict:
         check = compare(session, baseline_csv)
         where = profile_align(session) if profile else None
     return {"minutes": minutes, "stream_csv_mb": round(size_mb, 1), "stream_copies_mb": round(copies_mb, 1),
-            "aligned_npz_mb": round(output_mb, 1), "generate_s": round(generate_s, 1),
+            "aligned_output_mb": round(output_mb, 1), "generate_s": round(generate_s, 1),
             "binary_copies_at_finalise_s": copies_s,
             "baseline_merge_asof": base, "midas_align": midas, "midas_align_csv_too": with_csv,
             "midas_align_from_csv": from_csv, "midas_cli_process_s": round(cli_s, 2),

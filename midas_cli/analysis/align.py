@@ -60,26 +60,60 @@ class AlignOptions:
 
 
 class ColumnSet:
-    """Aligned columns being built: name -> (N,) float64 values (NaN = masked) and metadata."""
+    """Aligned columns being built: name -> (N,) float64 values (NaN = masked) and metadata.
 
-    def __init__(self, n_frames: int) -> None:
+    The columns live side by side in one column-major block, so the finished table is a view of it
+    (no copy of the whole table) and raw streams are gathered straight into their columns."""
+
+    def __init__(self, n_frames: int, capacity: int = 128) -> None:
         self.n = n_frames
-        self.values: dict[str, np.ndarray] = {}
+        self._block = np.empty((n_frames, capacity), order="F")
+        self._index: dict[str, int] = {}
         self.meta: dict[str, dict[str, Any]] = {}
+
+    @property
+    def names(self) -> list[str]:
+        return list(self._index)
+
+    def claim(self, names: list[str]) -> np.ndarray:
+        """(len(names), N) storage for new columns ``names`` (row j = column j), to be filled in place;
+        their metadata is set with ``describe``."""
+        used = len(self._index)
+        if used + len(names) > self._block.shape[1]:
+            grown = np.empty((self.n, max(2 * self._block.shape[1], used + len(names))), order="F")
+            grown[:, :used] = self._block[:, :used]
+            self._block = grown
+        for k, name in enumerate(names):
+            if name in self._index:
+                raise SessionError(f"aligned column {name!r} computed twice")
+            self._index[name] = used + k
+        return self._block[:, used : used + len(names)].T
+
+    def describe(self, name: str, unit: str = "", source: str = "", **meta: Any) -> None:
+        self.meta[name] = {"unit": unit, "source": source, **{k: v for k, v in meta.items() if v}}
 
     def add(self, name: str, values: np.ndarray, unit: str = "", source: str = "", **meta: Any) -> None:
         values = np.asarray(values, dtype=float)
         if values.shape != (self.n,):
             raise SessionError(f"aligned column {name!r} has shape {values.shape}, expected ({self.n},)")
-        self.values[name] = values
-        self.meta[name] = {"unit": unit, "source": source, **{k: v for k, v in meta.items() if v}}
+        if name in self._index:
+            self._block[:, self._index[name]] = values
+        else:
+            self.claim([name])[0] = values
+        self.describe(name, unit, source, **meta)
 
     def get(self, name: str) -> np.ndarray | None:
-        return self.values.get(name)
+        index = self._index.get(name)
+        return None if index is None else self._block[:, index]
 
     def stack(self, names: list[str]) -> np.ndarray:
         """(N, len(names)) of existing columns."""
-        return np.column_stack([self.values[n] for n in names])
+        return np.column_stack([self.get(n) for n in names])
+
+    def table(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), C) column-major: a view of the block when every frame is kept."""
+        values = self._block[:, : len(self._index)]
+        return values if len(rows) == self.n else np.asfortranarray(values[rows])
 
 
 def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns: int
@@ -106,23 +140,25 @@ def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns
 
 
 def associate_stream(table: np.ndarray, spec_columns: list[str], frame_ns: np.ndarray, method: str,
-                     stale_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Values (N, C) float64 of ``spec_columns`` of a stream (structured array, see
-    ``Session.read_columns``) at each frame (NaN where masked) and delta_ms (N,). Only the chosen rows
-    are read, so a memory-mapped stream is never copied whole."""
-    sample_ns = np.asarray(table["t_host_ns"], dtype=np.int64)
+                     stale_ns: int, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Values of ``spec_columns`` of a stream (structured array, see ``Session.read_columns``) at each
+    frame, NaN where masked, as ``out`` (C, N) (row j = column j; allocated if None), and delta_ms (N,).
+    Only the chosen rows are read, so a memory-mapped stream is never copied whole."""
+    sample_ns = np.ascontiguousarray(table["t_host_ns"], dtype=np.int64)  # one strided pass over the rows
     order = None
     if len(sample_ns) > 1 and (np.diff(sample_ns) < 0).any():
         order = np.argsort(sample_ns, kind="stable")
         sample_ns = sample_ns[order]
     idx, valid, delta = associate(sample_ns, frame_ns, method, stale_ns)
-    values = np.full((len(spec_columns), len(frame_ns)), np.nan)  # one contiguous row per column
+    values = np.empty((len(spec_columns), len(frame_ns))) if out is None else out
     if len(sample_ns):
         chosen = table.view(np.ndarray)[idx if order is None else order[idx]]  # whole rows, one pass
         for j, name in enumerate(spec_columns):
             values[j] = chosen[name]
         values[:, ~valid] = np.nan
-    return values.T, delta
+    else:
+        values[:] = np.nan
+    return values, delta
 
 
 def value_columns(session: Session, stream: str) -> list[Any]:
@@ -157,20 +193,22 @@ def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: Colu
     """Associate every stream in ``data`` with the frames; a stream in ``shifts_ns`` is associated at
     frame time + shift (compensating a known latency)."""
     cols_of = {stream: value_columns(session, stream) for stream in data}
+    blocks = {stream: columns.claim([f"{stream}.{c.name}" for c in cols] + [f"{stream}_delta_ms"])
+              for stream, cols in cols_of.items()}
 
-    def one(stream: str) -> tuple[np.ndarray, np.ndarray]:
-        return associate_stream(data[stream], [c.name for c in cols_of[stream]], frame_ns + shifts_ns.get(stream, 0),
-                                options.method, stale_ns_for(session, stream, options))
+    def one(stream: str) -> None:
+        names = [c.name for c in cols_of[stream]]
+        _, delta = associate_stream(data[stream], names, frame_ns + shifts_ns.get(stream, 0), options.method,
+                                    stale_ns_for(session, stream, options), out=blocks[stream][:-1])
+        blocks[stream][-1] = delta
 
     # numpy's searchsorted and gathers release the GIL: streams are associated on every core
     with ThreadPoolExecutor(max_workers=max(1, min(len(data), os.cpu_count() or 1))) as pool:
-        results = dict(zip(data, pool.map(one, data)))
+        list(pool.map(one, data))
     for stream, cols in cols_of.items():
-        values, delta = results[stream]
-        for j, col in enumerate(cols):
-            columns.add(f"{stream}.{col.name}", values[:, j], col.unit, stream, frame=col.frame,
-                        description=col.description)
-        columns.add(f"{stream}_delta_ms", delta, "ms", stream, description="chosen sample time - frame time")
+        for col in cols:
+            columns.describe(f"{stream}.{col.name}", col.unit, stream, frame=col.frame, description=col.description)
+        columns.describe(f"{stream}_delta_ms", "ms", stream, description="chosen sample time - frame time")
 
 
 def emht_sensor_arrays(columns: ColumnSet, prefix: str = "emht") -> tuple[np.ndarray, np.ndarray] | None:
@@ -283,11 +321,8 @@ def downsample_rows(t_ns: np.ndarray, rate_hz: float | None) -> np.ndarray:
 
 def build_table(frames: np.ndarray, frame_ns: np.ndarray, columns: ColumnSet, rows: np.ndarray,
                 meta: dict[str, Any]) -> AlignedTable:
-    names = list(columns.values)
-    values = np.empty((len(rows), len(names)), order="F")  # column-major: columns are read whole
-    every_frame = len(rows) == columns.n
-    for k, name in enumerate(names):
-        values[:, k] = columns.values[name] if every_frame else columns.values[name][rows]
+    names = columns.names
+    values = columns.table(rows)
     meta = {**meta, "frames": int(len(rows)), "columns": [{"name": n, **columns.meta[n]} for n in names]}
     return AlignedTable(frames[rows], frame_ns[rows], names, values, np.isfinite(values), meta)
 

@@ -1,4 +1,4 @@
-"""`midas align SESSION...`: every stream onto the video frame clock -> derived/aligned.{npz,json} (+ csv)."""
+"""`midas align SESSION...`: every stream onto the video frame clock -> derived/aligned.* (npz, values.npy, json; + csv)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def align(
 ) -> None:
     """Align every stream of each session onto its video frame clock (causal or nearest sample,
     per-stream delta, HandKP gaps filled, masks instead of sentinels, calibrations in calib/ applied,
-    velocity / grasper distance / clutch derived) and write derived/aligned.npz and .json (and .csv
+    velocity / grasper distance / clutch derived) and write derived/aligned.npz, .values.npy and .json (and .csv
     with --csv). Streams are read from their binary copies (streams/*.npy) when they match the CSVs.
 
     Example: midas align sessions/*/ --rate 10 --jobs 2

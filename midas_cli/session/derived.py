@@ -1,11 +1,12 @@
-"""Derived files of a session: ``derived/aligned.{npz,json}`` (+ ``.csv`` on request), ``calib/*`` and ``derived/eval/``.
+"""Derived files of a session: ``derived/aligned.{npz,values.npy,json}`` (+ ``.csv`` on request), ``calib/*`` and ``derived/eval/``.
 
 Only this module (with the rest of ``midas_cli/session/``) knows where these files live.
 
 Aligned table (written by ``midas align``):
   * ``derived/aligned.npz``: ``frame`` (N,) int64 video frame index (= video ``seq``), ``t_host_ns``
-    (N,) int64 frame time on the host clock, ``values`` (N, C) float64 (NaN where masked: the mask,
-    True = valid sample, is ``isfinite(values)``), ``columns`` (C,) str. Uncompressed.
+    (N,) int64 frame time on the host clock, ``columns`` (C,) str.
+  * ``derived/aligned.values.npy``: (N, C) float64, column-major, NaN where masked (the mask, True =
+    valid sample, is ``isfinite(values)``).
   * ``derived/aligned.csv`` (only with ``midas align --csv``): ``frame,t_host_ns,<columns>``; a masked
     value is an empty field.
   * ``derived/aligned.json``: column metadata (unit, frame, source, description), method, rate, source
@@ -59,16 +60,17 @@ class AlignedTable:
 
 
 def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = False) -> dict[str, Path]:
-    """Write ``derived/aligned.{npz,json}`` (and ``aligned.csv`` when ``csv``) atomically, each via a
-    temporary file and rename. The npz is uncompressed: it is written and memory-read at disk speed,
-    where compression cost more than the alignment itself (benchmarks/). A CSV from an earlier run is
-    removed when ``csv`` is off, so no stale table is left beside the new one."""
+    """Write ``derived/aligned.npz``, ``aligned.values.npy``, ``aligned.json`` (and ``aligned.csv`` when
+    ``csv``), each via a temporary file and rename. The values go to their own column-major ``.npy`` in
+    one write (no zip CRC, no copy), which a reader can memory-map and read column by column. A CSV from
+    an earlier run is removed when ``csv`` is off, so no stale table is left beside the new one."""
     base = Path(session_path) / ALIGNED_STEM
     base.parent.mkdir(exist_ok=True)
-    paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "json", *(("csv",) if csv else ()))}
+    paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "values.npy", "json", *(("csv",) if csv else ()))}
+    with open(_tmp(paths["values.npy"]), "wb") as fh:
+        np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
     with open(_tmp(paths["npz"]), "wb") as fh:
-        np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, values=table.values,
-                 columns=np.asarray(table.columns, dtype=str))
+        np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, columns=np.asarray(table.columns, dtype=str))
     if csv:
         write_aligned_csv(_tmp(paths["csv"]), table)
     _tmp(paths["json"]).write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
@@ -90,20 +92,23 @@ def write_aligned_csv(path: Path, table: AlignedTable) -> None:
 
 
 def read_aligned(session_path: Path | str) -> AlignedTable:
-    """Read ``derived/aligned.npz`` and its JSON sidecar; SessionError if ``midas align`` has not run."""
+    """Read ``derived/aligned.*``; SessionError if ``midas align`` has not run. The values are
+    memory-mapped read-only (tables written before they had their own file come from the npz)."""
     base = Path(session_path) / ALIGNED_STEM
-    npz_path, json_path = base.with_suffix(".npz"), base.with_suffix(".json")
+    npz_path, values_path, json_path = (base.with_suffix(s) for s in (".npz", ".values.npy", ".json"))
     if not npz_path.is_file():
         raise SessionError(f"{session_path} has no {npz_path.name}: run `midas align {session_path}` first")
     try:
         with np.load(npz_path, allow_pickle=False) as data:
-            values = data["values"]
-            mask = data["mask"] if "mask" in data.files else np.isfinite(values)  # older files stored it
-            table = AlignedTable(data["frame"], data["t_host_ns"], data["columns"].tolist(), values, mask)
-        table.meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
+            frame, t_host_ns, columns = data["frame"], data["t_host_ns"], data["columns"].tolist()
+            values = data["values"] if "values" in data.files else np.load(values_path, mmap_mode="r")
+        meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
     except (OSError, KeyError, ValueError) as exc:
         raise SessionError(f"cannot read {npz_path}: {exc}") from exc
-    return table
+    if values.shape != (len(frame), len(columns)):
+        raise SessionError(f"{values_path} holds {values.shape} values for {len(frame)} frames x {len(columns)} "
+                           f"columns: re-run `midas align {session_path}`")
+    return AlignedTable(frame, t_host_ns, columns, values, np.isfinite(values), meta)
 
 
 def calib_path(session_path: Path | str, name: str) -> Path:
