@@ -12,16 +12,29 @@ are counted in ``counters.discarded_bytes``.
 ``t_host_ns`` is the host time of the read that completed the cycle's last record, less the line time of
 the bytes that followed it in that read (see :class:`~midas_cli.devices.trakstar.protocol.RecordDecoder`),
 and at least 1 ns after the previous row's (the session format wants strictly increasing host times).
+
 ``seq`` is the driver's cycle counter. On every (re)open it starts from the number of cycles the
 session has lasted (session start to now at the nominal rate), never below where the previous
 connection of this device in this process stopped, so an outage shows as a sequence gap.
 ``PORT`` is anything pyserial's ``serial_for_url`` opens: ``/dev/ttyUSB0``, a pty path, a symlink.
+
+The protocol has no checksum, so a record is accepted once the next record's first byte proves its end;
+the last record of a burst (the tracker sends a cycle's group back to back, then nothing until the
+next cycle) is accepted instead when the line has stayed idle after it for ``idle`` ms (default: 16
+byte times at the baud rate, at least 0.5 ms; 0 = always wait for the next record). 16 byte times: a
+16550-class UART hands the host a running transmission in FIFO-trigger chunks of up to 14 bytes, so
+an extra byte sent right after a record reaches the host within that window; 0.5 ms covers the tty
+layer's and the scheduler's delays. A USB-serial adapter holds bytes back up to its latency timer
+(FTDI: 16 ms unless set lower): set its latency timer to 1 ms, or ``idle`` above it. ``read`` never
+blocks longer than 5 ms; the idle window is waited on the port's file descriptor (ports without one,
+e.g. pyserial's ``socket://``, always wait for the next record).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import select
 import time
 from typing import Any
 
@@ -36,10 +49,12 @@ from midas_cli.session.schema import StreamSpec
 
 log = logging.getLogger(__name__)
 
-PARAMS = {"baud": int, "sensors": int, "rate": float, "range": int, "reset": str, "timeout": float}
-DEFAULTS = {"baud": 115200, "sensors": 4, "rate": 80.0, "range": 36, "reset": "none", "timeout": 1.0}
+PARAMS = {"baud": int, "sensors": int, "rate": float, "range": int, "reset": str, "timeout": float, "idle": float}
+DEFAULTS = {"baud": 115200, "sensors": 4, "rate": 80.0, "range": 36, "reset": "none", "timeout": 1.0, "idle": None}
 BAUDS = (9600, 19200, 38400, 57600, 115200)
 READ_TIMEOUT_S = 0.005
+IDLE_BYTES = 16  # line silence (byte times) that ends a burst: > a 16550 FIFO trigger level (14 bytes)
+IDLE_FLOOR_S = 0.0005  # tty-layer and scheduling delay of a byte that was sent back to back
 REPLY_TIMEOUT_S = 1.0
 AUTOCONFIG_SETTLE_S = 0.6  # the Flock needs this long after an FBB auto-configuration
 RTS_RESET_S = (1.0, 2.0)  # hold RTS high, then wait for the tracker to wake up
@@ -81,6 +96,8 @@ class FobEmHT(Device):
         self.warning = self._capacity_warning()
         self._port: serial.Serial | None = None
         self._byte_ns = int(fob.BITS_PER_BYTE_ON_WIRE * 1e9 / self.params["baud"])
+        self.idle_s = self._idle_window_s()
+        self._fd: int | None = None
         self._decoder = fob.RecordDecoder(self.params["sensors"], self.params["range"], self._byte_ns)
         self._groups = fob.GroupAssembler(self.params["sensors"])
         self._seq_base = 0
@@ -103,6 +120,14 @@ class FobEmHT(Device):
             raise ConfigError(f"{raw}: reset must be none or rts, got {p['reset']!r}")
         if p["timeout"] <= 0:
             raise ConfigError(f"{raw}: timeout must be positive, got {p['timeout']}")
+        if p["idle"] is not None and not 0 <= p["idle"] < 1000 * p["timeout"]:
+            raise ConfigError(f"{raw}: idle must be in [0, timeout) ms (0 = wait for the next record), got {p['idle']}")
+
+    def _idle_window_s(self) -> float:
+        """Line silence (s) after which a complete record at the end of a burst is accepted; 0 = never."""
+        if self.params["idle"] is not None:
+            return self.params["idle"] / 1000.0
+        return max(IDLE_FLOOR_S, IDLE_BYTES * self._byte_ns / 1e9)
 
     def _capacity_warning(self) -> str:
         """A warning when rate x sensors x 13 bytes x 10 bits exceeds the baud rate, else ''."""
@@ -124,7 +149,8 @@ class FobEmHT(Device):
     def settings(self) -> dict[str, Any]:
         extra = {"warning": self.warning} if self.warning else {}
         return {"protocol": "Flock of Birds RS-232, group mode, POSITION/ANGLES, STREAM", "port": self.port_path,
-                **self.params, "line_capacity_hz_per_sensor": round(self.capacity_hz, 1), **extra}
+                **self.params, "idle": round(self.idle_s * 1000, 3),
+                "line_capacity_hz_per_sensor": round(self.capacity_hz, 1), **extra}
 
     # -- opening ------------------------------------------------------------------------------------
     def open(self) -> dict[str, Any]:
@@ -134,6 +160,7 @@ class FobEmHT(Device):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"{self.name}: cannot open serial port {self.port_path}: {exc} "
                               f"(is the trakSTAR connected and switched on, and is the port right?)") from exc
+        self._fd = self._port_fd()
         try:
             info = self._configure()
         except (serial.SerialException, OSError) as exc:
@@ -198,6 +225,13 @@ class FobEmHT(Device):
         self._send(fob.STREAM)
         self._last_data = time.monotonic()
 
+    def _port_fd(self) -> int | None:
+        """The port's file descriptor to wait on for the idle window, None where pyserial has none."""
+        try:
+            return self._port.fileno()
+        except (AttributeError, OSError, ValueError, serial.SerialException):
+            return None
+
     def _send(self, command: bytes) -> None:
         self._port.write(command)
         self._port.flush()
@@ -217,23 +251,42 @@ class FobEmHT(Device):
 
     # -- streaming ----------------------------------------------------------------------------------
     def read(self) -> dict[str, list[tuple]]:
+        """New rows (at most 5 ms blocking): the cycles completed by the bytes that arrived, or by the line
+        staying idle after a burst (see the module docstring)."""
         if self._port is None:
             raise DeviceError(f"{self.name}: read before open")
         try:
-            chunk = self._port.read(max(1, self._port.in_waiting))
+            chunk = self._read_chunk()
         except (serial.SerialException, OSError) as exc:
             raise DeviceError(f"{self.name}: serial port {self.port_path} failed: {exc}") from exc
         now = time.monotonic()
-        if not chunk:
-            if now - self._last_data > self.params["timeout"]:
-                raise DeviceError(f"{self.name}: no data from {self.port_path} for {self.params['timeout']:g} s")
+        if chunk:
+            self._last_data = now
+            records = self._decoder.feed(chunk, self.clock.now_ns())
+        elif self._idle_wait_s(now) == 0.0:
+            records = self._decoder.accept_pending()
+        elif now - self._last_data > self.params["timeout"]:
+            raise DeviceError(f"{self.name}: no data from {self.port_path} for {self.params['timeout']:g} s")
+        else:
             return {}
-        t_host_ns = self.clock.now_ns()
-        self._last_data = now
-        groups = self._groups.add(self._decoder.feed(chunk, t_host_ns))
+        groups = self._groups.add(records)
         self.counters.corrupt = self._groups.missing
         self.counters.discarded_bytes = self._decoder.counts.discarded_bytes
         return {self.name: [self._row(group) for group in groups]} if groups else {}
+
+    def _read_chunk(self) -> bytes:
+        """What arrived; b'' when nothing came within 5 ms, or (a record pending) within the idle window."""
+        wait_s = self._idle_wait_s(time.monotonic())
+        if wait_s is not None and not select.select([self._fd], [], [], min(wait_s, READ_TIMEOUT_S))[0]:
+            return b""
+        return self._port.read(max(1, self._port.in_waiting))
+
+    def _idle_wait_s(self, now: float) -> float | None:
+        """Seconds of the idle window still to wait for the pending record (0.0: the line has been idle long
+        enough, accept it); None when no record is pending or idle acceptance is off."""
+        if not (self._decoder.pending and self.idle_s > 0 and self._fd is not None):
+            return None
+        return max(0.0, self._last_data + self.idle_s - now)
 
     def _row(self, group: fob.Group) -> tuple:
         seq = self._seq_base + group.index
@@ -253,3 +306,4 @@ class FobEmHT(Device):
             pass  # the port is already gone (unplugged); nothing to stop
         self._port.close()
         self._port = None
+        self._fd = None

@@ -10,10 +10,13 @@ positions are ``word * range / 32768`` inches (range 36 or 72), angles ``word * 
 in the order x, y, z, azimuth, elevation, roll.
 
 Framing is all the protocol offers (there is no checksum): :class:`RecordDecoder` accepts a record
-only when its phasing bits are exactly where they belong, it is exactly 13 bytes long (the byte after
-it must start the next record, so a record is accepted when that byte arrives: the last record of a
-cycle waits for the next cycle), its address is in 1..sensors, and its elevation lies within ±90°. Noise that leaves the phasing bits intact and the
-values plausible cannot be detected by any decoder of this protocol.
+only when its phasing bits are exactly where they belong, it is exactly 13 bytes long, its address is
+in 1..sensors and its elevation lies within ±90°. "Exactly 13 bytes" is proven by what follows it:
+either the next byte starts a record (the lookahead), or, for the last record of a burst, the line
+stays idle after it (:meth:`RecordDecoder.accept_pending`, called by the driver once no byte came for
+16 byte times: an extra byte inside or after a record arrives back to back with it at wire speed, so
+silence confirms the boundary without waiting a whole cycle for the next record). Noise that leaves
+the phasing bits intact and the values plausible cannot be detected by any decoder of this protocol.
 
 Examine/change value: ``'O' param`` answers with the parameter's bytes (words LS byte first, 8 data
 bits, no phasing); ``'P' param data`` changes it. Parameters used here: 1 software revision,
@@ -171,6 +174,7 @@ class DecoderCounts:
     """What the decoder saw: accepted records, rejected candidates and every byte it threw away."""
 
     records: int = 0
+    idle_accepted: int = 0  # of ``records``: accepted on line silence instead of the next record's first byte
     rejected: int = 0
     discarded_bytes: int = 0
     reasons: dict[str, int] = field(default_factory=dict)
@@ -182,6 +186,10 @@ class RecordDecoder:
     After a corrupted or lost byte it throws bytes away up to the next byte with the phasing bit
     (counting them) and never emits a record that failed framing. Each record says how many bytes
     vanished since the previous one (``Record.discarded_before``), to estimate lost records.
+
+    :meth:`feed` accepts a record when the first byte of the next one has arrived; a complete record at
+    the end of what was fed (:attr:`pending`) waits for that byte, or for :meth:`accept_pending` once the
+    caller has seen the line stay idle after it.
 
     Record times: the host time of the read that completed the record, minus the line time
     (``byte_ns`` per byte) of the bytes that followed it in the same read, since they arrived after it;
@@ -214,19 +222,42 @@ class RecordDecoder:
             if record is not None:
                 records.append(record)
 
+    @property
+    def pending(self) -> bool:
+        """True when the buffer holds exactly one complete candidate record (13 bytes from a phasing byte)
+        that only waits for its lookahead byte."""
+        return len(self._buffer) == RECORD_BYTES and bool(self._buffer[0] & 0x80)
+
+    def accept_pending(self) -> list[Record]:
+        """Frame the :attr:`pending` record without its lookahead byte; returns it, or [] if none is pending
+        or it fails framing (bytes discarded and counted as in :meth:`feed`).
+
+        Call only when no byte has arrived since the one that completed it for longer than the host can
+        hold back a byte of a running transmission (see the driver's idle window): an inserted or extra
+        byte would then already be here, and is still rejected by :meth:`feed` when it is."""
+        if not self.pending:
+            return []
+        record = self._take_record(self._complete_ns, lookahead=False)
+        self._skip_to_phasing_byte()
+        if record is None:
+            return []
+        self.counts.idle_accepted += 1
+        return [record]
+
     def _skip_to_phasing_byte(self) -> None:
         start = next((i for i, b in enumerate(self._buffer) if b & 0x80), len(self._buffer))
         if start:
             self._discard(start, "no phasing bit")
 
-    def _take_record(self, t_host_ns: int) -> Record | None:
-        """Frame the 13 bytes at the buffer start (which has the phasing bit); None if they fail."""
+    def _take_record(self, t_host_ns: int, lookahead: bool = True) -> Record | None:
+        """Frame the 13 bytes at the buffer start (which has the phasing bit), with the byte after them
+        when ``lookahead``; None if they fail."""
         candidate = bytes(self._buffer[:RECORD_BYTES])
         early = next((i for i in range(1, RECORD_BYTES) if candidate[i] & 0x80), None)
         if early is not None:
             self._discard(early, "record too short")
             return None
-        if not self._buffer[RECORD_BYTES] & 0x80:
+        if lookahead and not self._buffer[RECORD_BYTES] & 0x80:
             self._discard(1, "record too long")
             return None
         address = candidate[DATA_BYTES]
