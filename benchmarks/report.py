@@ -50,7 +50,9 @@ def record_section(r: dict) -> list[str]:
     out = ["## 1. Recording latency and loss (`bench_record.py`)", "",
            "`python -m midas_cli record` with every device at full rate through the real serial code path:",
            "`" + "`, `".join(r["devices"]) + "` (EmHT and FPS are `midas emulate trakstar` / `midas emulate fps` on",
-           "pseudo-terminals; FPS at 850 Hz, the most 9 channels carry at 500000 baud). Latency is the",
+           "pseudo-terminals; EmHT at 220 Hz, the most 4 sensors' 13-byte POSITION/ANGLES records carry at the",
+           "trakSTAR's 115200 baud (the issue's 4 × 240 Hz needs 124.8 kbit/s: only the USB `atc3dg://` backend",
+           "reaches it); FPS at 850 Hz, the most 9 channels carry at 500000 baud). Latency is the",
            "manifest's `latency_ms`: host read (`t_host_ns`) -> written to the OS (write + flush), 50 µs bins.",
            f"Target: p99 <= {TARGET_P99_MS:g} ms per non-video stream. Paper means (Appendix A.1): "
            + ", ".join(f"{k} {v} ms" for k, v in r["paper_mean_ms"].items()) + ".", ""]
@@ -78,44 +80,49 @@ def record_profile(r: dict) -> list[str]:
     p = r["stage_profile"]
     window, transit = p["worker_batch_window"], p["queue_transit_ms"]["idle_parent"]
     out = ["### Where the recording latency goes", "",
-           "Three measurements split the path read -> disk (load " +
+           "Each device worker process reads, formats and appends its rows to the stream file itself, then sends "
+           "the recorder only bookkeeping (sequence numbers, times, bytes); the recorder fsyncs the files once a "
+           "second through its own descriptors. Three measurements split the path (load " +
            "–".join(f"{x:g}" for x in p["load_average_before_after"]) + "):", "",
            "1. **Worker loop** — each device alone, in one process, through the worker's own loop "
-           "(`record/worker.py` `_pump`) with a queue that only stamps the hand-off time: what batching and "
-           "the device's blocking `read()` add before anything crosses a process.",
-           f"2. **mp.Queue transit** — a spawned process puts FPS-sized `DataBatch`es ({transit['rows_per_batch']} rows) "
-           f"at {transit['rate_hz']:g} Hz; parent `get()` time − put time.",
-           "3. **In the recorder** — a `Recorder` subclass stamps each batch when its writer thread receives it "
-           "and after `SessionWriter.append` (all devices, display-like `snapshot()` every 0.25 s).", "",
-           "| stream | 1. worker loop p50 / p99 ms | 3. read -> writer thread p50 / p99 ms | 3. write p50 / p99 ms "
-           "| rows per batch | rows' spread in a batch p99 ms |", "|---|---|---|---|---|---|"]
+           "(`record/worker.py` `_pump`) writing to scratch files: what the device's `read()` adds (for the FOB "
+           "decoder: the idle window that confirms a record's end) before the write.",
+           "2. **In the recorder** — every device at once, with a display-like `snapshot()` every 0.25 s: read -> "
+           "the worker's write starts, the write itself, read -> committed (the latency the manifest reports), "
+           "and committed -> the recorder's bookkeeping thread (not part of the latency any more).",
+           f"3. **mp.Queue transit** — a spawned process puts `DataBatch`es ({transit['rows_per_batch']} rows) at "
+           f"{transit['rate_hz']:g} Hz; parent `get()` time − put time: the hop the data no longer takes.", "",
+           "| stream | 1. worker loop p50 / p99 ms | 2. read -> write starts p50 / p99 ms | 2. write p50 / p99 ms "
+           "| 2. read -> committed p50 / p99 ms | 2. committed -> recorder p50 / p99 ms | rows per batch |",
+           "|---|---|---|---|---|---|---|"]
     for name, s in p["streams"].items():
         w = window.get(name) or {}
+        rc, cr = s.get("read_to_committed_ms") or {}, s.get("committed_to_recorder_ms") or {}
         out.append(f"| {name} | {_ms(w, 'p50')} / {_ms(w, 'p99')} | {s['read_to_writer_thread_ms']['p50']:g} / "
                    f"{s['read_to_writer_thread_ms']['p99']:g} | {s['write_ms']['p50']:g} / {s['write_ms']['p99']:g} | "
-                   f"{s['rows_per_batch_mean']:g} | {s['rows_spread_within_batch_ms']['p99']:g} |")
+                   f"{_ms(rc, 'p50')} / {_ms(rc, 'p99')} | {_ms(cr, 'p50')} / {_ms(cr, 'p99')} | "
+                   f"{s['rows_per_batch_mean']:g} |")
     out += ["", f"mp.Queue transit alone: p50 {transit['p50']:g} ms, p95 {transit['p95']:g} ms, p99 {transit['p99']:g} ms, "
             f"max {transit['max']:g} ms (n = {transit['n']}).", "", *RECORD_ANALYSIS, *record_growth(r), ""]
     return out
 
 
 RECORD_ANALYSIS = [
-    "**Reading.** Writing is not the problem (`write` p99 under 1 ms). The worker loop alone (column 1) "
-    "accounts for most of the latency seen by the writer thread (column 3): the time is spent *before* "
-    "the queue, in how long a row waits inside its worker.",
+    "**Reading.** The write is a few tens of microseconds; what is left of the latency is the device's own "
+    "read path. History of this figure:",
     "",
-    "* Until commit 5ec329c the worker flushed only when a 5 ms batch window had passed, checked after "
-    "each blocking `read()` (serial: up to 5 ms; simulated: up to 10 ms), so a row could wait for both: "
-    "p99 7–15 ms. Now `_pump` hands rows over as soon as a `read()` returns them; a quick check on the "
-    "simulated rig moved p99 from ~12 ms to ~5 ms (load ~2 from a concurrent test run).",
-    "* The multiprocessing queue adds a fraction of a millisecond typically (pickle + pipe + feeder "
-    "thread), with a tail of a few ms when the machine is loaded (the writer thread shares the GIL with "
-    "the display thread's `snapshot()` and with unpickling).",
-    "",
-    "**Next, if p99 stays above 5 ms under load:** bound each serial `read()`'s blocking time (select on "
-    "the port's fd) and replace the pickled `DataBatch` with a `multiprocessing.shared_memory` ring per "
-    "device (no pickling, no feeder thread); let the display read a snapshot the writer publishes instead "
-    "of taking the stats lock.",
+    "* Commit 5ec329c: workers flushed only after a 5 ms batch window, checked after each blocking `read()`: "
+    "p99 7–15 ms. Commit 0d035f8: rows handed over as soon as a read returns: p99 ~5 ms for FPS, video and "
+    "HandKP, but the hop through the pickled `mp.Queue` to the recorder's writer thread (which shares its "
+    "GIL with the display) had a tail of several ms whenever two cores carry emulators, four workers and "
+    "the recorder.",
+    "* Now the worker writes its rows itself (commit b3a1053): no second process has to be scheduled "
+    "between a read and the disk, and a full queue can only delay bookkeeping, never drop rows. The "
+    "recorder-side hop (column 2, committed -> recorder) still has that tail, but nothing waits on it.",
+    "* EmHT: the Flock-of-Birds stream has no checksum, so the decoder confirmed a record's end only when "
+    "the next record's first byte arrived: the last record of each 4-sensor group waited a whole cycle "
+    "(p50 5.3 ms at 200 Hz). It is now accepted once the line has stayed idle for a short window after "
+    "it (an inserted byte would follow at wire speed), which bounds that wait (column 1).",
     "",
 ]
 

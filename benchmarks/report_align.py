@@ -8,8 +8,9 @@ METHOD = (
     "A session (EmHT 4 × 240 Hz, FPS 9 ch × 250 Hz, HandKP 30 Hz, 30 fps video clock) is generated through "
     "`midas_cli/session/writer.py` and finalised like a recording, so it carries its binary stream copies "
     "(`streams/<name>.npy`, written when a session is finalised). Each side then runs in a fresh child "
-    "process, three times (the median is shown): **work** = from the first file read to the aligned output "
-    "on disk, after the side's imports; **process** = the whole child, interpreter start-up and imports "
+    "process, the baseline three times and midas five (the median is shown), each run starting with no "
+    "output on disk and the page cache's dirty pages flushed (`sync`): **work** = from the first file read "
+    "to the aligned output on disk, after the side's imports; **process** = the whole child, interpreter start-up and imports "
     "included. Peak memory is the child's own `VmHWM`. Baseline (the original system's approach, CSV in, "
     "CSV out): `pd.read_csv` of each stream CSV, `pd.merge_asof(direction='backward', tolerance=3 sample "
     "periods)` onto the video frame times, `to_csv`. `midas align` memory-maps the copies, reads only the "
@@ -23,8 +24,9 @@ READING = [
     "`to_csv(float_format='%.6g')` and 3.3 s to a compressed npz, and parsing the stream CSVs alone capped "
     "any CSV-in design near 3.5×. Three changes: (1) each stream CSV gets a binary copy when the session is "
     "finalised, which align memory-maps, touching only the rows it picks; (2) the aligned values are written "
-    "in one write as their own column-major `.npy` (no compression, no zip CRC, no redundant mask), which "
-    "readers memory-map; (3) `aligned.csv` is written only with `--csv`. The CSV "
+    "as their own column-major `.npy` (no compression, no zip CRC, no redundant mask), which readers "
+    "memory-map, the raw streams' columns on a second thread while the derived ones are computed (EmHT and "
+    "HandKP features also run side by side); (3) `aligned.csv` is written only with `--csv`. The CSV "
     "stays the archival record; a copy is used only while it matches the CSV (sha256 in the manifest, "
     "size) and `session verify` compares them value by value.",
     "",

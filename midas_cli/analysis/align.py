@@ -22,7 +22,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -30,7 +30,7 @@ from scipy.interpolate import CubicSpline
 from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, load_calibration
 from midas_cli.analysis.transforms import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.session.derived import AlignedTable, find_calibration, write_aligned
+from midas_cli.session.derived import AlignedTable, ValuesFile, find_calibration, write_aligned
 from midas_cli.session.reader import Session
 
 log = logging.getLogger(__name__)
@@ -96,10 +96,7 @@ class ColumnSet:
         values = np.asarray(values, dtype=float)
         if values.shape != (self.n,):
             raise SessionError(f"aligned column {name!r} has shape {values.shape}, expected ({self.n},)")
-        if name in self._index:
-            self._block[:, self._index[name]] = values
-        else:
-            self.claim([name])[0] = values
+        self.claim([name])[0] = values  # a name added twice is an error: written columns never change
         self.describe(name, unit, source, **meta)
 
     def get(self, name: str) -> np.ndarray | None:
@@ -114,6 +111,37 @@ class ColumnSet:
         """(len(rows), C) column-major: a view of the block when every frame is kept."""
         values = self._block[:, : len(self._index)]
         return values if len(rows) == self.n else np.asfortranarray(values[rows])
+
+
+class StagedColumns:
+    """Columns computed against a ColumnSet without changing it, added later with ``commit``: lets
+    independent feature groups run on separate threads and still land in a fixed column order."""
+
+    def __init__(self, columns: ColumnSet) -> None:
+        self.columns, self.n = columns, columns.n
+        self.staged: list[tuple[str, np.ndarray, str, str, dict[str, Any]]] = []
+
+    def get(self, name: str) -> np.ndarray | None:
+        return self.columns.get(name)
+
+    def stack(self, names: list[str]) -> np.ndarray:
+        return self.columns.stack(names)
+
+    def add(self, name: str, values: np.ndarray, unit: str = "", source: str = "", **meta: Any) -> None:
+        self.staged.append((name, values, unit, source, meta))
+
+    def commit(self) -> None:
+        for name, values, unit, source, meta in self.staged:
+            self.columns.add(name, values, unit, source, **meta)
+
+
+def in_parallel(columns: ColumnSet, groups: list[Callable[[Any], None]]) -> None:
+    """Run feature groups (each ``group(columns_like)``) on threads, then add their columns in order."""
+    staged = [StagedColumns(columns) for _ in groups]
+    with ThreadPoolExecutor(max_workers=max(1, min(len(groups), os.cpu_count() or 1))) as pool:
+        list(pool.map(lambda pair: pair[0](pair[1]), zip(groups, staged)))
+    for group in staged:
+        group.commit()
 
 
 def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns: int
@@ -417,16 +445,20 @@ def add_robot_orientation(columns: ColumnSet) -> None:
                             description="from the logged quaternion (Rz @ Ry @ Rx convention)")
 
 
-def align_session(path: Path | str, options: AlignOptions = AlignOptions()) -> AlignedTable:
-    """Align one session (see the module docstring); does not write anything."""
+def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
+                  on_raw_columns: Callable[[np.ndarray], None] | None = None) -> AlignedTable:
+    """Align one session (see the module docstring); does not write anything. ``on_raw_columns`` gets
+    the raw streams' columns ((N, k) column-major, final, the table's first k columns) as soon as they
+    are associated, when every frame is kept (``align_and_write`` starts writing them)."""
     session = Session.open(path)
     frames, frame_ns = reference_frames(session)
     t_s = (frame_ns - frame_ns[0]) / 1e9
     columns = ColumnSet(len(frames))
     data = read_streams(session)
     add_raw_streams(session, data, columns, frame_ns, options, {})
-    add_emht_features(columns, t_s)
-    add_handkp_features(columns, t_s, options)
+    if on_raw_columns is not None and options.rate_hz is None:
+        on_raw_columns(columns.table(np.arange(columns.n)))
+    in_parallel(columns, [lambda c: add_emht_features(c, t_s), lambda c: add_handkp_features(c, t_s, options)])
     add_robot_orientation(columns)
     add_clutch(columns)
     calibrations = load_session_calibrations(session.path)
@@ -450,8 +482,19 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions()) -> A
 def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), csv: bool = False) -> dict[str, Any]:
     """Align one session and write ``derived/aligned.{npz,json}`` (+ ``.csv`` when ``csv``); returns a
     summary (paths, frames, columns)."""
-    table = align_session(path, options)
-    written = write_aligned(path, table, csv=csv)
+    values_file: list[ValuesFile] = []
+
+    def start_writing(block: np.ndarray) -> None:
+        values_file.append(ValuesFile(path, len(block)))
+        values_file[0].write_async(block)
+
+    try:
+        table = align_session(path, options, on_raw_columns=start_writing)
+        written = write_aligned(path, table, csv=csv, values_file=values_file[0] if values_file else None)
+    except BaseException:
+        for started in values_file:
+            started.abort()
+        raise
     masked = {s: float(1 - table.mask[:, i].mean()) for i, s in enumerate(table.columns) if s.endswith("_delta_ms")}
     return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
             "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,7 +60,67 @@ class AlignedTable:
         return (self.t_host_ns - self.t_host_ns[0]) / 1e9 if len(self.t_host_ns) else np.zeros(0)
 
 
-def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = False) -> dict[str, Path]:
+class ValuesFile:
+    """``derived/aligned.values.npy`` written while the table is still being built: columns that are
+    final are appended on a background thread while later ones are computed (the kernel's copy of the
+    file overlaps the computation on a second core), and the header gets the final column count last.
+    Until ``write_aligned`` renames it into place the file is ``aligned.values.npy.tmp``."""
+
+    def __init__(self, session_path: Path | str, n_rows: int) -> None:
+        base = Path(session_path) / ALIGNED_STEM
+        base.parent.mkdir(exist_ok=True)
+        self.path = _tmp(base.with_suffix(".values.npy"))
+        self.n_rows, self.columns_written = n_rows, 0
+        self._fh = open(self.path, "wb")
+        self._fh.write(_npy_header(n_rows, 0))
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def write_async(self, block: np.ndarray) -> None:
+        """Append the columns of ``block`` ((N, k), column-major: left untouched until ``finish``)."""
+        self._join()
+        self._thread = threading.Thread(target=self._write, args=(block,), name="aligned-values", daemon=True)
+        self._thread.start()
+        self.columns_written += block.shape[1]
+
+    def finish(self, values: np.ndarray) -> None:
+        """Append the columns of ``values`` (N, C) not written yet and write the final header."""
+        self._join()
+        self._write(values[:, self.columns_written :])
+        if self._error is not None:
+            raise self._error
+        self._fh.seek(0)
+        self._fh.write(_npy_header(self.n_rows, values.shape[1]))
+        self._fh.close()
+
+    def abort(self) -> None:
+        self._join()
+        self._fh.close()
+        self.path.unlink(missing_ok=True)
+
+    def _write(self, block: np.ndarray) -> None:
+        try:
+            self._fh.write(np.asfortranarray(block).T.data)  # (k, N) C-contiguous: column after column
+        except BaseException as exc:  # re-raised in the caller's thread by finish()
+            self._error = exc
+
+    def _join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+
+def _npy_header(n_rows: int, n_columns: int) -> bytes:
+    """NPY 1.0 header of a (n_rows, n_columns) column-major float64 array, the same length whatever
+    ``n_columns`` is (< 10**10), so the final count can overwrite a provisional one in place."""
+    text = "{'descr': '<f8', 'fortran_order': True, 'shape': (%d, %-10d), }" % (n_rows, n_columns)
+    total = -(-(10 + len(text) + 1) // 64) * 64
+    text = text.ljust(total - 10 - 1) + "\n"
+    return b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text.encode("latin1")
+
+
+def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = False,
+                  values_file: ValuesFile | None = None) -> dict[str, Path]:
     """Write ``derived/aligned.npz``, ``aligned.values.npy``, ``aligned.json`` (and ``aligned.csv`` when
     ``csv``), each via a temporary file and rename. The values go to their own column-major ``.npy`` in
     one write (no zip CRC, no copy), which a reader can memory-map and read column by column. A CSV from
@@ -67,8 +128,11 @@ def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = Fal
     base = Path(session_path) / ALIGNED_STEM
     base.parent.mkdir(exist_ok=True)
     paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "values.npy", "json", *(("csv",) if csv else ()))}
-    with open(_tmp(paths["values.npy"]), "wb") as fh:
-        np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
+    if values_file is not None:
+        values_file.finish(table.values)
+    else:
+        with open(_tmp(paths["values.npy"]), "wb") as fh:
+            np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
     with open(_tmp(paths["npz"]), "wb") as fh:
         np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, columns=np.asarray(table.columns, dtype=str))
     if csv:
