@@ -11,7 +11,7 @@ RUNS = (("soak", "`make soak`"), ("soak-short", "inside `make bench`"))
 
 METHOD = (
     "`python -m midas_cli record --status-json` with the devices of section 1 (`midas emulate trakstar` "
-    "4 × 200 Hz and `midas emulate fps` 9 channels at 850 Hz on pseudo-terminals, simulated video and "
+    "4 × 220 Hz and `midas emulate fps` 9 channels at 850 Hz on pseudo-terminals, simulated video and "
     "HandKP at 30 Hz) for the whole run. The script reads the status line the recorder prints every "
     "second and every few seconds the resident memory (`VmRSS`, /proc) and CPU time of the recorder, of "
     "each of its child processes (one worker per device, multiprocessing's resource tracker) and of the "

@@ -73,8 +73,7 @@ def write_gesture_session(root: Path, subject: str, trial: int, n_frames: int = 
     write_frame_labels(writer.folder, np.arange(n_frames), names, {"taxonomy": "test"})
     columns = motion(labels, rng)
     values = np.column_stack(list(columns.values()))
-    write_aligned(writer.folder, AlignedTable(np.arange(n_frames), frame_ns, list(columns), values,
-                                              np.isfinite(values)))
+    write_aligned(writer.folder, AlignedTable(np.arange(n_frames), frame_ns, list(columns), values))
     if image_dim:
         features = np.eye(len(CLASSES), image_dim)[labels] + rng.normal(0, 0.1, (n_frames, image_dim))
         np.savez(writer.folder / "derived" / "image_features.npz", frame=np.arange(n_frames),

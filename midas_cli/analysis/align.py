@@ -183,7 +183,8 @@ def associate_stream(table: np.ndarray, spec_columns: list[str], frame_ns: np.nd
         chosen = table.view(np.ndarray)[idx if order is None else order[idx]]  # whole rows, one pass
         for j, name in enumerate(spec_columns):
             values[j] = chosen[name]
-        values[:, ~valid] = np.nan
+        if not valid.all():
+            values[:, ~valid] = np.nan
     else:
         values[:] = np.nan
     return values, delta
@@ -352,7 +353,7 @@ def build_table(frames: np.ndarray, frame_ns: np.ndarray, columns: ColumnSet, ro
     names = columns.names
     values = columns.table(rows)
     meta = {**meta, "frames": int(len(rows)), "columns": [{"name": n, **columns.meta[n]} for n in names]}
-    return AlignedTable(frames[rows], frame_ns[rows], names, values, np.isfinite(values), meta)
+    return AlignedTable(frames[rows], frame_ns[rows], names, values, meta)
 
 
 def estimate_lag(reference: np.ndarray, signal: np.ndarray, rate_hz: float, max_lag_s: float = 0.5) -> float:
@@ -495,7 +496,7 @@ def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), cs
         for started in values_file:
             started.abort()
         raise
-    masked = {s: float(1 - table.mask[:, i].mean()) for i, s in enumerate(table.columns) if s.endswith("_delta_ms")}
+    masked = {s: float(np.isnan(table.column(s)).mean()) for s in table.columns if s.endswith("_delta_ms")}
     return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
             "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},
             "calibrations": [c["file"] for c in table.meta["calibrations_applied"]],

@@ -15,6 +15,7 @@ Aligned table (written by ``midas align``):
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import threading
@@ -35,14 +36,18 @@ PEDALS_GT = "derived/pedals_gt.csv"
 
 @dataclass
 class AlignedTable:
-    """Every stream on the video frame clock: ``values`` (N, C) float64, ``mask`` (N, C) bool."""
+    """Every stream on the video frame clock: ``values`` (N, C) float64, NaN where masked."""
 
     frame: np.ndarray
     t_host_ns: np.ndarray
     columns: list[str]
     values: np.ndarray
-    mask: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+
+    @functools.cached_property
+    def mask(self) -> np.ndarray:
+        """(N, C) bool, True = valid sample (computed on first use: a pass over every value)."""
+        return np.isfinite(self.values)
 
     def column(self, name: str) -> np.ndarray:
         """One column (N,) float64, NaN where masked."""
@@ -172,7 +177,7 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
     if values.shape != (len(frame), len(columns)):
         raise SessionError(f"{values_path} holds {values.shape} values for {len(frame)} frames x {len(columns)} "
                            f"columns: re-run `midas align {session_path}`")
-    return AlignedTable(frame, t_host_ns, columns, values, np.isfinite(values), meta)
+    return AlignedTable(frame, t_host_ns, columns, values, meta)
 
 
 def calib_path(session_path: Path | str, name: str) -> Path:
