@@ -77,3 +77,27 @@ def test_int_columns_stay_int64_unless_they_have_missing_values(tmp_path: Path) 
     assert table.dtype["gap"] == np.float64 and np.isnan(table["gap"][0]) and table["gap"][1] == 3
     assert table["t_host_ns"][1] == 10**18 + 10**8, "host ns stay exact"
     assert table["x"][0] == 0.25 and np.isnan(table["x"][1])
+
+
+def test_a_deleted_copy_is_not_a_problem_and_the_csv_is_read(tmp_path: Path) -> None:
+    session_path = raven_session(tmp_path, duration_s=3.0)
+    (session_path / "streams" / "fps.npy").unlink()  # what verify suggests for a bad copy
+    assert midas("session", "verify", str(session_path)).returncode == 0
+    table = Session.open(session_path).read_columns("fps")
+    assert not isinstance(table, np.memmap) and len(table) > 0
+
+
+def test_align_gives_the_same_table_when_its_column_block_has_to_grow(tmp_path: Path, monkeypatch) -> None:
+    import midas_cli.analysis.align as align
+
+    session_path = raven_session(tmp_path, duration_s=3.0)
+    roomy = align_session(session_path)
+
+    class Cramped(align.ColumnSet):  # every claim beyond 8 columns reallocates the block
+        def __init__(self, n_frames: int) -> None:
+            super().__init__(n_frames, capacity=8)
+
+    monkeypatch.setattr(align, "ColumnSet", Cramped)
+    cramped = align_session(session_path)
+    assert cramped.columns == roomy.columns and len(roomy.columns) > 8
+    assert np.array_equal(cramped.values, roomy.values, equal_nan=True)

@@ -222,8 +222,10 @@ def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: Colu
     """Associate every stream in ``data`` with the frames; a stream in ``shifts_ns`` is associated at
     frame time + shift (compensating a known latency)."""
     cols_of = {stream: value_columns(session, stream) for stream in data}
-    blocks = {stream: columns.claim([f"{stream}.{c.name}" for c in cols] + [f"{stream}_delta_ms"])
-              for stream, cols in cols_of.items()}
+    names = {stream: [f"{stream}.{c.name}" for c in cols] + [f"{stream}_delta_ms"] for stream, cols in cols_of.items()}
+    storage = columns.claim([n for stream_names in names.values() for n in stream_names])  # one claim: no regrowth
+    starts = np.cumsum([0, *(len(n) for n in names.values())])
+    blocks = {stream: storage[start : start + len(names[stream])] for stream, start in zip(names, starts)}
 
     def one(stream: str) -> None:
         names = [c.name for c in cols_of[stream]]
@@ -466,7 +468,7 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
     for calibration in calibrations:
         add_calibrated(session, data, columns, frame_ns, calibration, options)
     meta = {
-        "format": "midas-aligned-v1",
+        "format": "midas-aligned-v2",  # v2: values in aligned.values.npy, no mask
         "session_id": session.manifest["session_id"],
         "reference": "video frame times (t_host_ns of the video stream); frame = video seq",
         "method": options.method,

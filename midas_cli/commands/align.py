@@ -23,7 +23,8 @@ def align(
                                          "e.g. 10; default: every video frame."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
     csv: bool = typer.Option(False, "--csv", help="Also write derived/aligned.csv (6 significant digits; "
-                             "slow for long sessions: the npz holds the exact values)."),
+                             "slow for long sessions: the npz holds the exact values). Without it, an "
+                             "aligned.csv left by an earlier run is removed."),
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Align every stream of each session onto its video frame clock (causal or nearest sample,

@@ -272,6 +272,10 @@ class Recorder:
                 log.error("worker %s did not exit; terminating it", process.name)
                 process.terminate()
                 process.join(timeout=1.0)
+            if process.is_alive():  # it writes its own rows: it must be gone before the files are hashed
+                log.error("worker %s ignored SIGTERM; killing it", process.name)
+                process.kill()
+                process.join(timeout=1.0)
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
         try:

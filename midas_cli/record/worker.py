@@ -120,6 +120,9 @@ class WorkerOutput:
         try:
             self.out.put(message, timeout=EVENT_TIMEOUT_S)
         except queue.Full:
+            if isinstance(message, DataBatch):  # keep it for the next message of its stream
+                self.held[message.stream] = message
+                return
             log.error("%s: recorder queue full for %.0f s, %s not delivered", self.device, EVENT_TIMEOUT_S,
                       getattr(message, "event", "bookkeeping"))
 

@@ -89,7 +89,7 @@ def add_binary_copies(folder: Path, manifest: dict[str, Any]) -> None:
         spec = StreamSpec.from_manifest(name, entry)
         try:
             entry[BINARY_KEY] = write_binary_copy(Path(folder), spec, entry["sha256"])
-        except (SessionError, KeyError, OSError) as exc:
+        except (SessionError, KeyError, OSError, ValueError, MemoryError) as exc:
             entry.pop(BINARY_KEY, None)
             log.warning("no binary copy of stream %s: %s", name, exc)
 
@@ -100,11 +100,13 @@ def load_binary_copy(folder: Path, name: str, entry: dict[str, Any]) -> np.ndarr
     binary = entry.get(BINARY_KEY)
     if not isinstance(binary, dict) or binary.get("csv_sha256") != entry.get("sha256"):
         return None
-    csv_path = check_inside(Path(folder), entry["file"])
+    csv_path, copy_path = check_inside(Path(folder), entry["file"]), check_inside(Path(folder), binary.get("file", ""))
+    if not copy_path.is_file():
+        return None  # deleted (the remedy `verify` suggests for a bad copy): the CSV is read
     try:
         if csv_path.stat().st_size != entry.get("bytes"):
             return None
-        table = np.load(check_inside(Path(folder), binary["file"]), mmap_mode="r", allow_pickle=False)
+        table = np.load(copy_path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, KeyError) as exc:
         log.warning("binary copy of stream %s unusable (%s); reading the CSV", name, exc)
         return None
@@ -118,8 +120,8 @@ def copy_differences(folder: Path, name: str, entry: dict[str, Any]) -> list[str
     """What is wrong with a stream's binary copy, checked against its CSV parsed again (for `verify`);
     empty when the stream has none or it matches exactly."""
     binary = entry.get(BINARY_KEY)
-    if binary is None:
-        return []
+    if binary is None or not check_inside(Path(folder), binary.get("file", "")).is_file():
+        return []  # none, or deleted: readers parse the CSV
     remedy = "delete it and readers parse the CSV"
     try:
         copy = np.load(check_inside(Path(folder), binary["file"]), mmap_mode="r", allow_pickle=False)

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Iterator, Sequence
 
 from midas_cli.errors import SessionError
-from midas_cli.session.columnar import BINARY_KEY, write_binary_copy
+from midas_cli.session.columnar import BINARY_KEY, binary_file, write_binary_copy
 from midas_cli.session.manifest import check_inside, load_manifest, write_manifest
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
@@ -105,11 +105,15 @@ def add_stream(session_path: Path | str, spec: StreamSpec, rows: Sequence[Sequen
         what = "was recorded" if "derived_by" not in existing else "exists (use --force to replace it)"
         raise SessionError(f"{folder}: stream {spec.name!r} {what}; choose another name")
     path = check_inside(folder, spec.file)
+    check_inside(folder, binary_file(spec)).unlink(missing_ok=True)  # a copy of what is being replaced
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(spec.header_line() + spec.format_rows(rows), encoding="utf-8")
     os.replace(tmp, path)
     entry = {**spec.to_manifest(), **summarize_stream(path, spec).manifest_fields(), "derived_by": derived_by}
-    entry[BINARY_KEY] = write_binary_copy(folder, spec, entry["sha256"])
+    try:
+        entry[BINARY_KEY] = write_binary_copy(folder, spec, entry["sha256"])
+    except (SessionError, OSError):  # no copy (disk full): readers parse the CSV
+        pass
     manifest["streams"][spec.name] = entry
     write_manifest(folder, manifest)
     return path

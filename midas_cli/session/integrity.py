@@ -144,7 +144,6 @@ def repair_session(path: Path | str) -> RepairReport:
         entry["seq_gaps"]["note"] = "derived from the file by repair"
         if found.last_t_host_ns is not None:
             last_times.append(found.last_t_host_ns)
-    add_binary_copies(folder, manifest)
     stop_ns = max(last_times, default=manifest["start"]["host_ns"])
     manifest.update(
         status="recovered",
@@ -153,6 +152,8 @@ def repair_session(path: Path | str) -> RepairReport:
         repair={"utc": utc_iso(time.time_ns()), "midas_version": __version__, "cut": report.cut,
                 "created_empty_streams": report.created},
     )
+    write_manifest(folder, manifest)  # recovered first: the binary copies are an extra
+    add_binary_copies(folder, manifest)
     write_manifest(folder, manifest)
     return report
 

@@ -190,8 +190,9 @@ class SessionWriter:
             entry = self.manifest["streams"][name]
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
             entry.update(extra.get(name, {}))
-        add_binary_copies(self.folder, self.manifest)
         self.manifest.update(status=status, stop_reason=stop_reason, stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns})
+        write_manifest(self.folder, self.manifest)  # finished first: the binary copies are an extra
+        add_binary_copies(self.folder, self.manifest)
         write_manifest(self.folder, self.manifest)
         return self.manifest
 

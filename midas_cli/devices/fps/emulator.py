@@ -24,6 +24,7 @@ import select
 import threading
 import time
 import tty
+from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -92,6 +93,29 @@ class _Boot:
     skipped: int = 0
 
 
+class _SampleLog:
+    """Every sample sent, kept in flat typed arrays: a long run (a 30-minute soak sends 1.5 million)
+    would otherwise hold millions of GC-tracked dicts and lists, and the emulator would pause for whole
+    collections, long enough for a host to see the board stall."""
+
+    def __init__(self) -> None:
+        self.boot, self.seq, self.t_us = array("l"), array("q"), array("q")
+        self.adc, self.intact, self.width = array("h"), array("b"), 0
+
+    def append(self, boot: int, seq: int, t_us: int, adc: list[int], intact: bool) -> None:
+        self.width = self.width or len(adc)
+        self.boot.append(boot)
+        self.seq.append(seq)
+        self.t_us.append(t_us)
+        self.adc.extend(adc)
+        self.intact.append(intact)
+
+    def as_dicts(self) -> list[dict[str, Any]]:
+        w = self.width
+        return [{"boot": b, "seq": q, "t_us": t, "adc": self.adc[i * w : (i + 1) * w].tolist(), "intact": bool(k)}
+                for i, (b, q, t, k) in enumerate(zip(self.boot, self.seq, self.t_us, self.intact))]
+
+
 @dataclass
 class _Tally:
     sent: int = 0
@@ -101,7 +125,7 @@ class _Tally:
     corrupted_bytes: int = 0
     dropped_bytes: int = 0
     commands: dict[str, int] = field(default_factory=dict)
-    samples: list[dict[str, Any]] = field(default_factory=list)
+    samples: _SampleLog = field(default_factory=_SampleLog)
     boots: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -189,7 +213,7 @@ class FpsEmulator:
             return {"port": self.path, "channels": self.config.channels, "sent": t.sent, "intact": t.intact,
                     "skipped": {"stall": t.skipped_stall, "tx_full": t.skipped_tx_full},
                     "corrupted_bytes": t.corrupted_bytes, "dropped_bytes": t.dropped_bytes,
-                    "commands": dict(t.commands), "boots": list(t.boots), "samples": list(t.samples)}
+                    "commands": dict(t.commands), "boots": list(t.boots), "samples": t.samples.as_dicts()}
 
     def write_report(self, path: Path | str) -> None:
         """:meth:`report` as a JSON file."""
@@ -368,8 +392,7 @@ class FpsEmulator:
             self._tally.sent += 1
             self._tally.intact += intact
             if self.config.keep_samples:
-                self._tally.samples.append({"boot": self._boot.index, "seq": seq, "t_us": t_us, "adc": values,
-                                            "intact": intact})
+                self._tally.samples.append(self._boot.index, seq, t_us, values, intact)
 
     def _send(self, line: bytes) -> bool:
         """Queue a line through the fault injector; True if a correct host must decode it: it goes out
