@@ -174,7 +174,8 @@ def compare(session: Path, baseline_csv: Path) -> dict:
 STAGES = {"read_streams": "open the stream copies (memory-map)", "reference_frames": "read video frame clock",
           "add_raw_streams": "associate raw streams with frames (reads the chosen rows)",
           "add_emht_features": "EmHT hand points/velocity", "add_handkp_features": "HandKP gap filling",
-          "in_parallel": "EmHT + HandKP features (two threads)", "add_robot_orientation": "robot orientation", "add_clutch": "clutch", "build_table": "build table",
+          "in_parallel": "EmHT + HandKP features (two threads)", "add_robot_orientation": "robot orientation",
+          "add_clutch": "clutch", "build_table": "build table",
           "write_aligned": "write aligned.npz, .values.npy, .json"}
 
 

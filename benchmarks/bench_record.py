@@ -1,7 +1,8 @@
 """Recording latency, loss, CPU and bytes/min with every device at full rate on emulators.
 
 Runs the real CLI (`python -m midas_cli record`) against `midas emulate trakstar` (fob://, 4 sensors x
-220 Hz over 115200 baud, the most that line carries: 4 x 240 Hz needs 124.8 kbit/s) and `midas emulate fps` (9 channels at 850 Hz, the most 500000 baud carries),
+220 Hz over 115200 baud, the most that line carries: 4 x 240 Hz needs 124.8 kbit/s) and
+`midas emulate fps` (9 channels at 850 Hz, the most 500000 baud carries),
 plus `sim://video?rate=30` and `sim://handkp?rate=30`, at two durations. Then a short in-process run
 splits each batch's latency, inside its device worker (which writes its own rows), into "read -> the
 write starts" and "write", and measures the bookkeeping hop to the recorder that follows (profile).

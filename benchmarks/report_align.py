@@ -15,7 +15,8 @@ METHOD = (
     "CSV out): `pd.read_csv` of each stream CSV, `pd.merge_asof(direction='backward', tolerance=3 sample "
     "periods)` onto the video frame times, `to_csv`. `midas align` memory-maps the copies, reads only the "
     "rows chosen for frames, computes the derived columns too (hand points, velocities, grasper distance, "
-    "clutch, HandKP gap filling) and writes `derived/aligned.npz` (frames, times, column names), `aligned.values.npy` (the values, column-major) and `aligned.json`."
+    "clutch, HandKP gap filling) and writes `derived/aligned.npz` (frames, times, column names), "
+    "`aligned.values.npy` (the values, column-major) and `aligned.json`."
 )
 
 READING = [
