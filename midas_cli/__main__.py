@@ -1,3 +1,25 @@
-from midas_cli.commands.main import run
+"""The process entry point (`midas` and `python -m midas_cli`).
 
-run()
+Ctrl-C is quiet from the first instant: until a command installs its own handling (`midas record`
+turns it into a stop request), SIGINT ends the process with one line and exit 130, never a
+KeyboardInterrupt traceback from the middle of an import.
+"""
+
+import signal
+import sys
+
+
+def _interrupted(_signum, _frame) -> None:
+    sys.stderr.write("midas: interrupted\n")
+    raise SystemExit(130)
+
+
+def main() -> None:
+    signal.signal(signal.SIGINT, _interrupted)
+    from midas_cli.commands.main import run
+
+    run()
+
+
+if __name__ == "__main__":
+    main()

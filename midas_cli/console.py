@@ -16,22 +16,29 @@ from rich.table import Table
 from rich.text import Text
 
 from midas_cli.devices.pedals import adc_to_volts
-from midas_cli.record.status import RecorderSnapshot, StreamStatus
+from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 
-STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan",
+STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan", "opening": "cyan",
                "stopped": "dim"}
 BAR_WIDTH = 16
+STALE_PANEL_S = 1.0  # a panel whose last sample is older than this is marked stale
 
 
 def stderr_console() -> Console:
-    """Progress, live status and errors go to stderr so stdout stays clean for results."""
-    return Console(stderr=True, highlight=False, no_color="NO_COLOR" in os.environ or None)
+    """Progress, live status and errors go to stderr so stdout stays clean for results. When stderr
+    is not a terminal (a log file, a pipe, SSH without a pty) nothing is ever folded: one message is
+    one line, and tables get room instead of the 80-column default."""
+    if sys.stderr.isatty():
+        return Console(stderr=True, highlight=False, no_color="NO_COLOR" in os.environ or None)
+    return Console(stderr=True, highlight=False, width=200, soft_wrap=True,
+                   no_color="NO_COLOR" in os.environ or None)
 
 
 def stdout_console() -> Console:
     """Results. When stdout is a pipe or file, tables get room instead of the 80-column default."""
-    width = None if sys.stdout.isatty() else 200
-    return Console(highlight=False, width=width, no_color="NO_COLOR" in os.environ or None)
+    if sys.stdout.isatty():
+        return Console(highlight=False, no_color="NO_COLOR" in os.environ or None)
+    return Console(highlight=False, width=200, soft_wrap=True, no_color="NO_COLOR" in os.environ or None)
 
 
 def is_interactive() -> bool:
@@ -52,8 +59,14 @@ def clock_text(seconds: float) -> str:
 
 
 def _rate_text(stream: StreamStatus) -> str:
+    if stream.nominal_rate_hz is None:
+        return "events"
     measured = "—" if stream.measured_rate_hz is None else f"{stream.measured_rate_hz:.1f}"
     return f"{measured} / {stream.nominal_rate_hz:g}"
+
+
+def _nominal_text(stream: StreamStatus) -> str:
+    return "events" if stream.nominal_rate_hz is None else f"{stream.nominal_rate_hz:g}Hz"
 
 
 def _age_text(age: float | None) -> str:
@@ -104,18 +117,34 @@ def _device_errors(snapshot: RecorderSnapshot) -> Text:
 
 
 def _live_panels(snapshot: RecorderSnapshot) -> list[Panel]:
+    """Pedal bars and EmHT positions. Values that are not live (the device is not ok, or its last
+    sample is older than STALE_PANEL_S) are dimmed and the panel's title says how old they are."""
     panels = []
     for device in snapshot.devices:
         for stream in device.streams:
-            if device.kind == "fps" and stream.latest:
-                panels.append(Panel(_pedal_bars(stream.latest), title=f"{device.name}: pedals", expand=False))
-            elif device.kind == "emht" and stream.latest:
-                panels.append(Panel(_emht_positions(stream.latest), title=f"{device.name}: positions (mm)",
-                                    expand=False))
+            if not stream.latest or device.kind not in ("fps", "emht"):
+                continue
+            stale = _staleness(device, stream)
+            if device.kind == "fps":
+                body, title = _pedal_bars(stream.latest, device.labels, bool(stale)), f"{device.name}: pedals"
+            else:
+                body, title = _emht_positions(stream.latest, device.labels), f"{device.name}: positions (mm)"
+            panels.append(Panel(body, title=title + (f" [{stale}]" if stale else ""), expand=False,
+                                border_style="red" if stale else "", style="dim" if stale else ""))
     return panels
 
 
-def _pedal_bars(latest: dict[str, Any]) -> Table:
+def _staleness(device: DeviceStatus, stream: StreamStatus) -> str:
+    """'' for live values, else why they are not (e.g. 'STALE 3.2 s, lost')."""
+    age = stream.last_age_s
+    if device.state in ("ok", "degraded") and age is not None and age <= STALE_PANEL_S:
+        return ""
+    age_text = "" if age is None else f" {age:.1f} s"
+    state = "" if device.state in ("ok", "degraded") else f", {device.state}"
+    return f"STALE{age_text}{state}"
+
+
+def _pedal_bars(latest: dict[str, Any], labels: dict[str, str], stale: bool = False) -> Table:
     table = Table.grid(padding=(0, 1))
     table.add_column(no_wrap=True)
     table.add_column(no_wrap=True, min_width=BAR_WIDTH)
@@ -125,19 +154,22 @@ def _pedal_bars(latest: dict[str, Any]) -> Table:
     while f"ch{channel}_adc" in latest:
         volts = float(adc_to_volts(latest[f"ch{channel}_adc"]))
         filled = int(round(volts / 5.0 * BAR_WIDTH))
-        pressed = latest.get(f"ch{channel}_pressed") == 1
+        pressed = latest.get(f"ch{channel}_pressed") == 1 and not stale
         bar = Text("█" * filled + "·" * (BAR_WIDTH - filled), "bold magenta" if pressed else "magenta")
-        table.add_row(f"P{channel}", bar, f"{volts:4.2f} V", Text("PRESSED" if pressed else "", "bold"))
+        table.add_row(labels.get(str(channel), f"P{channel}"), bar, f"{volts:4.2f} V",
+                      Text("PRESSED" if pressed else "", "bold"))
         channel += 1
     return table
 
 
-def _emht_positions(latest: dict[str, Any]) -> Table:
+def _emht_positions(latest: dict[str, Any], labels: dict[str, str]) -> Table:
     table = Table("", "x", "y", "z", box=None, padding=(0, 1), pad_edge=False)
     sensor = 1
     while f"s{sensor}_x_mm" in latest:
         values = [latest[f"s{sensor}_{a}_mm"] for a in "xyz"]
-        table.add_row(f"s{sensor}", *("—" if v is None or v != v else f"{v:6.1f}" for v in values))
+        name = labels.get(str(sensor))
+        table.add_row(f"s{sensor}" + (f" {name}" if name else ""),
+                      *("—" if v is None or v != v else f"{v:6.1f}" for v in values))
         sensor += 1
     return table
 
@@ -151,7 +183,7 @@ def status_line(snapshot: RecorderSnapshot) -> str:
             extra = "".join(f" {k}={v}" for k, v in (("dropped", stream.dropped), ("corrupt", stream.corrupt),
                                                      ("missing", stream.seq_missing),
                                                      ("reconnects", device.reconnects)) if v)
-            parts.append(f"{stream.name} {device.state} {rate}/{stream.nominal_rate_hz:g}Hz n={stream.samples}{extra}")
+            parts.append(f"{stream.name} {device.state} {rate}/{_nominal_text(stream)} n={stream.samples}{extra}")
     parts.append(f"disk {human_bytes(snapshot.disk_free_bytes)} free")
     return " | ".join(parts)
 

@@ -7,6 +7,7 @@ are dropped from the copy stored there (prefer ``password_env``, the name of an 
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,12 +31,25 @@ SIMULATED_DEVICES = {
 }
 
 
+DEVICE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
+
+
 @dataclass
 class DeviceConfig:
     name: str
     url: str
     kind: str
     extras: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_device_name(self.name)
+
+
+def check_device_name(name: str) -> None:
+    """A device name names its stream files: a letter, then up to 31 letters, digits, '_' or '-'."""
+    if not DEVICE_NAME.match(name):
+        raise ConfigError(f"device name {name!r} must be a letter followed by up to 31 letters, digits, '_' or '-' "
+                          f"(it names the stream files)")
 
 
 @dataclass

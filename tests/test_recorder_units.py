@@ -119,8 +119,8 @@ def test_a_failed_write_becomes_an_event_that_stops_the_recording(tmp_path, monk
                            stream_files={"emht": str(path)})
     worker.run_worker(job, out, threading.Event())
     events = [out.get_nowait() for _ in range(out.qsize())]
-    assert [e.event for e in events] == ["opened", "write_failed", "exited"]
-    failed = events[1]
+    assert [e.event for e in events] == ["opening", "opened", "write_failed", "exited"]
+    failed = events[2]
     assert failed.info["stream"] == "emht" and failed.info["rows"] >= 1 and "File too large" in failed.message
     recorder = Recorder(RecordPlan(SessionMetadata("1", "t", 1), {"emht": "sim://emht"}, tmp_path))
     for event in events:
@@ -212,5 +212,5 @@ def test_a_worker_bug_is_reported_with_its_traceback(monkeypatch) -> None:
         worker.run_worker(job, out, threading.Event())
     assert exit_info.value.code == 1
     events = [out.get_nowait() for _ in range(out.qsize())]
-    assert [e.event for e in events] == ["crashed", "exited"]
-    assert "RuntimeError: bug in a backend" in events[0].message and "Traceback" in events[0].message
+    assert [e.event for e in events] == ["opening", "crashed", "exited"]
+    assert "RuntimeError: bug in a backend" in events[1].message and "Traceback" in events[1].message

@@ -85,6 +85,9 @@ def _invoked_command(argv: list[str]) -> str | None:
 def run() -> None:
     try:
         build_app(_invoked_command(sys.argv[1:]))(prog_name="midas")
+    except KeyboardInterrupt:  # Ctrl-C before a command installed its own handling: no traceback
+        error_line("midas: interrupted")
+        sys.exit(130)
     except MidasError as exc:
         if _state["debug"]:
             traceback.print_exc()

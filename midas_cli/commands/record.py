@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import signal
 import sys
 import time
@@ -13,10 +14,12 @@ from typing import Optional
 import typer
 from rich.live import Live
 from rich.table import Table
+from rich.text import Text
 
-from midas_cli.commands.common import STDERR_LOG, err
+from midas_cli.commands.common import STDERR_LOG, err, error_line, fail
 from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.errors import ConfigError, DeviceError, SessionError
+from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.devices.base import DeviceUrl
@@ -24,6 +27,8 @@ from midas_cli.rig import DeviceConfig, RigConfig, load_rig, simulated_rig
 from midas_cli.session.writer import SessionMetadata
 
 PLAIN_EVERY_S = 2.0
+READY_TIMEOUT_S = 15.0
+MAX_SEED = 2**32 - 1
 STOP_SIGNALS = {
     signal.SIGINT: ("complete", "stopped by the operator (Ctrl-C / SIGINT)"),
     signal.SIGTERM: ("interrupted", "terminated (SIGTERM)"),
@@ -45,52 +50,73 @@ def record(
     duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
     seed: int = typer.Option(0, "--seed", help="Seed for simulated devices."),
     no_tui: bool = typer.Option(False, "--no-tui", help="Plain status lines instead of the live screen."),
-    status_json: bool = typer.Option(False, "--status-json", help="One JSON status object per second on stdout."),
-    queue_size: int = typer.Option(4096, "--queue-size", help="Batches the writer queue holds before dropping."),
+    status_json: bool = typer.Option(False, "--status-json", help="JSON lines on stdout: a status object a second, "
+                                     "then a final {\"event\": \"stopped\", ...} with the session path."),
+    queue_size: int = typer.Option(4096, "--queue-size", help="Bookkeeping messages a worker holds before merging "
+                                   "them (rows are on disk first; nothing is dropped)."),
 ) -> None:
     """Record a session: one worker process per device, host-clock timestamps, crash-safe stream
-    files. Stops on Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line.
+    files. Stops on Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line
+    (with --status-json, the final JSON object's session_path).
 
     Example: midas record --simulate --duration 10 --out sessions --subject 1 --task suturing --trial 1
     """
-    rig_config = _choose_rig(simulate, rig, device)
-    plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
-                      rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest())
-    if duration is not None and duration <= 0:
-        raise ConfigError(f"--duration must be positive, got {duration}")
-    if queue_size < 16:
-        raise ConfigError(f"--queue-size must be at least 16, got {queue_size}")
-    recorder = Recorder(plan)
     stop = _StopFlag()
-    stop.install()
-    recorder.start()
-    mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
-    display = _Display(mode, stop)
+    stop.install()  # first: from here on a stop signal ends the recording as documented, never a traceback
     try:
-        if not recorder.wait_ready():
-            err.print("midas: warning: some devices did not start within 15 s; recording the others")
-        _fail_if_unopened(recorder)
-        with display:
-            run_until(recorder, duration, lambda: stop.reason is not None or recorder.fatal_error is not None,
-                      display.update)
-            display.update(recorder.snapshot(duration, stopping=True))
-        status, reason = ("interrupted", recorder.fatal_error) if recorder.fatal_error else stop.outcome()
-        manifest = recorder.stop(status, reason)
+        _check_options(duration, seed, master_rate, queue_size)
+        rig_config = _choose_rig(simulate, rig, device)
+        plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
+                          rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest())
+        recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
+        _exit_if_stopped_before_start(stop)
+        mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
+        _record(recorder, _Display(mode, stop), stop, duration)
     finally:
         stop.restore()
+
+
+def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float]) -> None:
+    """Create the session, show the devices opening, record until told, finalise, report."""
+    should_stop = lambda: stop.reason is not None or recorder.fatal_error is not None  # noqa: E731
+    recorder.start()
+    with display:
+        ready = recorder.wait_ready(READY_TIMEOUT_S, should_stop, display.update)
+        failed = {} if should_stop() else recorder.unopened()
+        if failed:
+            manifest = recorder.stop("failed", f"could not open {', '.join(failed)} at the start")
+            display.final(manifest, recorder.path, show_path=False)
+            details = "; ".join(f"{name}: {error}" for name, error in failed.items())
+            raise DeviceError(f"{details} (nothing recorded; the session folder is marked failed: {recorder.path})")
+        if not ready and not should_stop():
+            display.message(f"midas: warning: {', '.join(recorder.starting())} did not start within "
+                            f"{READY_TIMEOUT_S:.0f} s; recording the others while they keep trying")
+        run_until(recorder, duration, should_stop, display.update)
+        display.update(recorder.snapshot(duration, stopping=True))
+        status, reason = ("interrupted", recorder.fatal_error) if recorder.fatal_error else stop.outcome()
+        manifest = recorder.stop(status, reason)
     display.final(manifest, recorder.path)
     if recorder.fatal_error:
         raise SessionError(f"{recorder.fatal_error} (session kept: {recorder.path})")
 
 
-def _fail_if_unopened(recorder: Recorder) -> None:
-    """A device that could not be opened at all at the start stops the recording at once (exit 3),
-    rather than recording without it; a device lost later is reconnected while the others record."""
-    failed = recorder.unopened()
-    if failed:
-        recorder.stop("interrupted", f"could not open {', '.join(failed)} at the start")
-        details = "; ".join(f"{name}: {error}" for name, error in failed.items())
-        raise DeviceError(f"{details} (recording stopped; the session folder is kept as interrupted: {recorder.path})")
+def _check_options(duration: Optional[float], seed: int, master_rate: Optional[float], queue_size: int) -> None:
+    """Refuse impossible values before anything is created (exit 2, one line)."""
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise ConfigError(f"--duration must be a positive number of seconds, got {duration}")
+    if not 0 <= seed <= MAX_SEED:
+        raise ConfigError(f"--seed must be in 0..{MAX_SEED}, got {seed}")
+    if master_rate is not None and not (math.isfinite(master_rate) and 0 < master_rate <= 1000):
+        raise ConfigError(f"--master-rate must be in (0, 1000] Hz, got {master_rate}")
+    if queue_size < 16:
+        raise ConfigError(f"--queue-size must be at least 16, got {queue_size}")
+
+
+def _exit_if_stopped_before_start(stop: "_StopFlag") -> None:
+    """A stop signal that came before the session existed: nothing to finalise, nothing created."""
+    if stop.reason is not None:
+        raise fail(f"stopped by {stop.reason.name} before the recording started; nothing was recorded",
+                   128 + int(stop.reason))
 
 
 def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigConfig:
@@ -108,7 +134,7 @@ def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigCo
         if not sep or not name or not url:
             raise ConfigError(f"--device expects NAME=URL, got {item!r}")
         kind = DeviceUrl.parse(url).target.strip("/") if url.startswith("sim://") else name
-        config.devices[name] = DeviceConfig(name, url, kind)
+        config.devices[name] = DeviceConfig(name, url, kind)  # checks the name (it names files)
     return config
 
 
@@ -121,7 +147,8 @@ def _metadata(rig: RigConfig, subject, task, trial, platform, note, master_rate)
     if missing:
         raise ConfigError(f"missing --{', --'.join(missing)} (or [metadata] in the rig file)")
     return SessionMetadata(str(values["subject"]), values["task"], int(values["trial"]), platform or rig.platform,
-                           note or defaults.get("operator_note", ""), master_rate or rig.master_rate_hz)
+                           note or defaults.get("operator_note", ""),
+                           rig.master_rate_hz if master_rate is None else master_rate)
 
 
 class _StopFlag:
@@ -153,7 +180,10 @@ class _StopFlag:
 
 
 class _Display:
-    """Live TUI on a terminal, plain lines otherwise, or JSON lines; silent after a hang-up."""
+    """Live TUI on a terminal, plain lines otherwise, or JSON lines; silent after a hang-up.
+
+    With ``--status-json`` stdout carries JSON lines only: one ``{"event": "status", ...}`` a second
+    and a final ``{"event": "stopped", ...}``; otherwise the session path is stdout's last line."""
 
     def __init__(self, mode: str, stop: _StopFlag) -> None:
         self.mode = mode
@@ -175,6 +205,7 @@ class _Display:
         if self._live is not None:
             self._safely(lambda: self._live.__exit__(None, None, None))
             STDERR_LOG.setLevel(self._log_level)
+            self._live = None
 
     def update(self, snapshot: RecorderSnapshot) -> None:
         if self.stop.hung_up:
@@ -184,16 +215,38 @@ class _Display:
             self._safely(lambda: self._live.update(dashboard(snapshot)))
         elif self.mode == "json" and (now - self._last_json >= 1.0 or snapshot.stopping):
             self._last_json = now
-            self._safely(lambda: _write_line(sys.stdout, json.dumps(snapshot.to_json(), default=str)))
+            self._safely(lambda: _write_line(sys.stdout, json.dumps({"event": "status", **snapshot.to_json()},
+                                                                    default=str)))
         elif self.mode == "plain" and (now - self._last_plain >= PLAIN_EVERY_S or snapshot.stopping):
             self._last_plain = now
             self._safely(lambda: _write_line(sys.stderr, status_line(snapshot)))
 
-    def final(self, manifest: dict, path: Path) -> None:
+    def message(self, text: str) -> None:
+        """A one-line notice on stderr (above the live screen in a terminal)."""
+        if self.stop.hung_up:
+            return
+        if self._live is not None:
+            self._safely(lambda: self._live.console.print(text, soft_wrap=True, markup=False))
+        else:
+            self._safely(lambda: error_line(text))
+
+    def final(self, manifest: dict, path: Path, show_path: bool = True) -> None:
+        """The end-of-run summary on stderr, then the session path (or the final JSON object)."""
         if self.stop.hung_up:
             return
         self._safely(lambda: err.print(_final_table(manifest)))
-        self._safely(lambda: _write_line(sys.stdout, str(path)))
+        problems = recording_problems(manifest)
+        if problems:
+            self._safely(lambda: err.print(Text("problems: " + "; ".join(problems), style="bold yellow"),
+                                           soft_wrap=True))
+        if self.mode == "json":
+            final = {"event": "stopped", "status": manifest["status"], "reason": manifest["stop_reason"],
+                     "session_path": str(path), "session_id": manifest["session_id"],
+                     "duration_s": _duration_s(manifest), "problems": problems,
+                     "streams": stream_outcomes(manifest)}
+            self._safely(lambda: _write_line(sys.stdout, json.dumps(final, default=str)))
+        elif show_path:
+            self._safely(lambda: _write_line(sys.stdout, str(path)))
 
     def _safely(self, action) -> None:
         try:
@@ -207,12 +260,22 @@ def _write_line(stream, text: str) -> None:
     stream.flush()
 
 
+def _duration_s(manifest: dict) -> Optional[float]:
+    stop = (manifest.get("stop") or {}).get("host_ns")
+    return None if stop is None else round((stop - manifest["start"]["host_ns"]) / 1e9, 3)
+
+
 def _final_table(manifest: dict) -> Table:
-    table = Table("stream", "samples", "measured Hz", "gaps", "dropped", "p99 latency ms",
+    """Per stream what was recorded and what went wrong (missing in outages / unexplained,
+    dropped, corrupt, reconnects of its device)."""
+    table = Table("stream", "samples", "measured Hz", "missing (outage / other)", "dropped", "corrupt",
+                  "reconnects", "p99 latency ms",
                   title=f"{manifest['session_id']}: {manifest['status']} ({manifest['stop_reason']})",
                   header_style="bold")
-    for name, s in manifest["streams"].items():
-        rate = s.get("measured_rate_hz")
-        table.add_row(name, str(s.get("samples")), "—" if rate is None else f"{rate:.2f}",
-                      str(s["seq_gaps"]["count"]), str(s.get("dropped")), str(s["latency_ms"].get("p99")))
+    for name, o in stream_outcomes(manifest).items():
+        rate = o["measured_rate_hz"]
+        missing = f"{o['missing_outage']} / {o['missing_unexplained']}" if o["missing"] else "0"
+        table.add_row(name, str(o["samples"]), "—" if rate is None else f"{rate:.2f}",
+                      Text(missing, "yellow" if o["missing"] else ""), str(o["dropped"]), str(o["corrupt"]),
+                      str(o["reconnects"]), str(o["p99_latency_ms"]))
     return table

@@ -13,6 +13,10 @@ import numpy as np
 from midas_cli.errors import ConfigError
 
 ADC_FULL_SCALE = 1023
+# the paper's table "Mapping between da Vinci console pedals and FPS channels" (a rig without a
+# ``pedals`` table uses it)
+DAVINCI_PEDALS = {1: "secondary_energy_left", 2: "secondary_energy_right", 3: "primary_energy_left",
+                  4: "primary_energy_right", 5: "clutch", 6: "camera", 7: "arm_swap"}
 VCC = 5.0
 
 

@@ -25,12 +25,15 @@ from typing import Any, Callable, Iterator
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.rig import check_device_name
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
-from midas_cli.record.worker import WorkerJob, run_worker
+from midas_cli.record.link import Inbox, StopLine
+from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.writer import LOG_FILE, SessionMetadata, SessionWriter
 
 log = logging.getLogger(__name__)
@@ -59,11 +62,11 @@ class Recorder:
         self.plan = plan
         self.clock = HostClock.anchored_now()
         self._ctx = mp.get_context("spawn")
-        self._queue = self._ctx.Queue(maxsize=plan.queue_size)
-        self._stop_workers = self._ctx.Event()
+        self._inbox = Inbox()
+        self._stop_workers = StopLine(self._ctx)
         self._lock = threading.Lock()
         self._bookkeeping_done = threading.Event()
-        self._processes: list = []
+        self._processes: dict[str, Any] = {}
         self.devices: dict[str, DeviceRecord] = {}
         self.streams: dict[str, StreamStats] = {}
         self._describe_devices()
@@ -77,14 +80,21 @@ class Recorder:
     def _describe_devices(self) -> None:
         """Validate every URL and learn the stream layouts before anything is created on disk."""
         for name, url in self.plan.devices.items():
+            check_device_name(name)
             device = describe_device(name, url, self.plan.seed)
             streams = device.streams
             self.devices[name] = DeviceRecord(name, device.kind, DeviceUrl.parse(url).redacted(),
-                                              device.settings(), [s.name for s in streams])
+                                              device.settings(), [s.name for s in streams],
+                                              labels=_labels(device.kind, self.plan.rig.get("devices", {}).get(name)))
             for spec in streams:
                 if spec.name in self.streams:
                     raise ConfigError(f"two devices produce a stream named {spec.name!r}")
                 self.streams[spec.name] = StreamStats(spec)
+
+    @property
+    def started_monotonic_s(self) -> float:
+        """``time.monotonic()`` at the session start (the manifest's start time)."""
+        return self._started_mono
 
     @property
     def path(self) -> Path:
@@ -93,42 +103,60 @@ class Recorder:
 
     def start(self) -> Path:
         """Create the session folder and every stream file (with its header), start the workers and
-        the bookkeeping thread; return the folder."""
+        the bookkeeping thread; return the folder. Elapsed time and ``--duration`` count from here.
+
+        The stop signals are blocked while the workers are created (never ignored): one that arrives
+        meanwhile stays pending and reaches this process's handler as soon as they are unblocked,
+        while each worker sets them to ignored before it unblocks them (it stops when told)."""
         specs = [stats.spec for stats in self.streams.values()]
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
                                            self.plan.rig)
+        self._started_mono = self.clock.to_monotonic_s(self.writer.manifest["start"]["host_ns"])
         self._attach_log()
         self.bytes_written = self.writer.bytes_written
         start_ns = self.writer.manifest["start"]["host_ns"]
         folder = self.path.resolve()
-        with _terminal_signals_ignored():
+        with stop_signals_blocked():
             for name, url in self.plan.devices.items():
                 files = {s: str(folder / self.streams[s].spec.file) for s in self.devices[name].streams}
                 job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
-                                session_dir=str(folder), stream_files=files)
-                process = self._ctx.Process(target=run_worker, args=(job, self._queue, self._stop_workers),
+                                session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size)
+                receiver, sender = self._ctx.Pipe(duplex=False)
+                process = self._ctx.Process(target=worker_main, args=(job, sender, self._stop_workers.reader),
                                             name=f"midas-{name}", daemon=True)
                 process.start()
-                self._processes.append(process)
-        self._started_mono = time.monotonic()
+                sender.close()  # the worker holds the only sending end: EOF here means it is gone
+                self._inbox.add(name, receiver)
+                self._processes[name] = process
+        self._stop_workers.close_reader()
         self._bookkeeping_thread = threading.Thread(target=self._bookkeeping_loop, name="midas-bookkeeping",
                                                     daemon=True)
         self._bookkeeping_thread.start()
         log.info("recording %s with devices %s", self.writer.folder, ", ".join(self.devices))
         return self.writer.folder
 
-    def wait_ready(self, timeout_s: float = 15.0) -> bool:
-        """Wait until every device has opened or failed once (worker start-up takes ~1 s)."""
+    def wait_ready(self, timeout_s: float = 15.0, should_stop: Callable[[], bool] = lambda: False,
+                   on_tick: Callable[[RecorderSnapshot], None] | None = None, tick_s: float = 0.25) -> bool:
+        """Wait until every device has opened or failed once, calling ``on_tick`` with the live
+        snapshot meanwhile; False if ``timeout_s`` passed or ``should_stop()`` came first."""
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+        next_tick = 0.0
+        while time.monotonic() < deadline and not should_stop():
             with self._lock:
-                if all(r.state != "starting" for r in self.devices.values()):
-                    self._started_mono = time.monotonic()
+                if all(r.state not in ("starting", "opening") for r in self.devices.values()):
                     return True
+            if on_tick is not None and time.monotonic() >= next_tick:
+                on_tick(self.snapshot())
+                next_tick = time.monotonic() + tick_s
             time.sleep(0.02)
         return False
+
+    def starting(self) -> list[str]:
+        """Devices that have neither opened nor failed yet."""
+        with self._lock:
+            return [name for name, r in self.devices.items() if r.state in ("starting", "opening")]
 
     def unopened(self) -> dict[str, str]:
         """Devices that failed every attempt to open so far: name -> their last error."""
@@ -136,8 +164,11 @@ class Recorder:
             return {name: r.last_error for name, r in self.devices.items() if r.opens == 0 and r.state == "lost"}
 
     def _stall_timeout(self, device: str) -> float:
-        rates = [s.spec.nominal_rate_hz for s in self.streams.values() if s.spec.device == device]
-        return max(0.5, 10.0 / min(rates)) if rates else 1.0
+        """Silence that counts as a lost device: 10 periods of its slowest regular stream (at least
+        0.5 s); a device with only event streams is never silent for too long."""
+        rates = [s.spec.nominal_rate_hz for s in self.streams.values()
+                 if s.spec.device == device and not s.spec.is_events]
+        return max(0.5, 10.0 / min(rates)) if rates else float("inf")
 
     def _attach_log(self) -> None:
         handler = logging.FileHandler(self.path / LOG_FILE, encoding="utf-8")
@@ -166,16 +197,20 @@ class Recorder:
         last_sync = time.monotonic()
         exited: set[str] = set()
         while len(exited) < len(self.devices):
-            try:
-                message = self._queue.get(timeout=0.1)
-            except queue.Empty:
-                message = None
-            if isinstance(message, DataBatch):
-                self._account(message)
-            elif isinstance(message, DeviceEvent):
-                self._on_event(message)
-                if message.event == "exited":
-                    exited.add(message.device)
+            for message in self._inbox.get(timeout=0.1):
+                if isinstance(message, DataBatch):
+                    self._account(message)
+                elif isinstance(message, DeviceEvent):
+                    self._on_event(message)
+                    if message.event == "exited":
+                        exited.add(message.device)
+            for device in self._inbox.closed:  # its pipe closed without an 'exited': the process died
+                if device not in exited:
+                    exited.add(device)
+                    self._on_event(DeviceEvent(device, "crashed", self.clock.now_ns(),
+                                               "the worker process ended without saying why (killed?)"))
+                    self._on_event(DeviceEvent(device, "exited", self.clock.now_ns()))
+            self._inbox.closed.clear()
             if time.monotonic() - last_sync >= SYNC_EVERY_S:
                 self.writer.sync()
                 last_sync = time.monotonic()
@@ -193,7 +228,10 @@ class Recorder:
         with self._lock:
             record = self.devices[event.device]
             record.events.append({"t_host_ns": event.t_host_ns, "event": event.event, "message": event.message})
-            if event.event == "opened":
+            if event.event == "opening":
+                if record.state == "starting":
+                    record.state = "opening"
+            elif event.event == "opened":
                 record.opens += 1
                 record.info = event.info
                 record.state = "ok"
@@ -243,7 +281,7 @@ class Recorder:
     def _device_status(self, record: DeviceRecord, now_ns: int) -> DeviceStatus:
         streams = tuple(self._stream_status(self.streams[name], now_ns) for name in record.streams)
         return DeviceStatus(record.name, record.kind, record.url, _health(record, streams), record.reconnects,
-                            record.last_error, streams)
+                            record.last_error, streams, record.labels)
 
     @staticmethod
     def _stream_status(stats: StreamStats, now_ns: int) -> StreamStatus:
@@ -261,31 +299,42 @@ class Recorder:
     # -- stopping -----------------------------------------------------------------------------
     def stop(self, status: str = "complete", reason: str = "stopped") -> dict[str, Any]:
         """Stop the workers (they write what they still had), and finalise the manifest from the
-        files on disk."""
+        files on disk. The session's stop time is now: what the workers still write was read by now."""
+        stop_ns = self.clock.now_ns()
         self._stop_deadline = time.monotonic() + STOP_GRACE_S
         self._stop_workers.set()
         self._bookkeeping_done.wait(STOP_GRACE_S + 1.0)
         self._bookkeeping_thread.join(timeout=1.0)
-        for process in self._processes:
-            process.join(timeout=1.0)
-            if process.is_alive():
-                log.error("worker %s did not exit; terminating it", process.name)
-                process.terminate()
-                process.join(timeout=1.0)
-            if process.is_alive():  # it writes its own rows: it must be gone before the files are hashed
-                log.error("worker %s ignored SIGTERM; killing it", process.name)
-                process.kill()
-                process.join(timeout=1.0)
+        self._reap_workers(self._stop_deadline + 1.0)
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
         try:
-            manifest = self.writer.finalize(status, reason, self.clock.now_ns(), extra)
+            manifest = self.writer.finalize(status, reason, stop_ns, extra)
         except OSError as exc:
             raise SessionError(f"could not finalise {self.path}: {exc}; its stream files are kept, "
                                f"run `midas session repair {self.path}` when there is space") from exc
         log.info("session %s finalised: %s (%s)", self.path, status, reason)
         self._detach_log()
         return manifest
+
+    def _reap_workers(self, deadline: float) -> None:
+        """Wait for every worker process to end. One that said 'exited' has closed its files and
+        is only tearing its interpreter down: on a busy machine that can take a while, so it gets
+        until ``deadline`` and is then ended quietly. One that never said 'exited' is an error."""
+        for name, process in self._processes.items():
+            process.join(timeout=max(0.0, deadline - time.monotonic()))
+            if not process.is_alive():
+                continue
+            said_exited = self.devices[name].exited
+            level = logging.INFO if said_exited else logging.ERROR
+            log.log(level, "worker %s %s; terminating it", process.name,
+                    "is slow to exit after it finished" if said_exited else "did not exit")
+            process.terminate()
+            process.join(timeout=2.0)
+            if process.is_alive():  # it writes its own rows: it must be gone before the files are hashed
+                log.error("worker %s ignored SIGTERM; killing it", process.name)
+                process.kill()
+                process.join(timeout=2.0)
 
     def _detach_log(self) -> None:
         if self._log_handler is not None:
@@ -296,26 +345,39 @@ class Recorder:
     _stop_deadline = float("inf")
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 @contextlib.contextmanager
-def _terminal_signals_ignored() -> Iterator[None]:
-    """Children inherit SIG_IGN for SIGINT/SIGHUP across exec, so a Ctrl-C or hang-up that reaches the
-    whole process group while a worker is still starting cannot kill it; the recorder decides."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGHUP)}
+def stop_signals_blocked() -> Iterator[None]:
+    """Block SIGINT/SIGTERM/SIGHUP in this thread for the duration (pending ones are delivered when
+    the block ends, never dropped); children started meanwhile inherit the block."""
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
         yield
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def _labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]:
+    """Names of an fps device's channels (the rig's ``pedals`` table, else the paper's da Vinci
+    mapping) or an emht device's sensors (the rig's ``sensors``), keyed by the number as text."""
+    extras = rig_entry or {}
+    if kind == "fps":
+        table = extras.get("pedals") or DAVINCI_PEDALS
+        return {str(k): str(v) for k, v in table.items()}
+    if kind == "emht":
+        return {str(k): str(v) for k, v in (extras.get("sensors") or {}).items()}
+    return {}
 
 
 def _health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:
     """ok / degraded / lost / starting / stopped, from events and the streams' freshness and rate."""
-    if record.state in ("lost", "stopped", "starting"):
+    if record.state in ("lost", "stopped", "starting", "opening"):
         return record.state
     for stream in streams:
+        if stream.nominal_rate_hz is None:  # events: no rate to fall short of, silence is normal
+            continue
         stale = max(0.5, 5.0 / stream.nominal_rate_hz)
         if stream.last_age_s is not None and stream.last_age_s > stale:
             return "degraded"
@@ -326,11 +388,22 @@ def _health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:
 
 def run_until(recorder: Recorder, duration_s: float | None, should_stop: Callable[[], bool],
               on_tick: Callable[[RecorderSnapshot], None], tick_s: float = 0.25) -> None:
-    """Block until ``duration_s`` has elapsed or ``should_stop()`` is true, calling ``on_tick``."""
-    deadline = None if duration_s is None else time.monotonic() + duration_s
+    """Block until ``duration_s`` after the session start has passed or ``should_stop()`` is true,
+    calling ``on_tick`` with a snapshot about every ``tick_s``."""
+    deadline = None if duration_s is None else recorder.started_monotonic_s + duration_s
     while not should_stop():
         if deadline is not None and time.monotonic() >= deadline:
             return
         on_tick(recorder.snapshot(duration_s))
         wait = tick_s if deadline is None else max(0.0, min(tick_s, deadline - time.monotonic()))
-        time.sleep(wait)
+        _sleep_watching(wait, should_stop)
+
+
+def _sleep_watching(seconds: float, should_stop: Callable[[], bool], step_s: float = 0.05) -> None:
+    """Sleep ``seconds`` in short steps, returning early once ``should_stop()`` is true."""
+    end = time.monotonic() + seconds
+    while not should_stop():
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(step_s, left))

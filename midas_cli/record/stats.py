@@ -140,6 +140,7 @@ class DeviceRecord:
     opens: int = 0
     last_error: str = ""
     exited: bool = False
+    labels: dict[str, str] = field(default_factory=dict)  # channel/sensor number -> name (the live screen)
 
     @property
     def reconnects(self) -> int:

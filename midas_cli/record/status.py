@@ -8,7 +8,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-STATES = ("starting", "ok", "degraded", "lost", "stopped")
+STATES = ("starting", "opening", "ok", "degraded", "lost", "stopped")
 
 
 @dataclass(frozen=True)
@@ -17,7 +17,7 @@ class StreamStatus:
     (ms); ``latency_window_ms``: the same over about the last 10 s, with ``n`` (rows in the window)."""
 
     name: str
-    nominal_rate_hz: float
+    nominal_rate_hz: float | None  # None: an event stream
     measured_rate_hz: float | None
     samples: int
     last_age_s: float | None
@@ -38,6 +38,7 @@ class DeviceStatus:
     reconnects: int
     last_error: str
     streams: tuple[StreamStatus, ...]
+    labels: dict[str, str] = field(default_factory=dict)  # channel/sensor number -> name from the rig
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,10 @@ their headers): no second process stands between a device read and the disk. The
 bookkeeping only (sequence numbers, times, bytes) and fsyncs the files about once a second, so a
 worker never blocks on fsync.
 
-It ignores SIGINT and SIGHUP (the recorder decides when to stop and tells it through ``stop``),
-reconnects with exponential back-off when its device fails or goes silent, and exits if the
-recorder disappears. A failed write (disk full, file too large) ends the worker with a
+It ignores SIGINT and SIGHUP (the recorder decides when to stop and tells it through ``stop``; it
+starts with them blocked, so none can reach it before it ignores them), reconnects with
+exponential back-off when its device fails or goes silent, and exits if the recorder disappears.
+Messages go through a pipe (``record/link.py``): nothing a SIGKILL could leave behind. A failed write (disk full, file too large) ends the worker with a
 ``write_failed`` event: the recorder then stops the whole recording and keeps what is on disk.
 """
 
@@ -22,6 +23,7 @@ import sys
 import time
 import traceback
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +33,7 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.base import Device
 from midas_cli.devices.registry import create_device
 from midas_cli.errors import DeviceError, MidasError
+from midas_cli.record.link import StopSignal, WorkerLink
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import StreamAppender
@@ -55,6 +58,7 @@ class WorkerJob:
     parent_pid: int
     session_dir: str = ""  # absolute session folder, for devices that write files into it (obs:// video/)
     stream_files: dict[str, str] = field(default_factory=dict)  # stream -> absolute path; the recorder created it
+    queue_size: int = 4096  # bookkeeping messages held before they are merged (a slow recorder)
 
 
 class StreamWriteFailed(Exception):
@@ -131,15 +135,28 @@ class WorkerOutput:
             appender.close()
 
 
+def worker_main(job: WorkerJob, sender: Connection, stop_reader: Connection) -> None:
+    """Entry point of the worker process: the signals first (they arrive blocked, see
+    ``Recorder.start``), then the pipes, then ``run_worker``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGHUP, signal.SIGTERM))
+    link = WorkerLink(sender, job.queue_size)
+    try:
+        run_worker(job, link, StopSignal(stop_reader))
+    finally:
+        link.close()
+
+
 def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
     """Process entry point. A failed write is reported as a 'write_failed' event (the worker then
     exits normally); a bug (any other exception) as a 'crashed' event with its traceback, never
     swallowed, and the worker exits with status 1."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     output = WorkerOutput(job.device, out, HostClock(job.anchor_ns))
     status = 0
     try:
+        output.event("opening")
         output.open(job.stream_files)
         _serve(job, output, stop)
     except StreamWriteFailed as exc:

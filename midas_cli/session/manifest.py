@@ -11,7 +11,7 @@ from midas_cli.errors import SessionError
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "manifest.json"
-STATUSES = ("recording", "complete", "interrupted", "recovered")
+STATUSES = ("recording", "complete", "interrupted", "recovered", "failed")
 REQUIRED_KEYS = ("schema_version", "session_id", "status", "metadata", "start", "devices", "streams")
 
 

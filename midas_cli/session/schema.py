@@ -50,12 +50,15 @@ T_HOST = Column("t_host_ns", "int", "ns", clock="host", description="host clock 
 
 @dataclass(frozen=True)
 class StreamSpec:
-    """A stream: its name (file ``streams/<name>.csv``), producing device, columns and nominal rate."""
+    """A stream: its name (file ``streams/<name>.csv``), producing device, columns and nominal rate.
+
+    ``nominal_rate_hz`` is None for an event stream (sync-marker toggles, irregular LSL markers): its
+    rows come when something happens, so it has no rate to fall short of and never goes stale."""
 
     name: str
     device: str
     columns: tuple[Column, ...]
-    nominal_rate_hz: float
+    nominal_rate_hz: float | None
     description: str = ""
     _formatters: tuple = field(default=(), compare=False, repr=False)
 
@@ -65,7 +68,15 @@ class StreamSpec:
             raise SessionError(f"stream {self.name!r} must start with seq, t_host_ns columns, got {names[:2]}")
         if len(set(names)) != len(names):
             raise SessionError(f"stream {self.name!r} has duplicate column names")
+        if self.nominal_rate_hz is not None and not self.nominal_rate_hz > 0:
+            raise SessionError(f"stream {self.name!r}: nominal rate must be positive Hz or None (events), "
+                               f"got {self.nominal_rate_hz}")
         object.__setattr__(self, "_formatters", tuple(_formatter(c) for c in self.columns))
+
+    @property
+    def is_events(self) -> bool:
+        """True for an event stream: no nominal rate, rows only when something happens."""
+        return self.nominal_rate_hz is None
 
     @property
     def file(self) -> str:
@@ -94,6 +105,7 @@ class StreamSpec:
             "device": self.device,
             "file": self.file,
             "nominal_rate_hz": self.nominal_rate_hz,
+            "timing": "events" if self.is_events else "regular",
             "description": self.description,
             "columns": [c.to_manifest() for c in self.columns],
         }
@@ -102,7 +114,9 @@ class StreamSpec:
     def from_manifest(cls, name: str, entry: dict[str, Any]) -> "StreamSpec":
         try:
             columns = tuple(Column.from_manifest(c) for c in entry["columns"])
-            return cls(name, entry["device"], columns, float(entry["nominal_rate_hz"]), entry.get("description", ""))
+            rate = entry["nominal_rate_hz"]
+            return cls(name, entry["device"], columns, None if rate is None else float(rate),
+                       entry.get("description", ""))
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(f"malformed stream {name!r} in manifest: {exc}") from exc
 

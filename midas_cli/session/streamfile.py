@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from midas_cli.session.schema import StreamSpec
 
@@ -77,6 +76,8 @@ def summarize_stream(path: Path, spec: StreamSpec) -> StreamSummary:
 
 def read_seq_and_time(body: bytes) -> tuple[np.ndarray, np.ndarray]:
     """The first two columns (seq, t_host_ns) of header-less CSV ``body`` as int64 arrays."""
+    import pandas as pd  # here, not at the top: recorder workers import this module and never call it
+
     frame = pd.read_csv(io.BytesIO(body), header=None, usecols=[0, 1], dtype="int64", engine="c")
     return frame[0].to_numpy(), frame[1].to_numpy()
 

@@ -11,6 +11,7 @@ import getpass
 import os
 import platform
 import re
+import shutil
 import socket
 import sys
 from dataclasses import asdict, dataclass
@@ -145,25 +146,29 @@ class SessionWriter:
         offline writers (simulate, import) whose data carry their own times; live recording uses now."""
         start_ns = clock.now_ns() if start_ns is None else start_ns
         folder = make_session_folder(out_root, metadata.folder_stem(), start_ns)
-        for sub in SUBFOLDERS:
-            (folder / sub).mkdir()
-        manifest = {
-            "schema_version": SCHEMA_VERSION,
-            "session_id": folder.name,
-            "status": "recording",
-            "stop_reason": None,
-            "metadata": asdict(metadata),
-            "rig": rig or {},
-            "clock": {"kind": "CLOCK_MONOTONIC anchored to Unix epoch", "anchor_ns": clock.anchor_ns},
-            "start": {"utc": utc_iso(start_ns), "host_ns": start_ns},
-            "stop": None,
-            "software": software_info(),
-            "devices": devices,
-            "streams": {spec.name: spec.to_manifest() for spec in specs},
-            "files": {"log": LOG_FILE},
-        }
-        write_manifest(folder, manifest)
-        return cls(folder, manifest, specs)
+        try:
+            manifest = {
+                "schema_version": SCHEMA_VERSION,
+                "session_id": folder.name,
+                "status": "recording",
+                "stop_reason": None,
+                "metadata": asdict(metadata),
+                "rig": rig or {},
+                "clock": {"kind": "CLOCK_MONOTONIC anchored to Unix epoch", "anchor_ns": clock.anchor_ns},
+                "start": {"utc": utc_iso(start_ns), "host_ns": start_ns},
+                "stop": None,
+                "software": software_info(),
+                "devices": devices,
+                "streams": {spec.name: spec.to_manifest() for spec in specs},
+                "files": {"log": LOG_FILE},
+            }
+            write_manifest(folder, manifest)  # first: a kill from here on leaves a session `repair` understands
+            for sub in SUBFOLDERS:
+                (folder / sub).mkdir(exist_ok=True)
+            return cls(folder, manifest, specs)
+        except OSError as exc:  # disk full, quota, permissions: nothing was recorded, leave nothing behind
+            shutil.rmtree(folder, ignore_errors=True)
+            raise SessionError(f"cannot create the session in {out_root}: {exc.strerror or exc}") from exc
 
     def append(self, stream: str, text: str) -> None:
         """Append whole CSV lines to a stream and hand them to the OS (survives a process kill).

@@ -23,13 +23,10 @@ import numpy as np
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.fps.driver import FpsDevice
-from midas_cli.devices.pedals import PedalThresholds, adc_to_volts
+from midas_cli.devices.pedals import DAVINCI_PEDALS, PedalThresholds, adc_to_volts
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.session.reader import Session
 
-# the paper's table "Mapping between da Vinci console pedals and FPS channels"
-DAVINCI_PEDALS = {1: "secondary_energy_left", 2: "secondary_energy_right", 3: "primary_energy_left",
-                  4: "primary_energy_right", 5: "clutch", 6: "camera", 7: "arm_swap"}
 MIN_SEPARATION_V = 0.3
 PRESS_FRACTION = 0.4
 RELEASE_FRACTION = 0.2

@@ -17,7 +17,7 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 from midas_cli.devices.base import DeviceUrl
-from midas_cli.devices.fps.calibration import DAVINCI_PEDALS
+from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.fps.driver import ALLOWED, DEFAULTS, thresholds_from_params
 from midas_cli.devices.pedals import PedalThresholds
 from midas_cli.errors import ConfigError

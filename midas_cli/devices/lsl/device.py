@@ -150,9 +150,10 @@ class LslDevice(Device):
         self._last_t = 0
 
     @property
-    def rate(self) -> float:
-        """Nominal rate: the stream's, or ``rate`` for irregular streams (default 1 Hz)."""
-        return self.layout.nominal_srate or self.params["rate"] or 1.0
+    def rate(self) -> float | None:
+        """Nominal rate: the stream's, or ``rate`` for irregular streams; None (an event stream, e.g.
+        markers) when the stream is irregular and no ``rate`` is given."""
+        return self.layout.nominal_srate or self.params["rate"] or None
 
     @property
     def streams(self) -> list[StreamSpec]:

@@ -33,16 +33,12 @@ class MarkerPlan:
         if self.every and self.every <= self.on:
             raise ConfigError(f"sync marker: marker_every ({self.every} s) must exceed marker_on ({self.on} s)")
 
-    def nominal_rate_hz(self) -> float:
-        """Toggles per second (two per showing): the marker stream's nominal rate."""
-        return 2.0 / (self.every if self.every else self.at + self.on)
-
     def spec(self, device: str) -> StreamSpec:
         columns = (SEQ, Column("t_host_ns", "int", "ns", clock="host", description="host time before the request"),
                    Column("t_ack_ns", "int", "ns", clock="host", description="host time OBS acknowledged it"),
                    Column("enabled", "int", "bool", description="1 shown, 0 hidden"))
-        return StreamSpec(f"{device}_marker", device, columns, self.nominal_rate_hz(),
-                          f"sync marker toggles of scene item {self.source!r}")
+        return StreamSpec(f"{device}_marker", device, columns, None,
+                          f"sync marker toggles of scene item {self.source!r} (events: no nominal rate)")
 
 
 class SyncMarker:
