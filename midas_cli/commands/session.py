@@ -67,8 +67,8 @@ def list_sessions(
     show_all: bool = typer.Option(
         False, "--all", help="Include recordings that failed to start (status 'failed'; hidden otherwise)."),
     latest: bool = typer.Option(
-        False, "--latest", help="Only the newest session by start time, any status: its path (--json: path, "
-        "status, start time, id); exit 4 if there is none."),
+        False, "--latest", help="Only the newest session by start time, recording or interrupted included "
+        "(failed ones with --all): its path (--json: path, status, start time, id); exit 4 if there is none."),
     paths: bool = typer.Option(False, "--paths", help="Print one session path per line instead of a table."),
     max_depth: int = typer.Option(3, "--max-depth", min=1, help="Folder levels under ROOT searched."),
     as_json: bool = JSON_OPTION,
@@ -77,8 +77,9 @@ def list_sessions(
     except with --latest once a session is found). Recordings that failed to start are hidden unless
     --all (or --status failed); stderr says how many.
 
-    Examples: midas session list sessions --task suturing --json | jq -r '.[].path'
-              path=$(midas session list sessions --latest)    # e.g. after an SSH drop
+    Example: midas session list sessions --task suturing --json | jq -r '.[].path'
+
+    Example (the session an SSH drop hid): path=$(midas session list sessions --latest)
     """
     if paths and as_json:
         raise ConfigError("give --paths or --json, not both")
