@@ -41,8 +41,9 @@ $(_TABLES_SIM)/%/.simulated:
 # start, or one still marked `recording` (running, or crashed: `midas session repair` it), is left out
 # with a warning; `midas session list` reports folders it cannot read on stderr.
 ifdef TABLES_DATA
-_SESSIONS := $(shell $(MIDAS_BIN) session list $(TABLES_DATA) --max-depth 1 --status complete,interrupted,recovered --paths)
-_SKIPPED := $(shell $(MIDAS_BIN) session list $(TABLES_DATA) --max-depth 1 --status recording,failed --paths 2> /dev/null)
+_LIST := $(MIDAS_BIN) session list $(TABLES_DATA) --max-depth 1 --paths --status
+_SESSIONS := $(shell $(_LIST) complete,interrupted,recovered)
+_SKIPPED := $(shell $(_LIST) recording,failed 2> /dev/null)
 $(if $(_SKIPPED),$(warning skipping unfinished or failed session(s): $(_SKIPPED)))
 $(if $(_SESSIONS),,$(error no finished session folders under $(TABLES_DATA)))
 endif
