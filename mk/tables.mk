@@ -1,7 +1,8 @@
 # `make tables`: the paper's validation tables end to end (simulate -> calibrate -> align -> eval) into
 # results/. Included from the Makefile (needs $(BIN) and the `install` target from there).
 #   make tables -j2                        simulated Raven-II (15 trials) + da Vinci Xi (17 trials)
-#   make tables DATA=path/to/dataset -j8   any folder of session folders (no simulation)
+#   make tables DATA=path/to/dataset -j8   any folder of session folders (no simulation; failed or
+#                                          unfinished sessions are skipped)
 #   make tables TABLES_MAX_SECONDS=60      short simulated trials (demos, CI)
 # It ends with the gesture-recognition table (mk/gestures.mk: training on CPU takes a while; see
 # GESTURES_EPOCHS / GESTURES_GRID / GESTURES_DEVICE=cuda there).
@@ -36,7 +37,16 @@ $(_TABLES_SIM)/%/.simulated:
 	touch $@
 
 # ---- one dataset (invoked recursively once its session folders exist) -------------------------------
-_SESSIONS := $(patsubst %/manifest.json,%,$(wildcard $(TABLES_DATA)/*/manifest.json))
+# Its sessions are the finished session folders directly under TABLES_DATA: a recording that failed to
+# start, or one still marked `recording` (running, or crashed: `midas session repair` it), is left out
+# with a warning; `midas session list` reports folders it cannot read on stderr.
+ifdef TABLES_DATA
+_LIST := $(MIDAS_BIN) session list $(TABLES_DATA) --max-depth 1 --paths --status
+_SESSIONS := $(shell $(_LIST) complete,interrupted,recovered)
+_SKIPPED := $(shell $(_LIST) recording,failed 2> /dev/null)
+$(if $(_SKIPPED),$(warning skipping unfinished or failed session(s): $(_SKIPPED)))
+$(if $(_SESSIONS),,$(error no finished session folders under $(TABLES_DATA)))
+endif
 _ALIGNED := $(_SESSIONS:%=%/derived/aligned.json)
 _RESULTS := $(TABLES_DIR)/$(TABLES_NAME)
 _HAS_ROBOT = $(MIDAS_BIN) session info --json $(firstword $(_SESSIONS)) | grep -q '"mtm"'

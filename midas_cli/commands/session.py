@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any, Optional
 
@@ -10,8 +11,9 @@ from rich.table import Table
 
 from midas_cli.commands.common import JSON_OPTION, err, out, print_json
 from midas_cli.console import clock_text
-from midas_cli.errors import MidasError
+from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.session.integrity import repair_session, verify_session
+from midas_cli.session.manifest import STATUSES
 from midas_cli.session.reader import Session, find_sessions
 from midas_cli.session.summary import summarize_session
 
@@ -30,7 +32,7 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
 
     Example: midas session info sessions/suturing_S1_T1_20260101T120000Z
     """
-    summary = summarize_session(Session.open(path))
+    summary = summarize_session(Session.open(path, allow_failed=True))
     if as_json:
         print_json(summary)
         return
@@ -56,34 +58,90 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
 
 @app.command("list")
 def list_sessions(
-    root: Path = typer.Argument(..., help="Folder to search (up to 3 levels deep)."),
+    root: Path = typer.Argument(..., help="Folder to search."),
     task: Optional[str] = typer.Option(None, help="Only sessions of this task."),
     subject: Optional[str] = typer.Option(None, help="Only sessions of this subject."),
     platform: Optional[str] = typer.Option(None, help="Only sessions on this platform."),
-    status: Optional[str] = typer.Option(None, help="Only sessions with this status."),
+    status: Optional[str] = typer.Option(
+        None, help="Only sessions with this status; a comma list for several (complete,interrupted,recovered)."),
+    show_all: bool = typer.Option(
+        False, "--all", help="Include recordings that failed to start (status 'failed'; hidden otherwise)."),
+    latest: bool = typer.Option(
+        False, "--latest", help="Only the newest session by start time, recording or interrupted included "
+        "(failed ones with --all): its path (--json: path, status, start time, id); exit 4 if there is none."),
+    paths: bool = typer.Option(False, "--paths", help="Print one session path per line instead of a table."),
+    max_depth: int = typer.Option(3, "--max-depth", min=1, help="Folder levels under ROOT searched."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Tabulate many sessions for scripts; unreadable folders are reported on stderr and skipped.
+    """Tabulate many sessions for scripts; unreadable folders are reported on stderr and skipped (exit 4,
+    except with --latest once a session is found). Recordings that failed to start are hidden unless
+    --all (or --status failed); stderr says how many.
 
     Example: midas session list sessions --task suturing --json | jq -r '.[].path'
+
+    Example (the session an SSH drop hid): path=$(midas session list sessions --latest)
     """
-    wanted = {"task": task, "subject": subject, "platform": platform, "status": status}
-    rows, unreadable = [], 0
-    for folder in find_sessions(root):
+    if paths and as_json:
+        raise ConfigError("give --paths or --json, not both")
+    statuses = _status_filter(status)
+    wanted = {"task": task, "subject": subject, "platform": platform}
+    rows, unreadable, hidden = [], 0, 0
+    for folder in find_sessions(root, max_depth):
         try:
-            summary = summarize_session(Session.open(folder))
+            session = Session.open(folder, allow_failed=True)
+            summary = summarize_session(session)
         except MidasError as exc:  # one bad folder must not hide the others
             err.print(f"midas: skipping {folder}: {exc}", markup=False)
             unreadable += 1
             continue
-        if all(v is None or str(summary.get(k)) == v for k, v in wanted.items()):
-            rows.append(summary)
+        if not all(v is None or str(summary.get(k)) == v for k, v in wanted.items()):
+            continue
+        if statuses is not None and summary["status"] not in statuses:
+            continue
+        if summary["status"] == "failed" and statuses is None and not show_all:
+            hidden += 1
+            continue
+        start_ns = session.manifest["start"].get("host_ns")
+        summary["start_host_ns"] = start_ns if isinstance(start_ns, int) else None
+        rows.append(summary)
+    if hidden:
+        err.print(f"{hidden} failed session(s) hidden (recordings that never started; --all lists them)")
+    if latest:
+        filtered = any(v is not None for v in (task, subject, platform, status))
+        _print_latest(root, rows, as_json, filtered, hidden)
+        return
     if as_json:
         print_json([{k: v for k, v in r.items() if k != "devices"} for r in rows])
+    elif paths:
+        sys.stdout.write("".join(r["path"] + "\n" for r in rows))
     else:
         _print_session_table(rows)
     if unreadable:
         raise typer.Exit(4)
+
+
+def _status_filter(status: Optional[str]) -> Optional[set[str]]:
+    if status is None:
+        return None
+    chosen = {s.strip() for s in status.split(",") if s.strip()}
+    unknown = sorted(chosen - set(STATUSES))
+    if unknown or not chosen:
+        raise ConfigError(f"unknown status {', '.join(unknown) or repr(status)} (statuses: {', '.join(STATUSES)})")
+    return chosen
+
+
+def _print_latest(root: Path, rows: list[dict[str, Any]], as_json: bool, filtered: bool, hidden: int) -> None:
+    """The newest session by the manifest's start time (host clock); ties go to the later folder name."""
+    if not rows:
+        why = [text for text, flag in (("matching the filters", filtered),
+                                       (f"{hidden} failed one(s) hidden: --all lists them", hidden)) if flag]
+        raise SessionError(f"no session under {root}" + (f" ({'; '.join(why)})" if why else ""))
+    newest = max(rows, key=lambda r: (r["start_host_ns"] is not None, r["start_host_ns"] or 0, r["path"]))
+    if as_json:
+        print_json({"path": newest["path"], "status": newest["status"], "start_utc": newest["start_utc"],
+                    "start_host_ns": newest["start_host_ns"], "session_id": newest["session_id"]})
+    else:
+        sys.stdout.write(newest["path"] + "\n")
 
 
 def _print_session_table(rows: list[dict[str, Any]]) -> None:
@@ -126,7 +184,9 @@ def verify(
 @app.command()
 def repair(paths: list[Path] = typer.Argument(..., help="Session folder(s)."), as_json: bool = JSON_OPTION) -> None:
     """Make a session left by a crash (status 'recording') readable: cut torn last lines (kept in
-    logs/repair-<stream>.cut), recount every stream, mark it 'recovered'.
+    logs/repair-<stream>.cut), recount every stream, mark it 'recovered'. In any session, remove the
+    temporary files an interrupted write left (*.tmp), and put a complete manifest.json.tmp in place
+    when manifest.json is missing.
 
     Example: midas session repair sessions/suturing_S1_T1_20260101T120000Z && midas session verify $_
     """
@@ -135,11 +195,16 @@ def repair(paths: list[Path] = typer.Argument(..., help="Session folder(s)."), a
         print_json([r.to_json() for r in reports])
         return
     for report in reports:
+        if report.restored_manifest:
+            out.print(f"{report.path}: manifest.json was missing; put the complete manifest.json.tmp in its place",
+                      markup=False)
         if not report.repaired:
-            out.print(f"{report.path}: status {report.status!r}, nothing to repair")
-            continue
-        cut = ", ".join(f"{s}: {c['lines']} partial line(s), {c['bytes']} bytes" for s, c in report.cut.items())
-        out.print(f"{report.path}: recovered; cut {cut or 'nothing'}", markup=False)
-        for name in report.created:
-            out.print(f"  stream {name} had no file; created it empty", markup=False)
-
+            done = f"removed {len(report.removed)} temporary file(s)" if report.removed else "nothing to repair"
+            out.print(f"{report.path}: status {report.status!r}, {done}", markup=False)
+        else:
+            cut = ", ".join(f"{s}: {c['lines']} partial line(s), {c['bytes']} bytes" for s, c in report.cut.items())
+            out.print(f"{report.path}: recovered; cut {cut or 'nothing'}", markup=False)
+            for name in report.created:
+                out.print(f"  stream {name} had no file; created it empty", markup=False)
+        for rel in report.removed:
+            out.print(f"  removed temporary file {rel}", markup=False)

@@ -1,4 +1,11 @@
-"""`verify` (the manifest against the files) and `repair` (a session left behind by a crash)."""
+"""`verify` (the manifest against the files) and `repair` (a session left behind by a crash).
+
+Both also look for the temporary files the session format's writers leave when they are killed, or
+the disk fills, between writing a temporary and renaming it into place (see ``find_temporaries``):
+`verify` reports each, `repair` removes them. Every one is a half-made replacement of something
+midas can make again (a binary copy, a derived table, a calibration), except ``manifest.json.tmp``
+when ``manifest.json`` itself is missing: then it is the only manifest there is, and `repair` puts it
+in place if it is complete and valid, or refuses and leaves the folder as it is."""
 
 from __future__ import annotations
 
@@ -11,13 +18,49 @@ from typing import Any
 from midas_cli import __version__
 from midas_cli.errors import SessionError
 from midas_cli.session.columnar import add_binary_copies, copy_differences
-from midas_cli.session.manifest import load_manifest, write_manifest
+from midas_cli.session.manifest import (MANIFEST_NAME, MANIFEST_TMP, fsync_dir, load_manifest, read_manifest_file,
+                                        write_manifest)
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import StreamSummary, complete_line_end, summarize_stream
 from midas_cli.session.writer import utc_iso
 
 FINISHED = ("complete", "interrupted", "recovered")
+TEMP_SUFFIXES = (".tmp", ".tmp.npz")  # path + ".tmp" everywhere; artifacts.write_npz: path + ".tmp.npz"
+NOT_SEARCHED = ("video",)  # OBS and the RGB-D recorder write there, not the session format's writers
+
+
+def find_temporaries(folder: Path | str) -> list[str]:
+    """The temporary files left in a session folder by an interrupted write, relative to it, sorted.
+
+    The session format's writers each write ``<file>.tmp`` and rename it to ``<file>``:
+    ``manifest.json.tmp`` (manifest.write_manifest), ``streams/<name>.npy.tmp`` (binary copies),
+    ``streams/<name>.csv.tmp`` (device_files.add_stream), ``derived/aligned.*.tmp`` (align),
+    ``derived/pedals_gt.{csv,json}.tmp``, ``labels/<name>.csv.tmp``, ``calib/*.json.tmp``
+    (calibrations), and any ``*.tmp`` / ``*.tmp.npz`` of artifacts.write_json / write_npz (calib/,
+    derived/ or elsewhere in the folder). The whole folder is searched but ``video/``; links to
+    folders are not followed."""
+    root = Path(folder)
+    found = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        here = Path(dirpath)
+        if here == root:
+            dirnames[:] = [d for d in dirnames if d not in NOT_SEARCHED]
+        found += [(here / f).relative_to(root).as_posix() for f in filenames if f.endswith(TEMP_SUFFIXES)]
+    return sorted(found)
+
+
+def _orphaned_manifest_problem(folder: Path) -> str | None:
+    """When ``manifest.json`` is missing but ``manifest.json.tmp`` is there, what `verify` says."""
+    if (folder / MANIFEST_NAME).is_file() or not (folder / MANIFEST_TMP).is_file():
+        return None
+    try:
+        manifest = read_manifest_file(folder / MANIFEST_TMP, folder)
+    except SessionError as exc:
+        return (f"{MANIFEST_NAME} is missing and {MANIFEST_TMP} is not a complete manifest ({exc}): "
+                f"the manifest was never written; there is nothing `midas session repair` can restore")
+    return (f"{MANIFEST_NAME} is missing but {MANIFEST_TMP} holds a complete manifest (status "
+            f"{manifest['status']!r}) that was never renamed into place: run `midas session repair {folder}`")
 
 
 @dataclass
@@ -40,9 +83,21 @@ def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
     """Check every stream file against the manifest: presence, header, whole lines, sample count,
     sha256, strictly increasing host time, sequence gaps, and that its binary copy (if any) holds
     exactly what the CSV holds. Gaps the manifest declares (a device
-    outage the recorder saw) are notes, or problems with ``strict``; undeclared gaps are problems."""
-    session = Session.open(path)
+    outage the recorder saw) are notes, or problems with ``strict``; undeclared gaps are problems.
+    Temporary files left by an interrupted write, and a recording that failed to start, are problems
+    too (a failed session's streams are not checked)."""
+    folder = Path(path)
+    orphan = _orphaned_manifest_problem(folder) if folder.is_dir() else None
+    if orphan is not None:
+        return VerifyReport(folder, problems=[orphan])
+    session = Session.open(folder, allow_failed=True)
     report = VerifyReport(session.path)
+    report.problems += [f"temporary file {rel} left by an interrupted write: run `midas session repair "
+                        f"{session.path}` to remove it" for rel in find_temporaries(session.path)]
+    if session.status == "failed":
+        reason = " ".join(str(session.manifest.get("stop_reason") or "no reason recorded").split())
+        report.problems.append(f"the recording failed to start ({reason}): the session holds no data")
+        return report
     if session.status not in FINISHED:
         report.problems.append(
             f"status is {session.status!r}: the recorder did not finish (run `midas session repair {session.path}`)"
@@ -115,21 +170,30 @@ class RepairReport:
     status: str
     cut: dict[str, dict[str, int]] = field(default_factory=dict)
     created: list[str] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)
+    restored_manifest: bool = False
 
     def to_json(self) -> dict[str, Any]:
         return {"path": str(self.path), "repaired": self.repaired, "status": self.status, "cut": self.cut,
-                "created": self.created}
+                "created": self.created, "removed": self.removed, "restored_manifest": self.restored_manifest}
 
 
 def repair_session(path: Path | str) -> RepairReport:
     """Make a session left with status 'recording' (recorder killed) readable: cut torn trailing lines
     (kept in logs/repair-<stream>.cut, nothing is deleted), describe each stream from its file, and
-    mark the session 'recovered'. A finished session is left untouched."""
+    mark the session 'recovered'. In any session, first put a complete ``manifest.json.tmp`` in place
+    when ``manifest.json`` is missing (refusing, with nothing changed, when it is not complete), then
+    remove the temporary files interrupted writes left (``find_temporaries``). Nothing else of a
+    finished session is touched. Run it while nothing else writes the session (a running `midas
+    align` has its output in temporaries)."""
     folder = Path(path)
+    restored = _restore_manifest(folder)
     manifest = load_manifest(folder)
+    removed = _remove_temporaries(folder)
     if manifest["status"] != "recording":
-        return RepairReport(folder, repaired=False, status=manifest["status"])
-    report = RepairReport(folder, repaired=True, status="recovered")
+        return RepairReport(folder, repaired=False, status=manifest["status"], removed=removed,
+                            restored_manifest=restored)
+    report = RepairReport(folder, repaired=True, status="recovered", removed=removed, restored_manifest=restored)
     last_times = []
     for name, entry in manifest["streams"].items():
         spec = StreamSpec.from_manifest(name, entry)
@@ -156,6 +220,37 @@ def repair_session(path: Path | str) -> RepairReport:
     add_binary_copies(folder, manifest)
     write_manifest(folder, manifest)
     return report
+
+
+def _restore_manifest(folder: Path) -> bool:
+    """Rename ``manifest.json.tmp`` to ``manifest.json`` when that is missing and the temporary holds a
+    complete, valid manifest (a kill between its write and its rename); True if it did. A temporary
+    that is not complete is the only trace of the manifest: refuse and leave it."""
+    tmp = folder / MANIFEST_TMP
+    if (folder / MANIFEST_NAME).is_file() or not tmp.is_file():
+        return False
+    try:
+        read_manifest_file(tmp, folder)
+    except SessionError as exc:
+        raise SessionError(
+            f"{folder} has no {MANIFEST_NAME} and its {MANIFEST_TMP} is not a complete manifest ({exc}); "
+            f"nothing restored or deleted: the manifest was never written (delete the folder if it holds "
+            f"nothing you need)") from exc
+    os.replace(tmp, folder / MANIFEST_NAME)
+    fsync_dir(folder)
+    return True
+
+
+def _remove_temporaries(folder: Path) -> list[str]:
+    """Delete what ``find_temporaries`` finds (manifest.json is in place by now, so none is the only
+    copy of anything midas cannot make again); return their relative paths."""
+    removed = find_temporaries(folder)
+    for rel in removed:
+        (folder / rel).unlink(missing_ok=True)
+    if removed:
+        for parent in sorted({(folder / rel).parent for rel in removed}):
+            fsync_dir(parent)
+    return removed
 
 
 def _cut_torn_tail(folder: Path, name: str, path: Path, spec: StreamSpec, report: RepairReport) -> None:

@@ -11,7 +11,11 @@ from midas_cli.errors import SessionError
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "manifest.json"
+# recording: running, or crashed (`midas session repair`); complete / interrupted: finalised by the
+# recorder; recovered: repaired after a crash; failed: the recording never started (a device or OBS
+# could not be opened, the disk was full): kept as a record, hidden by `session list`, refused by readers
 STATUSES = ("recording", "complete", "interrupted", "recovered", "failed")
+MANIFEST_TMP = MANIFEST_NAME + ".tmp"  # the temporary write_manifest renames into place
 REQUIRED_KEYS = ("schema_version", "session_id", "status", "metadata", "start", "devices", "streams")
 
 
@@ -19,14 +23,14 @@ def write_manifest(folder: Path, manifest: dict[str, Any]) -> None:
     """Replace ``folder/manifest.json`` atomically: write a temp file, fsync, rename, fsync the folder."""
     validate_manifest(manifest, folder)
     target = folder / MANIFEST_NAME
-    tmp = folder / (MANIFEST_NAME + ".tmp")
+    tmp = folder / MANIFEST_TMP
     with open(tmp, "w", encoding="utf-8") as fh:
         json.dump(manifest, fh, indent=2, sort_keys=False)
         fh.write("\n")
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, target)
-    _fsync_dir(folder)
+    fsync_dir(folder)
 
 
 def load_manifest(folder: Path) -> dict[str, Any]:
@@ -34,8 +38,14 @@ def load_manifest(folder: Path) -> dict[str, Any]:
     path = Path(folder) / MANIFEST_NAME
     if not path.is_file():
         raise SessionError(f"{folder} is not a midas session: no {MANIFEST_NAME}")
+    return read_manifest_file(path, Path(folder))
+
+
+def read_manifest_file(path: Path, folder: Path) -> dict[str, Any]:
+    """Parse and validate the manifest in ``path`` (``manifest.json``, or the temporary beside it) as
+    the manifest of ``folder``; SessionError saying what is wrong."""
     try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
+        manifest = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise SessionError(f"cannot read {path}: {exc}") from exc
     validate_manifest(manifest, Path(folder))
@@ -78,7 +88,8 @@ def check_inside(folder: Path, rel: Any) -> Path:
     return resolved
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
+    """fsync a folder, so a rename or unlink in it survives a power loss."""
     fd = os.open(folder, os.O_RDONLY)
     try:
         os.fsync(fd)

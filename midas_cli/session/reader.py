@@ -25,11 +25,17 @@ class Session:
     manifest: dict[str, Any]
 
     @classmethod
-    def open(cls, path: Path | str) -> "Session":
+    def open(cls, path: Path | str, allow_failed: bool = False) -> "Session":
+        """Open a session folder. A recording that failed to start (status 'failed') holds no data and
+        is refused unless ``allow_failed`` (for `session info|list|verify`, which describe it)."""
         folder = Path(path)
         if not folder.is_dir():
             raise SessionError(f"{folder} is not a folder")
-        return cls(folder, load_manifest(folder))
+        session = cls(folder, load_manifest(folder))
+        if session.status == "failed" and not allow_failed:
+            reason = " ".join(str(session.manifest.get("stop_reason") or "no reason recorded").split())
+            raise SessionError(f"{folder} is a recording that failed to start ({reason}); it holds no data")
+        return session
 
     @property
     def status(self) -> str:
