@@ -20,15 +20,20 @@ REQUIRED_KEYS = ("schema_version", "session_id", "status", "metadata", "start", 
 
 
 def write_manifest(folder: Path, manifest: dict[str, Any]) -> None:
-    """Replace ``folder/manifest.json`` atomically: write a temp file, fsync, rename, fsync the folder."""
+    """Replace ``folder/manifest.json`` atomically: write a temp file, fsync, rename, fsync the folder.
+    If the write fails (disk full) the temporary is removed and the old manifest stays as it was."""
     validate_manifest(manifest, folder)
     target = folder / MANIFEST_NAME
     tmp = folder / MANIFEST_TMP
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(manifest, fh, indent=2, sort_keys=False)
-        fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
+    try:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(manifest, fh, indent=2, sort_keys=False)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, target)
     fsync_dir(folder)
 
