@@ -135,9 +135,11 @@ class ObsProcess:
                                             start_new_session=True)
         _wait_for_port(self.server.port, self.process, log_path)
 
-    def obs_pid(self) -> int:
-        """The ``obs`` process inside this instance's process group (xvfb-run's child)."""
+    def pids(self, *names: str) -> list[int]:
+        """Processes named ``names`` in this instance's process group (``obs``: xvfb-run's child;
+        ``obs-ffmpeg-mux``: the muxer OBS starts for each recording, which writes the file)."""
         assert self.process is not None and self.process.poll() is None, "OBS is not running"
+        found = []
         for stat in Path("/proc").glob("[0-9]*/stat"):
             try:
                 text = stat.read_text()
@@ -145,14 +147,18 @@ class ObsProcess:
                 continue
             comm = text[text.index("(") + 1 : text.rindex(")")]
             fields = text[text.rindex(")") + 2 :].split()
-            if comm == "obs" and int(fields[2]) == self.process.pid:  # fields[2]: process group id
-                return int(stat.parent.name)
-        raise AssertionError(f"no obs process in process group {self.process.pid}")
+            if comm in names and int(fields[2]) == self.process.pid:  # fields[2]: process group id
+                found.append(int(stat.parent.name))
+        return found
 
-    def kill_obs(self) -> None:
-        """SIGKILL the OBS process only (no chance to flush its recording or save its settings);
-        xvfb-run then ends its X server and exits. Waits until the websocket port is closed."""
-        os.kill(self.obs_pid(), signal.SIGKILL)
+    def kill_obs(self, with_muxer: bool = True) -> None:
+        """SIGKILL OBS (and, ``with_muxer``, the muxer writing its recording, as when the machine or the
+        whole session dies): nothing is flushed or saved. xvfb-run then ends its X server and exits.
+        Waits until the websocket port is closed."""
+        pids = self.pids("obs", *(("obs-ffmpeg-mux",) if with_muxer else ()))
+        assert pids, f"no obs process in process group {self.process.pid}"
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL)
         self.process.wait(timeout=30)
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:

@@ -51,18 +51,20 @@ def _video_csv(path, rows) -> None:
 
 def test_a_new_segment_continues_seq_on_the_first_segments_frame_grid(tmp_path) -> None:
     fps = Fraction(30)
-    first = FrameClock(fps, started_ns=5_000_000_000)
+    t0 = 1_795_547_220_591_118_411  # Unix-epoch ns: more digits than a float holds
+    first = FrameClock(fps, started_ns=t0)
     _video_csv(tmp_path / "video.csv", first.rows(0, 158))  # killed at ~5.3 s
     written = WrittenRows.read(tmp_path / "video.csv", fps)
-    assert written.last_seq == 157 and written.origin_ns == 5_000_000_000 and written.next_segment({}) == 1
-    restarted_ns = 5_000_000_000 + 13_010_000_000  # 13.01 s after the first STARTED: frame 390.3 of the grid
+    assert written.last_seq == 157 and written.origin_ns == t0 and written.next_segment({}) == 1
+    restarted_ns = t0 + 13_010_000_000  # 13.01 s after the first STARTED: frame 390.3 of the grid
     assert written.seq_base(fps, restarted_ns) == 390
-    assert written.seq_base(fps, 5_000_000_000 + 1_000_000_000) == 158  # never back (a clock step)
+    assert written.seq_base(fps, t0 + 1_000_000_000) == 158  # never back (a clock step)
     second = FrameClock(fps, restarted_ns, written.seq_base(fps, restarted_ns), segment=1)
     _video_csv(tmp_path / "video.csv", first.rows(0, 158) + second.rows(0, 30))
     again = WrittenRows.read(tmp_path / "video.csv", fps)
     assert again.segments[1].seq_base() == 390 and again.segments[1].started_ns(fps) == restarted_ns
-    assert again.segments[0].rows == 158 and again.next_segment({3: tmp_path / "x.mkv"}) == 4
+    assert again.segments[0].rows == 158 and again.segments[0].started_ns(fps) == t0
+    assert again.segments[0].last_seq == 157 and again.next_segment({3: tmp_path / "x.mkv"}) == 4
     assert WrittenRows.read(tmp_path / "absent.csv", fps).seq_base(fps, restarted_ns) == 0
 
 

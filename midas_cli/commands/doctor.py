@@ -34,7 +34,7 @@ def doctor(
     obs = facts["obs_websocket"]
     out.print(f"OBS websocket {obs['address']}: {'reachable' if obs['reachable'] else 'unreachable'}", markup=False)
     for saved in facts["obs_saved_settings"]:
-        out.print(_saved_settings_line(saved), markup=False)
+        out.print(_saved_settings_line(saved), markup=False, soft_wrap=True)
     gpu = facts["gpu"]
     out.print(f"GPU: {', '.join(gpu['devices']) if gpu.get('cuda') else 'none (CPU only)'}", markup=False)
     out.print(f"disk free here: {human_bytes(facts['disk_free_bytes'])}", markup=False)

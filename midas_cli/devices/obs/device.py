@@ -34,6 +34,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
+import numpy as np
+
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import Device, DeviceUrl
 from midas_cli.devices.obs.connection import ObsConnection, resolve_password
@@ -311,7 +313,7 @@ class ObsDevice(Device):
         if path is None or not path.is_file():
             return unreadable_recording(rows_live, "no video file was found for this segment")
         try:
-            times = probe_frame_times(path)
+            times = probe_frame_times(path) if path.stat().st_size else np.zeros(0)  # killed before writing
         except DeviceError as exc:
             return unreadable_recording(rows_live, f"the file cannot be read ({exc})")
         return check_recording(times, fps, rows_live, counters, final, seq_base)

@@ -97,15 +97,17 @@ class WrittenRows:
             return cls({})
         if table.empty:
             return cls({})
+        seq, t_host = table["seq"].to_numpy(), table["t_host_ns"].to_numpy()  # int64: no float round trip
+        t_device, segment = table["t_device_s"].to_numpy(), table["segment"].to_numpy()
+        starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
+        ends = np.r_[starts[1:], len(segment)]
         segments = {}
-        for segment, group in table.groupby("segment", sort=True):
-            first = group.iloc[0]
-            segments[int(segment)] = SegmentRows(len(group), int(first["seq"]),
-                                                 round(float(first["t_device_s"]) * fps), int(first["t_host_ns"]),
-                                                 int(group["seq"].iloc[-1]))
-        first = table.iloc[0]
-        origin = int(first["t_host_ns"]) - round(int(first["seq"]) * 10**9 / fps)
-        return cls(segments, int(table["seq"].iloc[-1]), origin)
+        for start, end in zip(starts, ends):
+            segments[int(segment[start])] = SegmentRows(int(end - start), int(seq[start]),
+                                                        round(float(t_device[start]) * fps), int(t_host[start]),
+                                                        int(seq[end - 1]))
+        origin = int(t_host[0]) - round(int(seq[0]) * 10**9 / fps)
+        return cls(segments, int(seq[-1]), origin)
 
     def next_segment(self, files: dict[int, Path]) -> int:
         """The index of a new segment: after every segment with rows or with a file."""
