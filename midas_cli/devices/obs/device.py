@@ -172,8 +172,12 @@ class ObsDevice(Device):
         own = self.store.load()
         if own is not None:  # recover_stale left only this process's own copy
             self.saved = own
+            saved_keys = {(category, name) for category, name, _ in own.profile}
+            missing = [key for key in values if key not in saved_keys]  # never changed by midas: still the operator's
+            own.profile += target.current(missing)
             if self.marker is not None and not own.scene_items:
                 own.scene_items.append(self.marker.saved_state())
+            if missing or self.marker is not None:
                 self.store.replace(own)
             return
         saved = SavedSettings.for_this_process(self.store.address, folder, self.params["password_env"])
