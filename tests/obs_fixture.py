@@ -5,7 +5,8 @@ Everything lives in a temporary HOME/XDG_CONFIG_HOME: ``global.ini`` enables obs
 ServerPort, AlertsEnabled, AuthRequired, ServerPassword), a 320x240 @ 30 fps profile encoding with
 x264, and a scene of colour sources (they render with Mesa's software OpenGL, no GPU): a black
 background and a white 80x60 ``Marker`` in the top-left corner, hidden. Skips with the reason when
-OBS, Xvfb or ffprobe are not installed (CI installs: obs-studio xvfb xauth ffmpeg).
+OBS, Xvfb or ffprobe are not installed (CI installs: obs-studio xvfb xauth ffmpeg). ``obs_process``
+gives an ``ObsProcess`` that a test can kill (SIGKILL) and start again on the same port and configuration.
 """
 
 from __future__ import annotations
@@ -152,9 +153,11 @@ class ObsProcess:
         return found
 
     def kill_obs(self, with_muxer: bool = True) -> None:
-        """SIGKILL OBS (and, ``with_muxer``, the muxer writing its recording, as when the machine or the
-        whole session dies): nothing is flushed or saved. xvfb-run then ends its X server and exits.
-        Waits until the websocket port is closed."""
+        """SIGKILL OBS and, ``with_muxer``, the muxer writing its recording (as ``pkill -9 obs`` does: the
+        pattern matches obs-ffmpeg-mux too): nothing is flushed or saved, so the file lacks the frames the
+        muxer still buffered (an MKV cluster's worth, or all of them in the first seconds). Killed alone,
+        OBS leaves the muxer to finish the file. xvfb-run then ends its X server and exits. Waits until
+        the websocket port is closed."""
         pids = self.pids("obs", *(("obs-ffmpeg-mux",) if with_muxer else ()))
         assert pids, f"no obs process in process group {self.process.pid}"
         for pid in pids:
