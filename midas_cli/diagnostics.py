@@ -1,4 +1,5 @@
-"""Facts for `midas doctor` and bug reports: versions, serial ports, OBS reachability, GPU, disk."""
+"""Facts for `midas doctor` and bug reports: versions, serial ports, OBS reachability, GPU, disk; and
+the one repair doctor makes: OBS settings a killed midas left changed are put back (``restore_obs_settings``)."""
 
 from __future__ import annotations
 
@@ -61,3 +62,41 @@ def _gpu() -> dict[str, Any]:
         return {"torch": True, "cuda": False}
     names = [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())]
     return {"torch": True, "cuda": True, "devices": names}
+
+
+def restore_obs_settings(directory: Path | None = None, timeout_s: float = 3.0) -> list[dict[str, Any]]:
+    """Every saved copy of OBS settings (``$XDG_STATE_HOME/midas/obs-settings-*.json``) whose midas is
+    gone: put the values back into that OBS (password from the variable the copy names, else
+    MIDAS_OBS_PASSWORD), stop the recording it left running into its session, delete the copy. One entry
+    per copy: ``status`` "restored", "in use" (its midas is still running) or "not restored" (``error``
+    says why; the copy is kept)."""
+    from midas_cli.clock import HostClock
+    from midas_cli.devices.obs.connection import ObsConnection, resolve_password
+    from midas_cli.devices.obs.profile import recover_stale
+    from midas_cli.devices.obs.saved import SettingsStore, load_copy
+    from midas_cli.errors import MidasError
+
+    results = []
+    for path in SettingsStore.all_copies(directory):
+        entry: dict[str, Any] = {"file": str(path)}
+        try:
+            saved = load_copy(path)
+            if saved is None:  # deleted meanwhile
+                continue
+            entry["obs"] = saved.obs
+            if saved.owner() != "stale":
+                entry.update(status="in use", owner_pid=saved.owner_pid)
+                results.append(entry)
+                continue
+            host, _, port = saved.obs.rpartition(":")
+            password, _ = resolve_password(saved.password_env)
+            connection = ObsConnection(host, int(port), password, timeout_s, HostClock.anchored_now())
+            try:
+                store = SettingsStore(host, int(port), path=path)
+                entry.update(status="restored", message=recover_stale(connection, store))
+            finally:
+                connection.close()
+        except MidasError as exc:
+            entry.update(status="not restored", error=str(exc))
+        results.append(entry)
+    return results

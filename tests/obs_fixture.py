@@ -5,7 +5,8 @@ Everything lives in a temporary HOME/XDG_CONFIG_HOME: ``global.ini`` enables obs
 ServerPort, AlertsEnabled, AuthRequired, ServerPassword), a 320x240 @ 30 fps profile encoding with
 x264, and a scene of colour sources (they render with Mesa's software OpenGL, no GPU): a black
 background and a white 80x60 ``Marker`` in the top-left corner, hidden. Skips with the reason when
-OBS, Xvfb or ffprobe are not installed (CI installs: obs-studio xvfb xauth ffmpeg).
+OBS, Xvfb or ffprobe are not installed (CI installs: obs-studio xvfb xauth ffmpeg). ``obs_process``
+gives an ``ObsProcess`` that a test can kill (SIGKILL) and start again on the same port and configuration.
 """
 
 from __future__ import annotations
@@ -109,24 +110,88 @@ def _wait_for_port(port: int, process: subprocess.Popen, log: Path) -> None:
     pytest.skip(f"OBS's websocket did not open port {port} within {START_TIMEOUT_S:.0f} s: {log.read_text()[-1500:]}")
 
 
+class ObsProcess:
+    """One OBS under xvfb-run that a test can kill (SIGKILL, like a crash) and start again on the same
+    port with the same configuration (HOME, profile, scene collection, websocket password)."""
+
+    def __init__(self, home: Path, password: str) -> None:
+        missing = missing_tools()
+        if missing:
+            pytest.skip(f"OBS test needs {', '.join(missing)} (apt-get install obs-studio xvfb xauth ffmpeg)")
+        self.home = home
+        self.server = write_config(home, free_port(), password)
+        self.env = {**os.environ, "HOME": str(home), "XDG_CONFIG_HOME": str(self.server.config_home),
+                    "LIBGL_ALWAYS_SOFTWARE": "1", "QT_QPA_PLATFORM": "xcb"}
+        self.process: subprocess.Popen | None = None
+        self.starts = 0
+
+    def start(self) -> None:
+        """Launch OBS (own process group, ended by its id afterwards) and wait for its websocket port."""
+        self.starts += 1
+        log_path = self.server.log if self.starts == 1 else self.server.log.with_suffix(f".{self.starts}.log")
+        with open(log_path, "wb") as log:
+            self.process = subprocess.Popen(["xvfb-run", "-a", "-s", "-screen 0 640x480x24", "obs",
+                                             "--minimize-to-tray", "--multi", "--disable-missing-files-check"],
+                                            cwd=self.home, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                            start_new_session=True)
+        _wait_for_port(self.server.port, self.process, log_path)
+
+    def pids(self, *names: str) -> list[int]:
+        """Processes named ``names`` in this instance's process group (``obs``: xvfb-run's child;
+        ``obs-ffmpeg-mux``: the muxer OBS starts for each recording, which writes the file)."""
+        assert self.process is not None and self.process.poll() is None, "OBS is not running"
+        found = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                text = stat.read_text()
+            except OSError:  # the process ended while listing
+                continue
+            comm = text[text.index("(") + 1 : text.rindex(")")]
+            fields = text[text.rindex(")") + 2 :].split()
+            if comm in names and int(fields[2]) == self.process.pid:  # fields[2]: process group id
+                found.append(int(stat.parent.name))
+        return found
+
+    def kill_obs(self, with_muxer: bool = True) -> None:
+        """SIGKILL OBS and, ``with_muxer``, the muxer writing its recording (as ``pkill -9 obs`` does: the
+        pattern matches obs-ffmpeg-mux too): nothing is flushed or saved, so the file lacks the frames the
+        muxer still buffered (an MKV cluster's worth, or all of them in the first seconds). Killed alone,
+        OBS leaves the muxer to finish the file. xvfb-run then ends its X server and exits. Waits until
+        the websocket port is closed."""
+        pids = self.pids("obs", *(("obs-ffmpeg-mux",) if with_muxer else ()))
+        assert pids, f"no obs process in process group {self.process.pid}"
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL)
+        self.process.wait(timeout=30)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", self.server.port)) != 0:
+                    return
+            time.sleep(0.1)
+        raise AssertionError(f"port {self.server.port} still open 30 s after OBS was killed")
+
+    def stop(self) -> None:
+        if self.process is not None:
+            _stop(self.process)
+
+
+@contextmanager
+def obs_process(home: Path, password: str) -> Iterator[ObsProcess]:
+    """A started ``ObsProcess``, stopped afterwards whatever state the test left it in."""
+    instance = ObsProcess(home, password)
+    try:
+        instance.start()
+        yield instance
+    finally:
+        instance.stop()
+
+
 @contextmanager
 def running_obs(home: Path, password: str) -> Iterator[ObsServer]:
     """Start OBS under xvfb-run (own process group, ended by its id afterwards) and wait for its port."""
-    missing = missing_tools()
-    if missing:
-        pytest.skip(f"OBS test needs {', '.join(missing)} (apt-get install obs-studio xvfb xauth ffmpeg)")
-    server = write_config(home, free_port(), password)
-    env = {**os.environ, "HOME": str(home), "XDG_CONFIG_HOME": str(server.config_home),
-           "LIBGL_ALWAYS_SOFTWARE": "1", "QT_QPA_PLATFORM": "xcb"}
-    with open(server.log, "wb") as log:
-        process = subprocess.Popen(["xvfb-run", "-a", "-s", "-screen 0 640x480x24", "obs", "--minimize-to-tray",
-                                    "--multi", "--disable-missing-files-check"],
-                                   cwd=home, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        _wait_for_port(server.port, process, server.log)
-        yield server
-    finally:
-        _stop(process)
+    with obs_process(home, password) as instance:
+        yield instance.server
 
 
 def _stop(process: subprocess.Popen) -> None:

@@ -32,10 +32,22 @@ def _record(obs: ObsServer, out: Path, query: str = "", duration: float = DURATI
 
 
 @pytest.fixture(scope="module")
-def recorded(obs: ObsServer, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+def state_home(tmp_path_factory) -> Path:
+    """XDG_STATE_HOME for every midas this module runs: saved OBS settings never reach the user's own."""
+    return tmp_path_factory.mktemp("xdg-state")
+
+
+@pytest.fixture(autouse=True)
+def _own_state_dir(state_home: Path, monkeypatch) -> None:
+    monkeypatch.setenv("XDG_STATE_HOME", str(state_home))
+
+
+@pytest.fixture(scope="module")
+def recorded(obs: ObsServer, state_home: Path, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     out = tmp_path_factory.mktemp("sessions")
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("MIDAS_OBS_PASSWORD", PASSWORD)
+        patch.setenv("XDG_STATE_HOME", str(state_home))
         result = _record(obs, out, f"?fps={FPS}&marker={MARKER}&marker_at=1&marker_every=2")
     assert result.returncode == 0, result.stderr
     return Path(result.stdout.strip().splitlines()[-1]), result
@@ -61,7 +73,7 @@ def test_the_mkv_plays_and_has_one_timestamp_row_per_encoded_frame(recorded) -> 
     assert decode.returncode == 0 and decode.stderr == ""
     rows = pd.read_csv(session / "streams" / "video.csv")
     assert len(rows) == frames
-    assert rows["seq"].tolist() == list(range(frames))
+    assert rows["seq"].tolist() == list(range(frames)) and set(rows["segment"]) == {0}
     np.testing.assert_allclose(rows["t_device_s"], rows["seq"] / FPS, atol=1e-6)
     steps = np.diff(rows["t_host_ns"].to_numpy())
     assert steps.min() >= 33_333_333 and steps.max() <= 33_333_334
@@ -77,9 +89,14 @@ def test_manifest_reports_the_start_event_and_the_stop_check(recorded) -> None:
     check = info["recording"]
     assert check["status"] == "ok", check
     assert check["frames_in_file"] == len(rows) == check["rows_live"] + check["rows_at_stop"]
-    assert check["file"].startswith("video/video_") and (session / check["file"]).is_file()
+    assert check["rows_without_frame"] == check["frames_without_row"] == 0
+    [segment] = check["segments"]
+    assert segment["segment"] == 0 and segment["seq_base"] == 0 and segment["frames_in_file"] == len(rows)
+    assert segment["started_host_ns"] == info["started_host_ns"] and segment["status"] == "ok"
+    assert segment["file"] == info["file"] and segment["file"].startswith("video/video_s0_")
+    assert (session / segment["file"]).is_file()
     assert check["stopped_host_ns"] > check["stop_request_host_ns"] > info["started_host_ns"]
-    assert set(check["obs_counters"]) == {"output_skipped_frames", "render_lagged_frames"}
+    assert set(segment["obs_counters"]) == {"output_skipped_frames", "render_lagged_frames"}
     assert info["password_from"] == "$MIDAS_OBS_PASSWORD"
     assert midas("session", "verify", str(session)).returncode == 0
 
@@ -98,10 +115,12 @@ def test_sync_marker_is_found_in_the_pixels_near_its_host_time(recorded) -> None
     assert np.all(np.abs(offsets) < 500), offsets  # found next to its own toggle, not a neighbour's
 
 
-def test_the_password_never_reaches_outputs_and_obs_settings_are_restored(recorded, obs: ObsServer) -> None:
+def test_the_password_never_reaches_outputs_and_obs_settings_are_restored(recorded, obs: ObsServer,
+                                                                          state_home: Path) -> None:
     session, result = recorded
     for path in [session / "manifest.json", session / "logs" / "midas.log", *session.glob("streams/*.csv")]:
         assert PASSWORD not in path.read_text(), path
+    assert not list(state_home.rglob("*.json"))  # the saved copy is deleted once OBS has its values back
     assert PASSWORD not in result.stdout + result.stderr
     import obsws_python
 

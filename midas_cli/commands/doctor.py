@@ -14,11 +14,13 @@ def doctor(
     obs_port: int = typer.Option(4455, help="OBS websocket port."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Report versions, serial ports, OBS reachability, GPU and free disk.
+    """Report versions, serial ports, OBS reachability, GPU and free disk. OBS settings that a killed
+    `midas record` left changed (its saved copy under $XDG_STATE_HOME/midas/) are put back.
 
     Example: midas doctor --json > doctor.json
     """
     facts = diagnostics.collect(obs_host, obs_port)
+    facts["obs_saved_settings"] = diagnostics.restore_obs_settings()
     if as_json:
         print_json(facts)
         return
@@ -31,6 +33,18 @@ def doctor(
     out.print(f"serial ports: {', '.join(p['device'] for p in ports) if ports else 'none'}", markup=False)
     obs = facts["obs_websocket"]
     out.print(f"OBS websocket {obs['address']}: {'reachable' if obs['reachable'] else 'unreachable'}", markup=False)
+    for saved in facts["obs_saved_settings"]:
+        out.print(_saved_settings_line(saved), markup=False, soft_wrap=True)
     gpu = facts["gpu"]
     out.print(f"GPU: {', '.join(gpu['devices']) if gpu.get('cuda') else 'none (CPU only)'}", markup=False)
     out.print(f"disk free here: {human_bytes(facts['disk_free_bytes'])}", markup=False)
+
+
+def _saved_settings_line(saved: dict) -> str:
+    if saved["status"] == "restored":
+        return f"OBS settings: {saved['message']}"
+    if saved["status"] == "in use":
+        return (f"OBS settings: {saved['file']} belongs to a running midas (pid {saved['owner_pid']}); it puts "
+                f"them back when it stops")
+    return (f"OBS settings: NOT restored from {saved['file']} ({saved['error']}); start OBS, export its password "
+            f"and run `midas doctor` again")

@@ -6,10 +6,15 @@ at recording time i / fps (``t_device_s``) and at host time ``started_ns + i / f
 recording, the number of frames OBS has handed to the muxer comes from GetRecordStatus
 (``outputDuration`` = frames x frame interval, truncated to ms); at stop the file itself is the truth:
 ffprobe lists its video packets, one per encoded frame, with their presentation times.
+
+A session's video is one or more files, *segments* (a new one each time midas reconnects to OBS, e.g.
+after OBS was restarted): rows carry their segment, and ``seq`` keeps growing across segments on the
+frame grid of the session's first frame, so the frames an outage cost show as a gap of their number.
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -18,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from midas_cli.errors import DeviceError
 
@@ -26,10 +32,13 @@ FFPROBE_TIMEOUT_S = 60.0
 
 @dataclass(frozen=True)
 class FrameClock:
-    """Frame index -> times for one file. ``fps`` exact (e.g. 30000/1001), ``started_ns`` host clock."""
+    """Frame index -> times for one file (segment). ``fps`` exact (e.g. 30000/1001), ``started_ns`` host
+    clock; frame i of the file has ``seq`` = ``seq_base`` + i and is in segment ``segment``."""
 
     fps: Fraction
     started_ns: int
+    seq_base: int = 0
+    segment: int = 0
 
     def time_s(self, index: int) -> float:
         """Recording time of frame ``index`` (s since the file's first frame)."""
@@ -44,9 +53,86 @@ class FrameClock:
         whole ms, which is off by less than 0.1 frame at up to 100 fps, so rounding recovers the count."""
         return round(Fraction(duration_ms, 1000) * self.fps)
 
-    def rows(self, first: int, stop: int, seq_base: int = 0) -> list[tuple[int, int, float]]:
-        """Stream rows (seq, t_host_ns, t_device_s) of frames ``first .. stop-1`` of this file."""
-        return [(seq_base + i, self.host_ns(i), self.time_s(i)) for i in range(first, stop)]
+    def rows(self, first: int, stop: int) -> list[tuple[int, int, float, int]]:
+        """Stream rows (seq, t_host_ns, t_device_s, segment) of frames ``first .. stop-1`` of this file."""
+        return [(self.seq_base + i, self.host_ns(i), self.time_s(i), self.segment) for i in range(first, stop)]
+
+
+@dataclass(frozen=True)
+class SegmentRows:
+    """The rows a stream file holds for one segment: how many, and its first and last row."""
+
+    rows: int
+    first_seq: int
+    first_frame: int  # frame index in the file of the first row (0 unless its first rows were lost)
+    first_t_host_ns: int
+    last_seq: int
+
+    def seq_base(self) -> int:
+        """seq of the segment's frame 0."""
+        return self.first_seq - self.first_frame
+
+    def started_ns(self, fps: Fraction) -> int:
+        """Host time of the segment's frame 0 (its STARTED event)."""
+        return self.first_t_host_ns - round(self.first_frame * 10**9 / fps)
+
+
+@dataclass(frozen=True)
+class WrittenRows:
+    """What the video stream file already holds, per segment (read back when a segment starts or ends)."""
+
+    segments: dict[int, SegmentRows]
+    last_seq: int | None = None
+    origin_ns: int | None = None  # host time of seq 0 on the session's frame grid
+
+    @classmethod
+    def read(cls, path: Path, fps: Fraction) -> "WrittenRows":
+        """Read ``path`` (a video stream CSV: seq, t_host_ns, t_device_s, segment); an absent or empty
+        file holds no rows."""
+        try:
+            table = pd.read_csv(path, usecols=["seq", "t_host_ns", "t_device_s", "segment"],
+                                dtype={"seq": "int64", "t_host_ns": "int64", "t_device_s": "float64",
+                                       "segment": "int64"})
+        except FileNotFoundError:
+            return cls({})
+        if table.empty:
+            return cls({})
+        seq, t_host = table["seq"].to_numpy(), table["t_host_ns"].to_numpy()  # int64: no float round trip
+        t_device, segment = table["t_device_s"].to_numpy(), table["segment"].to_numpy()
+        starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
+        ends = np.r_[starts[1:], len(segment)]
+        segments = {}
+        for start, end in zip(starts, ends):
+            segments[int(segment[start])] = SegmentRows(int(end - start), int(seq[start]),
+                                                        round(float(t_device[start]) * fps), int(t_host[start]),
+                                                        int(seq[end - 1]))
+        origin = int(t_host[0]) - round(int(seq[0]) * 10**9 / fps)
+        return cls(segments, int(seq[-1]), origin)
+
+    def next_segment(self, files: dict[int, Path]) -> int:
+        """The index of a new segment: after every segment with rows or with a file."""
+        known = set(self.segments) | set(files)
+        return max(known) + 1 if known else 0
+
+    def seq_base(self, fps: Fraction, started_ns: int) -> int:
+        """seq of frame 0 of a segment that started at host time ``started_ns``: on the frame grid of the
+        session's first frame (so the frames the outage cost leave a gap of their number), and after every
+        seq already written (seq only grows)."""
+        if self.last_seq is None:
+            return 0
+        grid = round(Fraction(started_ns - self.origin_ns, 10**9) * fps)
+        return max(grid, self.last_seq + 1)
+
+
+def segment_files(folder: Path, device: str) -> dict[int, Path]:
+    """The session's recording files of ``device``: segment -> ``<device>_s<segment>_<date>_<time>.mkv``."""
+    pattern = re.compile(rf"^{re.escape(device)}_s(\d+)_.*\.mkv$")
+    files: dict[int, Path] = {}
+    for path in sorted(folder.glob(f"{device}_s*.mkv")):
+        match = pattern.match(path.name)
+        if match:
+            files.setdefault(int(match.group(1)), path)
+    return files
 
 
 def probe_frame_times(path: Path) -> np.ndarray:
@@ -65,22 +151,22 @@ def probe_frame_times(path: Path) -> np.ndarray:
     return np.sort(np.asarray(times, dtype=float))
 
 
-def count_existing_frames(files: list[Path]) -> int:
-    """Frames in earlier, finished recordings of this session (their rows came first)."""
-    return sum(len(probe_frame_times(path)) for path in files)
-
-
 @dataclass
 class RecordingCheck:
-    """What the stop-time check found for one file; ``problems`` break one-row-per-frame timing."""
+    """What the stop-time check found for one file (segment); ``problems`` break one-row-per-frame
+    timing. ``rows_without_frame``: rows written live for frames the file does not hold (an OBS that
+    was killed never wrote them); ``frames_without_row``: frames an earlier segment's file holds after
+    its last row (written after midas's last poll; missing rows, counted in the outage that followed)."""
 
     frames_in_file: int
     rows_live: int
     rows_at_stop: int
+    rows_without_frame: int
+    frames_without_row: int
     max_time_error_ms: float
     frames_off_grid: int
     first_off_grid: int | None
-    obs_counters: dict[str, int]
+    obs_counters: dict[str, int] | None
     problems: list[str]
     warnings: list[str]
 
@@ -89,27 +175,43 @@ class RecordingCheck:
 
 
 def check_recording(frame_times_s: np.ndarray, fps: Fraction, rows_live: int,
-                    obs_counters: dict[str, int]) -> RecordingCheck:
-    """Compare the file's frames with the rows written live and with the constant-rate frame grid.
+                    obs_counters: dict[str, int] | None, final: bool = True,
+                    seq_base: int | None = None) -> RecordingCheck:
+    """Compare a file's frames with the rows written live and with the constant-rate frame grid.
 
-    ``rows_live`` rows (file frames 0 .. rows_live-1) were written while recording; the rest of the
-    file's frames get their rows at stop. ``obs_counters``: OBS's skipped/lagged frame counters
-    during the recording (warnings: lagged renders repeat a frame, skipped output frames leave a hole
-    that the grid check then finds)."""
+    ``rows_live`` rows (file frames 0 .. rows_live-1) were written while recording; in the ``final``
+    segment the rest of the file's frames get their rows at stop, in an earlier one they have none.
+    ``obs_counters``: OBS's skipped/lagged frame counters during the recording, None if unknown
+    (warnings: lagged renders repeat a frame, skipped output frames leave a hole that the grid check
+    then finds). ``seq_base``: seq of the file's frame 0, to name the rows concerned."""
     n = len(frame_times_s)
     grid = np.arange(n) / float(fps)
     error_s = np.abs(frame_times_s - grid) if n else np.zeros(0)
     off = np.flatnonzero(~(error_s <= 0.5 / float(fps)))  # NaN (no pts) counts as off the grid
     problems, warnings = [], []
-    if rows_live > n:
-        problems.append(f"{rows_live - n} row(s) were written live for frames the file does not contain "
-                        f"(the file has {n} frames, rows cover frames 0..{rows_live - 1})")
+    without_frame = max(0, rows_live - n)
+    without_row = 0 if final else max(0, n - rows_live)
+    if without_frame:
+        rows = "" if seq_base is None else f", seq {seq_base + n}..{seq_base + rows_live - 1}"
+        problems.append(f"{without_frame} row(s) were written live for frames the file does not contain (the file "
+                        f"has {n} frames, rows cover frames 0..{rows_live - 1}{rows})"
+                        + ("" if final else ": OBS ended without writing them (killed?); the rows stay in the "
+                                            "stream, these frames are not in any video file"))
+    if without_row:
+        warnings.append(f"the file's last {without_row} frame(s) have no row (OBS wrote them after midas's last "
+                        f"poll of this recording): they are in the seq gap of the outage that followed")
     if len(off):
         problems.append(f"{len(off)} frame(s) are more than half a frame away from i/fps, the first at frame "
                         f"{off[0]}: OBS dropped or repeated frames, so t_host_ns is off after that frame")
-    for name, count in obs_counters.items():
+    for name, count in (obs_counters or {}).items():
         if count:
             warnings.append(f"OBS counted {count} {name.replace('_', ' ')} during the recording")
-    return RecordingCheck(n, rows_live, max(0, n - rows_live),
+    return RecordingCheck(n, rows_live, max(0, n - rows_live) if final else 0, without_frame, without_row,
                           round(float(np.nanmax(error_s)) * 1e3, 3) if n else 0.0, len(off),
                           int(off[0]) if len(off) else None, obs_counters, problems, warnings)
+
+
+def unreadable_recording(rows_live: int, reason: str) -> RecordingCheck:
+    """The check of a segment whose file is missing or cannot be read: every row lacks its frame."""
+    return RecordingCheck(0, rows_live, 0, rows_live, 0, 0.0, 0, None, None,
+                          [f"{reason}: its {rows_live} row(s) have no frame that midas could check"], [])

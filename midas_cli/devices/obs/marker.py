@@ -42,7 +42,8 @@ class MarkerPlan:
 
 
 class SyncMarker:
-    """Toggles the marker item on schedule; ``due`` rows are produced by ``poll``."""
+    """Toggles the marker item on schedule; ``due`` rows are produced by ``poll``. Creating it only reads
+    the item's visibility (saved before anything changes); ``hide`` hides it for the recording."""
 
     def __init__(self, plan: MarkerPlan, connection: ObsConnection, clock: HostClock) -> None:
         self.plan = plan
@@ -53,8 +54,14 @@ class SyncMarker:
         self.item_id = int(found["sceneItemId"])
         self.was_enabled = bool(self._request_enabled())
         self.toggles = 0
-        self._set(False)
         self.started_ns: int | None = None
+
+    def saved_state(self) -> dict:
+        """The operator's visibility of the item, for the saved copy of OBS's settings."""
+        return {"scene": self.scene, "item_id": self.item_id, "enabled": self.was_enabled}
+
+    def hide(self) -> None:
+        self._set(False)
 
     def _request_enabled(self) -> bool:
         return self.connection.request("GetSceneItemEnabled", {"sceneName": self.scene,
