@@ -139,7 +139,7 @@ def test_record_fails_fast_with_exit_3_when_obs_is_unreachable(tmp_path) -> None
                    "--subject", "1", "--task", "t", "--trial", "1", "--no-tui", timeout=60)
     assert result.returncode == 3, result.stderr
     assert f"cannot reach OBS's websocket server at 127.0.0.1:{port}" in result.stderr
-    assert "kept as interrupted" in result.stderr and "Traceback" not in result.stderr
+    assert "marked failed" in result.stderr and "Traceback" not in result.stderr
 
 
 class FakeConnection:

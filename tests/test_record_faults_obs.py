@@ -215,3 +215,46 @@ def test_next_record_restores_the_settings_a_killed_midas_left(obs: ObsProcess, 
     assert [s["segment"] for s in info["recording"]["segments"]] == [0]
     assert _profile(obs, "SimpleOutput", "FilePath") == str(obs.server.default_folder)
     assert not list(env.glob("obs-settings-*.json"))
+
+
+def test_a_one_shot_sync_marker_never_degrades_the_video_device(obs: ObsProcess, env: Path, tmp_path: Path) -> None:
+    """Issue 13 item 2: the marker is toggled twice at the start and then never again; its stream is
+    an event stream, so the seconds of silence after it are no reason to call the device degraded."""
+    out = tmp_path / "sessions"
+    command = [sys.executable, "-m", "midas_cli", "record", "--device",
+               f"video=obs://127.0.0.1:{obs.server.port}?marker=Marker&marker_at=0.3&marker_on=0.3",
+               "--duration", "300", "--out", str(out), "--subject", "1", "--task", "marker", "--trial", "1",
+               "--status-json"]
+    with open(f"{out}.stdout", "w") as stdout, open(f"{out}.stderr", "w") as stderr:
+        record = subprocess.Popen(command, stdout=stdout, stderr=stderr, text=True,
+                                  env={**os.environ, "NO_COLOR": "1"}, start_new_session=True)
+
+    def statuses() -> list[dict]:
+        lines = Path(f"{out}.stdout").read_text().splitlines()
+        return [json.loads(line) for line in lines[:-1]]  # the last line may still be half-written
+
+    def video(status: dict) -> dict:
+        return next(d for d in status["devices"] if d["name"] == "video")
+
+    def marker_samples(status: dict) -> int:
+        return next(s["samples"] for s in video(status)["streams"] if s["name"] == "video_marker")
+
+    try:
+        _wait_until(lambda: any(marker_samples(s) == 2 for s in statuses()), "both marker toggles", record, out)
+        toggled = next(i for i, s in enumerate(statuses()) if marker_samples(s) == 2)
+        # the old nominal rate (1.33 Hz) called the device stale 3.75 s after the last toggle: watch 6 s
+        _wait_until(lambda: len(statuses()) > toggled + 6, "6 status lines after the marker", record, out)
+    finally:
+        os.killpg(record.pid, signal.SIGINT)
+        record.wait(timeout=WAIT_S)
+    assert record.returncode == 0, _output(out)[1][-3000:]
+    objects = [json.loads(line) for line in Path(f"{out}.stdout").read_text().splitlines()]
+    recording = [video(o)["state"] for o in objects if o["event"] == "status" and marker_samples(o) >= 1]
+    assert len(recording) >= 6 and set(recording) == {"ok"}, recording
+    marker = next(s for s in video(objects[-2])["streams"] if s["name"] == "video_marker")
+    assert marker["nominal_rate_hz"] is None
+    final = objects[-1]
+    assert final["event"] == "stopped" and not any("video_marker" in p for p in final["problems"])
+    manifest = json.loads((Path(final["session_path"]) / "manifest.json").read_text())
+    entry = manifest["streams"]["video_marker"]
+    assert entry["nominal_rate_hz"] is None and entry["timing"] == "events" and entry["samples"] == 2

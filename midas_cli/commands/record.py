@@ -80,15 +80,16 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
     """Create the session, show the devices opening, record until told, finalise, report."""
     should_stop = lambda: stop.reason is not None or recorder.fatal_error is not None  # noqa: E731
     recorder.start()
+    ended = lambda: should_stop() or recorder.duration_reached(duration)  # noqa: E731
     with display:
-        ready = recorder.wait_ready(READY_TIMEOUT_S, should_stop, display.update)
-        failed = {} if should_stop() else recorder.unopened()
+        ready = recorder.wait_ready(READY_TIMEOUT_S, ended, display.update)
+        failed = {} if ended() else recorder.unopened()
         if failed:
             manifest = recorder.stop("failed", f"could not open {', '.join(failed)} at the start")
             display.final(manifest, recorder.path, show_path=False)
             details = "; ".join(f"{name}: {error}" for name, error in failed.items())
             raise DeviceError(f"{details} (nothing recorded; the session folder is marked failed: {recorder.path})")
-        if not ready and not should_stop():
+        if not ready and not ended():
             display.message(f"midas: warning: {', '.join(recorder.starting())} did not start within "
                             f"{READY_TIMEOUT_S:.0f} s; recording the others while they keep trying")
         run_until(recorder, duration, should_stop, display.update)

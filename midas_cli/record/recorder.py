@@ -96,6 +96,10 @@ class Recorder:
         """``time.monotonic()`` at the session start (the manifest's start time)."""
         return self._started_mono
 
+    def duration_reached(self, duration_s: float | None) -> bool:
+        """True once ``duration_s`` has passed since the session start (never for None)."""
+        return duration_s is not None and time.monotonic() >= self._started_mono + duration_s
+
     @property
     def path(self) -> Path:
         assert self.writer is not None, "recorder not started"
@@ -392,7 +396,7 @@ def run_until(recorder: Recorder, duration_s: float | None, should_stop: Callabl
     calling ``on_tick`` with a snapshot about every ``tick_s``."""
     deadline = None if duration_s is None else recorder.started_monotonic_s + duration_s
     while not should_stop():
-        if deadline is not None and time.monotonic() >= deadline:
+        if recorder.duration_reached(duration_s):
             return
         on_tick(recorder.snapshot(duration_s))
         wait = tick_s if deadline is None else max(0.0, min(tick_s, deadline - time.monotonic()))
