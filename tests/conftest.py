@@ -29,6 +29,36 @@ def midas(*args: str, timeout: float = 120, check: bool = False, **kwargs) -> su
 SPEC = StreamSpec("demo", "demo", (SEQ, T_HOST, Column("x_mm", "float", "mm", 2)), 100.0)
 
 
+def stream_rows(out: Path, stream: str) -> int:
+    """Data rows of ``stream`` in the (only) session under ``out`` so far (0 before it exists)."""
+    files = list(Path(out).glob(f"*/streams/{stream}.csv"))
+    return max(0, files[0].read_bytes().count(b"\n") - 1) if files else 0
+
+
+def record_until(out: Path, args: list[str], rows: dict[str, int], timeout: float = 180) -> subprocess.CompletedProcess:
+    """`midas record ARGS --out OUT` with no --duration, stopped with Ctrl-C (SIGINT) once every stream
+    in ``rows`` has at least that many rows on disk: a test that needs data from every device waits
+    for it instead of assuming how fast the devices open on a busy machine."""
+    import signal
+    import time
+
+    env = {**os.environ, "NO_COLOR": "1", "COLUMNS": "200"}
+    process = subprocess.Popen([sys.executable, "-m", "midas_cli", "record", *args, "--out", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + timeout
+    try:
+        while not all(stream_rows(out, name) >= n for name, n in rows.items()):
+            if process.poll() is not None or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    except BaseException:
+        process.kill()
+        raise
+    return subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
+
+
 def write_session(root: Path, rows: int = 50, status: str = "complete", seq_step: int = 1) -> Path:
     """A small finished session with one stream `demo` (seq, t_host_ns, x_mm) at 100 Hz."""
     clock = HostClock.anchored_now()

@@ -11,7 +11,7 @@ import pytest
 from midas_cli.devices.lsl.device import predicate
 from midas_cli.errors import ConfigError
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from tests.conftest import midas, record_until
 from tests.lsl_fixture import CounterOutlet, loopback_lsl_config
 
 pytest.importorskip("pylsl", reason="pylsl (pip install pylsl==1.18.6) is not installed")
@@ -39,8 +39,8 @@ def test_missing_stream_is_a_clear_device_error(tmp_path: Path) -> None:
 
 def test_record_an_lsl_outlet(tmp_path: Path) -> None:
     with CounterOutlet("midas-test-counter", rate=100.0) as outlet:
-        result = midas("record", "--device", "hr=lsl://?name=midas-test-counter&type=Test", "--duration", "4",
-                       "--subject", "1", "--task", "lsl", "--trial", "1", "--out", str(tmp_path), "--no-tui")
+        result = record_until(tmp_path, ["--device", "hr=lsl://?name=midas-test-counter&type=Test", "--subject", "1",
+                                         "--task", "lsl", "--trial", "1", "--no-tui"], {"hr": 300, "hr_clock": 3})
     assert result.returncode == 0, result.stderr
     session_path = Path(result.stdout.strip().splitlines()[-1])
     verify = midas("session", "verify", str(session_path))

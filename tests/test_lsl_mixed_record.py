@@ -9,7 +9,7 @@ import pytest
 
 from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from tests.conftest import midas, record_until
 from tests.lsl_fixture import CounterOutlet, loopback_lsl_config
 from tests.test_raven import free_udp_port
 
@@ -23,11 +23,13 @@ def test_mixed_session_verifies(tmp_path: Path) -> None:
     with fps_emulator.FpsEmulator(fps_emulator.FpsEmulatorConfig(channels=9)) as board, \
             RavenEmulator(RavenEmulatorConfig("127.0.0.1", port, rate_hz=200)), \
             CounterOutlet("midas-test-mixed", rate=50.0):
-        result = midas("record", "--device", "emht=sim://emht?rate=120", "--device", f"fps=fps://{board.path}?rate=100",
-                       "--device", f"raven=raven://127.0.0.1:{port}?rate=200",
-                       "--device", "hr=lsl://?name=midas-test-mixed", "--device", "rgbd=sim://rgbd?rate=5",
-                       "--duration", "4", "--subject", "2", "--task", "mixed", "--trial", "1",
-                       "--out", str(tmp_path / "sessions"), "--no-tui", timeout=180)
+        streams = ("emht", "fps", "raven", "hr", "hr_clock", "rgbd", "rgbd_truth")
+        result = record_until(tmp_path / "sessions",
+                              ["--device", "emht=sim://emht?rate=120", "--device", f"fps=fps://{board.path}?rate=100",
+                               "--device", f"raven=raven://127.0.0.1:{port}?rate=200",
+                               "--device", "hr=lsl://?name=midas-test-mixed", "--device", "rgbd=sim://rgbd?rate=5",
+                               "--subject", "2", "--task", "mixed", "--trial", "1", "--no-tui"],
+                              {name: 3 for name in streams})
     assert result.returncode == 0, result.stderr
     path = Path(result.stdout.strip().splitlines()[-1])
     verify = midas("session", "verify", str(path))

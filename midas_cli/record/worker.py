@@ -55,7 +55,7 @@ class WorkerJob:
     start_ns: int
     seed: int
     stall_timeout_s: float
-    parent_pid: int
+    parent_pid: int  # the recorder's process id (a worker's parent is the fork server)
     session_dir: str = ""  # absolute session folder, for devices that write files into it (obs:// video/)
     stream_files: dict[str, str] = field(default_factory=dict)  # stream -> absolute path; the recorder created it
     queue_size: int = 4096  # bookkeeping messages held before they are merged (a slow recorder)
@@ -170,10 +170,21 @@ def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
         sys.exit(status)
 
 
+def _alive(pid: int) -> bool:
+    """Is the recorder (``pid``) still there? (Its death also closes the stop line: belt and braces.)"""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _serve(job: WorkerJob, output: WorkerOutput, stop) -> None:
     """Open, pump, and reopen with exponential back-off until told to stop."""
     backoff = BACKOFF_START_S
-    while not stop.is_set() and os.getppid() == job.parent_pid:
+    while not stop.is_set() and _alive(job.parent_pid):
         try:
             device = create_device(job.device, job.url, output.clock, job.start_ns, job.seed, job.session_dir)
             info = device.open()
@@ -202,7 +213,7 @@ def _pump(device: Device, job: WorkerJob, output: WorkerOutput, stop) -> None:
     no batching window or process hop adds to the host-read -> disk latency (see benchmarks/)."""
     specs = {spec.name: spec for spec in device.streams}
     last_data = time.monotonic()
-    while not stop.is_set() and os.getppid() == job.parent_pid:
+    while not stop.is_set() and _alive(job.parent_pid):
         rows_by_stream = device.read()
         now = time.monotonic()
         if any(rows_by_stream.values()):
