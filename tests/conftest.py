@@ -35,10 +35,19 @@ def stream_rows(out: Path, stream: str) -> int:
     return max(0, files[0].read_bytes().count(b"\n") - 1) if files else 0
 
 
-def record_until(out: Path, args: list[str], rows: dict[str, int], timeout: float = 180) -> subprocess.CompletedProcess:
+def last_seq(out: Path, stream: str) -> int:
+    """The last complete row's seq of ``stream`` in the (only) session under ``out`` (-1: none yet)."""
+    files = list(Path(out).glob(f"*/streams/{stream}.csv"))
+    lines = files[0].read_bytes().split(b"\n")[1:-1] if files else []
+    return int(lines[-1].split(b",", 1)[0]) if lines else -1
+
+
+def record_until(out: Path, args: list[str], rows: dict[str, int] | None = None, timeout: float = 180,
+                 until=None) -> subprocess.CompletedProcess:
     """`midas record ARGS --out OUT` with no --duration, stopped with Ctrl-C (SIGINT) once every stream
-    in ``rows`` has at least that many rows on disk: a test that needs data from every device waits
-    for it instead of assuming how fast the devices open on a busy machine."""
+    in ``rows`` has at least that many rows on disk (and ``until(out)`` is true, if given): a test that
+    needs data from every device waits for it instead of assuming how fast the devices open."""
+    rows = rows or {}
     import signal
     import time
 
@@ -47,7 +56,7 @@ def record_until(out: Path, args: list[str], rows: dict[str, int], timeout: floa
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + timeout
     try:
-        while not all(stream_rows(out, name) >= n for name, n in rows.items()):
+        while not (all(stream_rows(out, name) >= n for name, n in rows.items()) and (until is None or until(out))):
             if process.poll() is not None or time.monotonic() > deadline:
                 break
             time.sleep(0.1)

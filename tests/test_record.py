@@ -16,7 +16,7 @@ import pytest
 
 from midas_cli.devices.registry import describe_device
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from tests.conftest import last_seq, midas, record_until
 
 META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 
@@ -176,8 +176,11 @@ def test_status_json_lines_for_scripts(tmp_path: Path) -> None:
 
 
 def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> None:
-    result = midas("record", "--simulate", "--device", "emht=sim://emht?dropout_at=3.5&dropout_for=1.5",
-                   "--duration", "8", "--out", str(tmp_path), *META, "--no-tui", timeout=60, check=True)
+    """The simulated dropout is 5-6.5 s after the session start (the devices must have opened by
+    then); the recording is stopped once EmHT rows from after the outage are on disk."""
+    result = record_until(tmp_path, ["--simulate", "--device", "emht=sim://emht?dropout_at=5&dropout_for=1.5",
+                                     *META, "--no-tui"], until=lambda out: last_seq(out, "emht") > 240 * 7.5)
+    assert result.returncode == 0, result.stderr
     path = Path(result.stdout.splitlines()[-1])
     manifest = Session.open(path).manifest
     emht = manifest["devices"]["emht"]
