@@ -19,7 +19,7 @@ from midas_cli.devices.sim.devices import SimHandKP
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from tests.conftest import midas, record_until
 
 ZED_CONF = """[LEFT_CAM_2K]
 fx=1400.1
@@ -134,8 +134,8 @@ def test_mediapipe_missing_says_how_to_get_it(tmp_path: Path) -> None:
 
 
 def test_record_simulated_rgbd_then_extract_keypoints_within_5_mm(tmp_path: Path) -> None:
-    result = midas("record", "--device", "rgbd=sim://rgbd?rate=8&distance=850", "--duration", "3", "--subject", "1",
-                   "--task", "rgbd", "--trial", "1", "--out", str(tmp_path), "--no-tui", timeout=120)
+    result = record_until(tmp_path, ["--device", "rgbd=sim://rgbd?rate=8&distance=850", "--subject", "1",
+                                     "--task", "rgbd", "--trial", "1", "--no-tui"], {"rgbd": 12, "rgbd_truth": 12})
     assert result.returncode == 0, result.stderr
     path = Path(result.stdout.strip().splitlines()[-1])
     extract = midas("extract", "handkp", str(path), "--detector", "truth", "--json")
