@@ -238,3 +238,99 @@ def test_only_the_consoles_datagrams_are_forwarded_and_counts_survive_a_reconnec
     assert info["first_foreign_sender"] == stranger_address
     warnings = [r for r in caplog.records if "dropping datagrams from" in r.getMessage()]
     assert len(warnings) == 1, "warned once per recording, not per datagram or per connection"
+
+
+class _StatusLines:
+    """`midas record --status-json`: one JSON line a second on stdout, read on a thread."""
+
+    def __init__(self, process: subprocess.Popen) -> None:
+        self.latest: dict = {}
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._read, args=(process.stdout,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stdout) -> None:
+        for line in stdout:
+            if line.startswith("{"):
+                with self._lock:
+                    self.latest = json.loads(line)
+
+    def wait(self, what: str, ok, timeout_s: float = 60) -> dict:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                status = self.latest
+            if status and ok(status["devices"][0]):
+                return status
+            time.sleep(0.05)
+        raise AssertionError(f"the recorder never reported {what}; last status: {self.latest}")
+
+
+def test_record_keeps_only_the_consoles_datagrams_and_counts_them_over_a_reconnect(tmp_path: Path) -> None:
+    """`midas record` end to end: bound to loopback by default; a stranger (127.0.0.2) and another port
+    of the console's host are dropped, counted and never reach the robot; the console's datagrams are
+    recorded and forwarded; a silence longer than the stall timeout forces a reconnect, and the
+    manifest's counts cover both connections."""
+    port = free_udp_port()
+    robot_port = free_udp_port()
+    done = threading.Event()
+    robot, at_robot = _fake_robot(robot_port, done)
+    console, stranger, neighbour = _udp(), _udp("127.0.0.2"), _udp()
+    # rate=2: the stall timeout is 10 / rate = 5 s, so the phases below have 5 s to start on a busy host
+    url = (f"raven://:{port}?rate=2&from=127.0.0.1:{console.getsockname()[1]}"
+           f"&forward=127.0.0.1:{robot_port}")
+    env = {**os.environ, "NO_COLOR": "1"}
+    process = subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--device", f"raven={url}",
+                                "--subject", "1", "--task", "raven", "--trial", "1", "--out",
+                                str(tmp_path / "sessions"), "--status-json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        status = _StatusLines(process)
+        packets = [encode_packet(p) for p in PacketSource(RavenEmulatorConfig(seed=2)).block(0, 60)]
+        strangers = [encode_packet(p) for p in PacketSource(RavenEmulatorConfig(seed=9)).block(5000, 12)]
+        sent: list[bytes] = []
+
+        def phase(mine: list[bytes], theirs: list[bytes]) -> None:
+            for k, datagram in enumerate(mine):
+                if k % 5 == 0:
+                    stranger.sendto(theirs[k // 5], ("127.0.0.1", port))
+                    neighbour.sendto(theirs[k // 5], ("127.0.0.1", port))
+                    stranger.sendto(theirs[k // 5], ("127.0.0.2", port))  # not bound there: never arrives
+                if k == 10:
+                    console.sendto(datagram[:64], ("127.0.0.1", port))  # wrong size
+                    sent.append(datagram[:64])
+                console.sendto(datagram, ("127.0.0.1", port))
+                sent.append(datagram)
+
+        listening = ("ok", "degraded")  # opened ("degraded": opened, nothing received for a while)
+        status.wait("the listener open", lambda d: d["state"] in listening)
+        phase(packets[:30], strangers[:6])
+        status.wait("30 rows", lambda d: d["streams"][0]["samples"] >= 30)
+        status.wait("a reconnect after the silence", lambda d: d["reconnects"] >= 1 and d["state"] in listening)
+        phase(packets[30:], strangers[6:])
+        status.wait("60 rows", lambda d: d["streams"][0]["samples"] >= 60)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+        for sock in (console, stranger, neighbour):
+            sock.close()
+    done.set()
+    robot.join(timeout=5)
+    assert process.returncode == 0, stderr
+    session = tmp_path / "sessions" / os.listdir(tmp_path / "sessions")[0]
+    manifest = json.loads((session / "manifest.json").read_text())
+    device = manifest["devices"]["raven"]
+    assert device["settings"]["listen"] == f"127.0.0.1:{port}" and device["info"]["listen"] == f"127.0.0.1:{port}"
+    assert device["reconnects"] >= 1
+    info = device["info"]
+    assert {k: info[k] for k in ("received", "packets", "wrong_size", "foreign", "forwarded", "forward_errors")} == {
+        "received": 62 + 24, "packets": 60, "wrong_size": 2, "foreign": 24, "forwarded": 62, "forward_errors": 0}
+    assert manifest["streams"]["raven"]["corrupt"] == 2
+    assert at_robot == sent, "the robot gets the console's datagrams, in order, and nothing else"
+    frame = Session.open(session).read_stream("raven")
+    assert frame["seq"].to_list() == list(range(60)) and frame["sequence"].to_list() == list(range(1, 61))
+    assert stderr.count("dropping datagrams from 127.0.0.") == 1, stderr
+    assert midas("session", "verify", str(session)).returncode == 0
