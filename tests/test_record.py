@@ -207,15 +207,28 @@ def test_status_json_lines_for_scripts(tmp_path: Path) -> None:
 
 
 def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> None:
-    result = midas("record", "--simulate", "--device", "emht=sim://emht?dropout_at=3.5&dropout_for=1.5",
-                   "--duration", "8", "--out", str(tmp_path), *META, "--no-tui", timeout=60, check=True)
-    path = Path(result.stdout.splitlines()[-1])
-    manifest = Session.open(path).manifest
-    emht = manifest["devices"]["emht"]
+    # The dropout is timed from the session start; it only tests a reconnect if emht was open before it
+    # began. A busy host can take seconds to start the workers: then the run says nothing, and the
+    # next one leaves more time.
+    for dropout_at in (3.5, 8.0, 15.0):
+        out = tmp_path / f"dropout-at-{dropout_at}"
+        result = midas("record", "--simulate", "--device", f"emht=sim://emht?dropout_at={dropout_at}&dropout_for=1.5",
+                       "--duration", str(dropout_at + 4.5), "--out", str(out), *META, "--no-tui", timeout=120,
+                       check=True)
+        path = Path(result.stdout.splitlines()[-1])
+        manifest = Session.open(path).manifest
+        emht = manifest["devices"]["emht"]
+        dropout_ns = manifest["start"]["host_ns"] + int(dropout_at * 1e9)
+        if min(e["t_host_ns"] for e in emht["events"] if e["event"] == "opened") < dropout_ns:
+            break
+    else:
+        raise AssertionError(f"emht never opened before its dropout began (the last at {dropout_at} s)")
     assert emht["reconnects"] >= 1
     assert any(e["event"] == "lost" for e in emht["events"])
     gaps = manifest["streams"]["emht"]["seq_gaps"]
-    assert gaps["count"] == 1 and 240 <= gaps["missing"] <= 240 * 2.5
+    # the 1.5 s dropout, then a reconnect within 2 s of the device's return (issue 3): retries back off to
+    # 1 s, so an idle host reconnects after about 0.75 s; a busy one may take longer, up to the promise
+    assert gaps["count"] == 1 and 240 <= gaps["missing"] <= 240 * (1.5 + 2.0)
     assert manifest["streams"]["emht"]["missing_explained"]["outage"] == gaps["missing"]
     for other in ("fps", "video", "handkp"):
         assert manifest["streams"][other]["seq_gaps"]["count"] == 0
@@ -232,11 +245,9 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
     subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "50", command], check=True)
     try:
         screen = _wait_for_screen(name, "elapsed 00:00:04")
-        for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
-            row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
-            measured = row.split("│")[3].split("/") if row.count("│") > 4 else ["0", "0"]
-            assert float(measured[1]) == rate and abs(float(measured[0]) - rate) < 0.05 * rate, screen
-            assert " ok " in row, f"{device} row missing or unhealthy:\n{screen}"
+        # a busy host can stall a worker for a moment (the row then says degraded, honestly): wait for a
+        # screen where every device is healthy rather than judge the first one
+        screen = _wait_for_screen(name, "", lambda text: not _unhealthy_rows(text))
         assert "pedals" in screen and "positions (mm)" in screen and "disk free" in screen
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
         screen = _wait_for_screen(name, str(tmp_path))
@@ -247,16 +258,33 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
         subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
 
 
-def _wait_for_screen(name: str, text: str, timeout_s: float = 30) -> str:
+def _unhealthy_rows(screen: str) -> list[str]:
+    """Devices whose row is missing, not ok, or whose measured/nominal rate is off by 5 % or more."""
+    bad = []
+    for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
+        row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
+        measured = row.split("│")[3].split("/") if row.count("│") > 4 else ["0", "0"]
+        try:
+            good = float(measured[1]) == rate and abs(float(measured[0]) - rate) < 0.05 * rate and " ok " in row
+        except (ValueError, IndexError):  # no figure yet
+            good = False
+        if not good:
+            bad.append(row or device)
+    return bad
+
+
+def _wait_for_screen(name: str, text: str, ok=None, timeout_s: float = 30) -> str:
+    """The first screen showing ``text`` (and satisfying ``ok``, when given) within ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
     screen = ""
     while time.monotonic() < deadline:
         time.sleep(0.5)
         screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", "-t", name], capture_output=True,
                                 text=True).stdout
-        if text in screen:
+        if text in screen and (ok is None or ok(screen)):
             return screen
-    raise AssertionError(f"{text!r} never appeared on the screen:\n{screen}")
+    problem = f"{text!r} never appeared" if text not in screen else f"rows never all ok: {_unhealthy_rows(screen)}"
+    raise AssertionError(f"{problem} on the screen:\n{screen}")
 
 
 def test_a_full_disk_stops_cleanly_and_keeps_whole_lines(tmp_path: Path) -> None:
