@@ -121,26 +121,66 @@ def test_recorded_samples_are_the_seeded_model_at_their_sequence_number(ten_seco
 def test_sigkill_leaves_a_repairable_session(tmp_path: Path) -> None:
     process = _spawn(tmp_path, "--simulate", "--duration", "60", "--no-tui")
     _wait_for_rows(tmp_path, rows=240 * 4)
-    killed_at_ns = time.time_ns()
+    workers = _workers_of(process.pid)
+    assert len(workers) >= 5, f"the fork server and one worker per simulated device expected, found {workers}"
+    path = _only_session(tmp_path)
+    on_disk = {f.stem: f.read_bytes() for f in (path / "streams").glob("*.csv")}  # handed to the OS before the kill
     process.send_signal(signal.SIGKILL)
     process.communicate(timeout=10)
-    path = _only_session(tmp_path)
     assert Session.open(path).status == "recording"
     assert midas("session", "verify", str(path)).returncode == 4
     repaired = midas("session", "repair", str(path), check=True)
     assert "recovered" in repaired.stdout
     assert midas("session", "verify", str(path)).returncode == 0
-    session = Session.open(path)
-    for name in session.stream_names:
-        last = session.read_stream(name)["t_host_ns"].iloc[-1]
-        assert killed_at_ns - last < 1_000_000_000, f"{name} lost more than the last second"
-    time.sleep(1.0)
-    assert not _workers_alive(), "device workers must exit when the recorder dies"
+    assert set(on_disk) == {"emht", "fps", "video", "handkp"}
+    for name, before in on_disk.items():  # a killed recorder loses nothing the OS had accepted
+        whole_lines = before[:before.rindex(b"\n") + 1]
+        assert (path / "streams" / f"{name}.csv").read_bytes().startswith(whole_lines), name
+        assert whole_lines.count(b"\n") > 1, f"{name}: rows reach the disk while recording"
+    deadline = time.monotonic() + 60  # they notice within a read or two; a busy host may take longer
+    while _alive(workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _alive(workers), f"device workers {_alive(workers)} must exit when the recorder dies"
 
 
-def _workers_alive() -> bool:
-    ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
-    return "midas_cli.record.worker" in ps or "multiprocessing.spawn" in ps and "midas" in ps
+def _workers_of(pid: int) -> dict[int, str]:
+    """This recorder's process tree below it (the fork server, its device workers, multiprocessing's
+    resource tracker): pid -> start time, found through the parent pids in /proc (so other midas
+    processes on the host never count, and a reused pid is told apart)."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = _proc_stat(int(entry.name))
+            except (OSError, IndexError):
+                continue  # gone meanwhile
+            parents[int(entry.name)] = (int(fields[1]), fields[19])
+    tree, frontier = {}, [pid]
+    while frontier:
+        parent = frontier.pop()
+        for child, (ppid, start) in parents.items():
+            if ppid == parent and child not in tree:
+                tree[child] = start
+                frontier.append(child)
+    return tree
+
+
+def _proc_stat(pid: int) -> list[str]:
+    """Fields of /proc/PID/stat after the command name (state first): field 3 of proc(5) is index 0."""
+    return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+
+
+def _alive(workers: dict[int, str]) -> list[int]:
+    """Those of ``workers`` still running (a zombie has exited: only its reaping is left)."""
+    alive = []
+    for pid, start in workers.items():
+        try:
+            fields = _proc_stat(pid)
+        except OSError:
+            continue
+        if fields[0] != "Z" and fields[19] == start:
+            alive.append(pid)
+    return alive
 
 
 @pytest.mark.parametrize("sig,status", [(signal.SIGHUP, "interrupted"), (signal.SIGTERM, "interrupted"),
@@ -176,18 +216,32 @@ def test_status_json_lines_for_scripts(tmp_path: Path) -> None:
 
 
 def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> None:
-    """The simulated dropout is 5-6.5 s after the session start (the devices must have opened by
-    then); the recording is stopped once EmHT rows from after the outage are on disk."""
-    result = record_until(tmp_path, ["--simulate", "--device", "emht=sim://emht?dropout_at=5&dropout_for=1.5",
-                                     *META, "--no-tui"], until=lambda out: last_seq(out, "emht") > 240 * 7.5)
-    assert result.returncode == 0, result.stderr
-    path = Path(result.stdout.splitlines()[-1])
-    manifest = Session.open(path).manifest
-    emht = manifest["devices"]["emht"]
+    """The simulated dropout is timed from the session start; it only tests a reconnect if emht was
+    open before it began. A busy host can take seconds to start the workers: then the run fails to
+    start (exit 3) or never sees the outage, and the next one leaves more time. Each run is stopped
+    once EmHT rows from after its outage are on disk."""
+    for dropout_at in (5.0, 10.0, 20.0):
+        out = tmp_path / f"dropout-at-{dropout_at}"
+        result = record_until(out, ["--simulate", "--device", f"emht=sim://emht?dropout_at={dropout_at}&dropout_for=1.5",
+                                    *META, "--no-tui"],
+                              until=lambda o, d=dropout_at: last_seq(o, "emht") > 240 * (d + 2.5))
+        if result.returncode == 3:  # emht was still starting when its dropout began
+            continue
+        assert result.returncode == 0, result.stderr
+        path = Path(result.stdout.splitlines()[-1])
+        manifest = Session.open(path).manifest
+        emht = manifest["devices"]["emht"]
+        dropout_ns = manifest["start"]["host_ns"] + int(dropout_at * 1e9)
+        if min(e["t_host_ns"] for e in emht["events"] if e["event"] == "opened") < dropout_ns:
+            break
+    else:
+        raise AssertionError(f"emht never opened before its dropout began (the last at {dropout_at} s)")
     assert emht["reconnects"] >= 1
     assert any(e["event"] == "lost" for e in emht["events"])
     gaps = manifest["streams"]["emht"]["seq_gaps"]
-    assert gaps["count"] == 1 and 240 <= gaps["missing"] <= 240 * 2.5
+    # the 1.5 s dropout, then a reconnect within 2 s of the device's return (issue 3): retries back off to
+    # 1 s, so an idle host reconnects after about 0.75 s; a busy one may take longer, up to the promise
+    assert gaps["count"] == 1 and 240 <= gaps["missing"] <= 240 * (1.5 + 2.0)
     assert manifest["streams"]["emht"]["missing_explained"]["outage"] == gaps["missing"]
     for other in ("fps", "video", "handkp"):
         assert manifest["streams"][other]["seq_gaps"]["count"] == 0
@@ -204,11 +258,9 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
     subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "50", command], check=True)
     try:
         screen = _wait_for_screen(name, "elapsed 00:00:04")
-        for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
-            row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
-            measured = row.split("│")[3].split("/") if row.count("│") > 4 else ["0", "0"]
-            assert float(measured[1]) == rate and abs(float(measured[0]) - rate) < 0.05 * rate, screen
-            assert " ok " in row, f"{device} row missing or unhealthy:\n{screen}"
+        # a busy host can stall a worker for a moment (the row then says degraded, honestly): wait for a
+        # screen where every device is healthy rather than judge the first one
+        screen = _wait_for_screen(name, "", lambda text: not _unhealthy_rows(text))
         assert "pedals" in screen and "positions (mm)" in screen and "disk free" in screen
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
         screen = _wait_for_screen(name, str(tmp_path))
@@ -219,16 +271,33 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
         subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
 
 
-def _wait_for_screen(name: str, text: str, timeout_s: float = 30) -> str:
+def _unhealthy_rows(screen: str) -> list[str]:
+    """Devices whose row is missing, not ok, or whose measured/nominal rate is off by 5 % or more."""
+    bad = []
+    for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
+        row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
+        measured = row.split("│")[3].split("/") if row.count("│") > 4 else ["0", "0"]
+        try:
+            good = float(measured[1]) == rate and abs(float(measured[0]) - rate) < 0.05 * rate and " ok " in row
+        except (ValueError, IndexError):  # no figure yet
+            good = False
+        if not good:
+            bad.append(row or device)
+    return bad
+
+
+def _wait_for_screen(name: str, text: str, ok=None, timeout_s: float = 30) -> str:
+    """The first screen showing ``text`` (and satisfying ``ok``, when given) within ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
     screen = ""
     while time.monotonic() < deadline:
         time.sleep(0.5)
         screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", "-t", name], capture_output=True,
                                 text=True).stdout
-        if text in screen:
+        if text in screen and (ok is None or ok(screen)):
             return screen
-    raise AssertionError(f"{text!r} never appeared on the screen:\n{screen}")
+    problem = f"{text!r} never appeared" if text not in screen else f"rows never all ok: {_unhealthy_rows(screen)}"
+    raise AssertionError(f"{problem} on the screen:\n{screen}")
 
 
 def test_a_full_disk_stops_cleanly_and_keeps_whole_lines(tmp_path: Path) -> None:

@@ -29,10 +29,12 @@ def emulator(tmp_path: Path, request):
     emu.stop()
 
 
-def _read_for(device: FobEmHT, seconds: float) -> list[tuple]:
+def _read_for(device: FobEmHT, seconds: float, wanted: int | None = None) -> list[tuple]:
+    """Rows read for ``seconds``; with ``wanted``, until that many came (up to 30 s: a busy host may be
+    slower than the rate says)."""
     rows: list[tuple] = []
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
+    deadline = time.monotonic() + (seconds if wanted is None else 30)
+    while time.monotonic() < deadline and (wanted is None or len(rows) < wanted):
         rows += device.read().get("emht", [])
     return rows
 
@@ -52,7 +54,7 @@ def test_driver_configures_the_tracker_and_decodes_every_cycle(emulator) -> None
     clock = HostClock.anchored_now()
     device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=4"), clock, clock.now_ns())
     info = device.open()
-    rows = _read_for(device, 2.0)
+    rows = _read_for(device, 2.0, wanted=350)
     device.close()
     summary = emulator.summary()
     assert info["serial"] == "4242" and info["measurement_rate_hz"] == 200.0
@@ -140,7 +142,7 @@ def test_emulate_command_serves_a_pty_and_writes_its_summary(tmp_path: Path) -> 
         clock = HostClock.anchored_now()
         device = FobEmHT("emht", DeviceUrl.parse(f"fob://{link}?rate=100&sensors=4"), clock, clock.now_ns())
         device.open()
-        rows = _read_for(device, 1.0)
+        rows = _read_for(device, 1.0, wanted=51)
         device.close()
     finally:
         process.send_signal(signal.SIGTERM)

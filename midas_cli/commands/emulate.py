@@ -142,6 +142,8 @@ def _stdin_controls(emulator: FpsEmulator) -> None:
 @app.command()
 def raven(
     to: str = typer.Option("127.0.0.1:36000", "--to", help="HOST:PORT the console's UDP packets go to."),
+    source: str = typer.Option("", "--from", help="HOST or HOST:PORT to send from (e.g. 127.0.0.2 to play a "
+                                                  "stranger on loopback); default: what the route picks."),
     rate: float = typer.Option(1000.0, "--rate", help="Packets per second."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's hands and clutch pedal."),
     corrupt_every: int = typer.Option(0, "--corrupt-every", help="After every N packets send a wrong-size one."),
@@ -157,7 +159,8 @@ def raven(
     if duration is not None and duration <= 0:
         raise ConfigError(f"--duration must be positive, got {duration}")
     host, port = parse_address(to, "--to")
-    emulator = RavenEmulator(RavenEmulatorConfig(host, port, rate, seed, corrupt_every), keep_sent=False).start()
+    emulator = RavenEmulator(RavenEmulatorConfig(host, port, rate, seed, corrupt_every, source),
+                             keep_sent=False).start()
     stopped = _stop_on_signals()
     deadline = None if duration is None else time.monotonic() + duration
     try:
@@ -165,7 +168,8 @@ def raven(
             time.sleep(0.05)
     finally:
         result = emulator.stop()
-    err.print(f"raven emulator: {result['packets_sent']} packets sent to {host}:{port}, "
+    err.print(f"raven emulator: {result['packets_sent']} packets sent to {host}:{port}"
+              f"{' from ' + source if source else ''}, "
               f"{result['wrong_size_sent']} wrong-size")
     if as_json:
         print_json(result)

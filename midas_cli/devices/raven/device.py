@@ -1,33 +1,45 @@
-"""``raven://HOST:PORT?forward=HOST:PORT&rate=HZ``: listen for the Raven-II console's UDP packets.
+"""``raven://[HOST][:PORT]?from=CONSOLE&forward=ROBOT:PORT&rate=HZ``: the Raven-II console's UDP packets.
 
-The listener binds HOST:PORT (``0.0.0.0:36000`` to take the robot's place on the network; the console
-must then send to this laptop, and ``forward=ROBOT:36000`` passes every datagram on unchanged, as the
-original MiDAS logger did). Each datagram is stamped with the host clock when it was read, kept
-byte for byte in ``streams/<name>.raw`` (see :mod:`midas_cli.session.device_files`) and, when it is a
-124-byte ``u_struct``, decoded into the ``<name>`` stream. Datagrams of another size are counted as
-corrupt (their bytes are still in the raw file).
+The listener binds HOST:PORT, by default ``127.0.0.1:36000`` (loopback: nothing off this host can
+reach it). To take the robot's place on the lab network, name the interface (``raven://0.0.0.0:36000``
+or the laptop's address); the console must then send to this laptop. ``from=HOST`` or
+``from=HOST:PORT`` is the console: only its datagrams are recorded and, with ``forward=ROBOT:36000``,
+passed on unchanged to the robot, as the original MiDAS logger did. Datagrams from any other sender
+are dropped, counted as ``foreign`` and warned about once; ``forward=`` without ``from=`` is refused
+(it would relay anybody's packets to the robot). Without ``from=`` every sender is recorded.
+
+Each accepted datagram is stamped with the host clock when it was read, kept byte for byte in
+``streams/<name>.raw`` (see :mod:`midas_cli.session.device_files`) and, when it is a 124-byte
+``u_struct``, decoded into the ``<name>`` stream. Datagrams of another size are counted as corrupt
+(their bytes are still in the raw file).
 
 ``seq`` counts the packets this listener received (it never goes back, so a console restart cannot
 break the stream); the console's own ``sequence`` is a column, and its gaps, duplicates, out-of-order
-packets and resets are counted and written to the device's manifest info at the end.
+packets and resets are counted and written to the device's manifest info at the end, with the
+datagrams received, foreign, wrong-size and forwarded. The worker builds a new device object at each
+reconnect; these counts live in a :class:`LinkTally` kept per session and stream for the life of the
+worker process, so they cover the whole recording, not the last connection.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import select
 import socket
+from dataclasses import dataclass, field
 from typing import Any
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import Device, DeviceUrl
 from midas_cli.devices.raven.protocol import PACKET_SIZE, SequenceTracker, decode_packet
 from midas_cli.errors import ConfigError, DeviceError
-from midas_cli.session.device_files import RawPacketWriter, raw_file_name, read_raw_packets
+from midas_cli.session.device_files import RAW_MAGIC, RawPacketWriter, raw_file_name, read_raw_packets
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 
 log = logging.getLogger(__name__)
 
+DEFAULT_HOST = "127.0.0.1"  # loopback unless the URL names an interface
 DEFAULT_PORT = 36000
 MAX_DATAGRAM = 2048
 MAX_PACKETS_PER_READ = 256
@@ -73,6 +85,80 @@ def parse_address(text: str, what: str, default_port: int | None = None) -> tupl
     return host, number
 
 
+def listen_address(target: str, what: str) -> tuple[str, int]:
+    """The URL's ``[HOST][:PORT]`` -> (host, port), loopback and port 36000 where left out."""
+    target = target.strip("/")
+    if target.startswith(":"):
+        target = DEFAULT_HOST + target
+    return parse_address(target or DEFAULT_HOST, what, DEFAULT_PORT)
+
+
+def sender_address(text: str, what: str) -> tuple[str, int | None]:
+    """``HOST`` or ``HOST:PORT`` -> (IPv4 address, port or None for any port); ConfigError if unknown."""
+    host, port = parse_address(text, what, 0) if ":" in text else (text, 0)
+    try:
+        address = socket.gethostbyname(host)
+    except (OSError, UnicodeError):
+        raise ConfigError(f"{what} {text!r}: unknown host {host!r}") from None
+    return address, port or None
+
+
+@dataclass
+class LinkTally:
+    """What a listener counted since the recording began. Kept for the life of the worker process
+    (see :func:`tally_for`), so a reconnect, which builds a new device, carries on counting.
+    ``received`` = ``packets`` + ``wrong_size`` + ``foreign``."""
+
+    raw_size: int = 0  # size of the raw file after the last packet counted here (another size: stale)
+    last_t: int = 0
+    packets: int = 0
+    wrong_size: int = 0
+    foreign: int = 0
+    forwarded: int = 0
+    forward_errors: int = 0
+    first_foreign: str = ""
+    tracker: SequenceTracker = field(default_factory=SequenceTracker)
+
+    @property
+    def received(self) -> int:
+        return self.packets + self.wrong_size + self.foreign
+
+    def resume(self, raw_path: Any) -> None:
+        """Count what an earlier connection kept in the raw file (``seq``, time order, sequences)."""
+        for _, t_host, payload in read_raw_packets(raw_path):
+            self.last_t = t_host
+            if len(payload) == PACKET_SIZE:
+                self.tracker.update(decode_packet(payload).sequence)
+                self.packets += 1
+            else:
+                self.wrong_size += 1
+
+    def info(self) -> dict[str, Any]:
+        info = {"received": self.received, "packets": self.packets, "wrong_size": self.wrong_size,
+                "foreign": self.foreign, "forwarded": self.forwarded, "forward_errors": self.forward_errors,
+                **self.tracker.summary()}
+        if self.first_foreign:
+            info["first_foreign_sender"] = self.first_foreign
+        return info
+
+
+_TALLIES: dict[tuple[str, str], LinkTally] = {}
+
+
+def tally_for(session_dir: str, stream: str, raw: RawPacketWriter) -> LinkTally:
+    """The running tally of ``stream`` in this session; a new one (counting what the raw file already
+    holds) unless this process has counted up to exactly the raw file's current end."""
+    key = (os.path.realpath(session_dir), stream)
+    tally = _TALLIES.get(key)
+    if tally is None or tally.raw_size != raw.size:
+        if tally is not None or raw.size > len(RAW_MAGIC):
+            log.warning("%s: counting resumes from %s; datagrams forwarded or foreign before are not known",
+                        stream, raw.path)
+        tally = _TALLIES[key] = LinkTally(raw_size=raw.size)
+        tally.resume(raw.path)
+    return tally
+
+
 class RavenDevice(Device):
     """UDP listener (and optional forwarder) for Raven-II teleoperation packets."""
 
@@ -80,31 +166,38 @@ class RavenDevice(Device):
 
     def __init__(self, name: str, url: DeviceUrl, clock: HostClock, session_dir: str = "") -> None:
         super().__init__(name, url)
-        self.params = url.take({"forward": str, "rate": float}, {"forward": "", "rate": 1000.0})
+        self.params = url.take({"forward": str, "from": str, "rate": float},
+                               {"forward": "", "from": "", "rate": 1000.0})
         if not 0 < self.params["rate"] <= 10000:
             raise ConfigError(f"{url.raw}: rate must be in (0, 10000] Hz (the console's send rate), "
                               f"got {self.params['rate']}")
-        self.address = parse_address(url.target.strip("/") or f"0.0.0.0:{DEFAULT_PORT}", f"{url.raw}: listen address",
-                                     DEFAULT_PORT)
+        self.address = listen_address(url.target, f"{url.raw}: listen address")
         self.forward = parse_address(self.params["forward"], f"{url.raw}: forward") if self.params["forward"] else None
+        self.sender = sender_address(self.params["from"], f"{url.raw}: from") if self.params["from"] else None
+        if self.forward is not None and self.sender is None:
+            raise ConfigError(f"{url.raw}: forward= needs from=HOST[:PORT], the surgeon console's address: only "
+                              f"its datagrams are passed on to the robot (anyone else's would reach it too)")
         self.clock = clock
         self.session_dir = session_dir
         self.sock: socket.socket | None = None
         self.raw: RawPacketWriter | None = None
-        self.tracker = SequenceTracker()
-        self.received = 0
-        self.forwarded = 0
-        self.forward_errors = 0
-        self._last_t = 0
+        self.tally = LinkTally()  # replaced by the session's running tally on open
 
     @property
     def streams(self) -> list[StreamSpec]:
         return [StreamSpec(self.name, self.name, COLUMNS, self.params["rate"],
                            "Raven-II teleoperation packets (u_struct), one row per 124-byte datagram")]
 
+    def _sender_text(self) -> str | None:
+        if self.sender is None:
+            return None
+        host, port = self.sender
+        return host if port is None else f"{host}:{port}"
+
     def settings(self) -> dict[str, Any]:
-        return {"listen": f"{self.address[0]}:{self.address[1]}", "forward": self.params["forward"] or None,
-                "rate": self.params["rate"], "raw_file": raw_file_name(self.name)}
+        return {"listen": f"{self.address[0]}:{self.address[1]}", "from": self._sender_text(),
+                "forward": self.params["forward"] or None, "rate": self.params["rate"],
+                "raw_file": raw_file_name(self.name)}
 
     def open(self) -> dict[str, Any]:
         if not self.session_dir:
@@ -122,50 +215,61 @@ class RavenDevice(Device):
         sock.setblocking(False)
         self.sock = sock
         self.raw = RawPacketWriter(self.session_dir, self.name)
-        self._resume(self.raw.path)
-        log.info("%s: listening on udp %s:%d%s", self.name, *self.address,
+        self.tally = tally_for(self.session_dir, self.name, self.raw)
+        bound = "%s:%d" % sock.getsockname()
+        log.info("%s: listening on udp %s%s%s", self.name, bound,
+                 f", accepting only {self._sender_text()}" if self.sender else "",
                  f", forwarding to {self.forward[0]}:{self.forward[1]}" if self.forward else "")
         return {"model": "Raven-II surgeon console (ITP u_struct over UDP)", "packet_bytes": PACKET_SIZE,
-                "listen": f"{self.address[0]}:{self.address[1]}", "raw_file": raw_file_name(self.name)}
-
-    def _resume(self, raw_path) -> None:
-        """After a reconnect, continue ``seq``, time order and the sequence counts from the raw file."""
-        for _, t_host, payload in read_raw_packets(raw_path):
-            self._last_t = t_host
-            if len(payload) == PACKET_SIZE:
-                self.tracker.update(decode_packet(payload).sequence)
-                self.received += 1
+                "listen": bound, "from": self._sender_text(), "raw_file": raw_file_name(self.name)}
 
     def read(self) -> dict[str, list[tuple]]:
         if self.sock is None or self.raw is None:
             raise DeviceError(f"{self.name}: read before open")
         ready, _, _ = select.select([self.sock], [], [], POLL_S)
         rows: list[tuple] = []
-        while ready and len(rows) < MAX_PACKETS_PER_READ:
+        for _ in range(MAX_PACKETS_PER_READ if ready else 0):
             try:
-                data = self.sock.recv(MAX_DATAGRAM)
+                data, source = self.sock.recvfrom(MAX_DATAGRAM)
             except BlockingIOError:
                 break
+            if not self._accepts(source):
+                continue
             row = self._take(data)
             if row is not None:
                 rows.append(row)
         return {self.name: rows} if rows else {}
 
+    def _accepts(self, source: tuple[str, int]) -> bool:
+        """Whether a datagram from ``source`` is the console's; count (and warn once about) the others."""
+        if self.sender is None or (source[0] == self.sender[0] and self.sender[1] in (None, source[1])):
+            return True
+        self.tally.foreign += 1
+        if not self.tally.first_foreign:
+            self.tally.first_foreign = f"{source[0]}:{source[1]}"
+            log.warning("%s: dropping datagrams from %s: only the console at %s is %s (from=); counted as "
+                        "'foreign' in the manifest", self.name, self.tally.first_foreign, self._sender_text(),
+                        "recorded and forwarded" if self.forward else "recorded")
+        return False
+
     def _take(self, data: bytes) -> tuple | None:
         """Stamp, keep, forward and decode one datagram; the row for the stream or None."""
-        t_host = max(self.clock.now_ns(), self._last_t + 1)  # strictly increasing within the stream
-        self._last_t = t_host
+        tally = self.tally
+        t_host = max(self.clock.now_ns(), tally.last_t + 1)  # strictly increasing within the stream
+        tally.last_t = t_host
         offset = self.raw.append(t_host, data)
+        tally.raw_size = self.raw.size
         self._forward(data)
         try:
             packet = decode_packet(data)
         except DeviceError:
-            self.counters.corrupt += 1
+            tally.wrong_size += 1
+            self.counters.corrupt += 1  # this connection's; the worker adds up the connections
             self.counters.discarded_bytes += len(data)
             return None
-        self.tracker.update(packet.sequence)
-        row = (self.received, t_host, *packet.row_values(), offset)
-        self.received += 1
+        tally.tracker.update(packet.sequence)
+        row = (tally.packets, t_host, *packet.row_values(), offset)
+        tally.packets += 1
         return row
 
     def _forward(self, data: bytes) -> None:
@@ -173,16 +277,14 @@ class RavenDevice(Device):
             return
         try:
             self.sock.sendto(data, self.forward)
-            self.forwarded += 1
+            self.tally.forwarded += 1
         except OSError as exc:
-            self.forward_errors += 1
-            if self.forward_errors == 1:
+            self.tally.forward_errors += 1
+            if self.tally.forward_errors == 1:
                 log.warning("%s: forwarding to %s:%d failed: %s", self.name, *self.forward, exc)
 
     def finish(self) -> dict[str, list[tuple]]:
-        self.final_info = {"packets": self.received, "wrong_size": self.counters.corrupt,
-                           "forwarded": self.forwarded, "forward_errors": self.forward_errors,
-                           **self.tracker.summary()}
+        self.final_info = self.tally.info()
         return {}
 
     def close(self) -> None:

@@ -36,13 +36,15 @@ HAND_SENSORS = ((1, 0), (2, 3))  # per arm (left, right hand): (thumb, middle) s
 @dataclass(frozen=True)
 class RavenEmulatorConfig:
     """Where to send, how fast, which surgeon. ``corrupt_every`` > 0 sends a wrong-size datagram after
-    every that many packets (for tests of the listener's accounting)."""
+    every that many packets (for tests of the listener's accounting). ``source`` (``HOST`` or
+    ``HOST:PORT``) is the address the packets are sent from; empty: the one the route picks."""
 
     host: str = "127.0.0.1"
     port: int = 36000
     rate_hz: float = 1000.0
     seed: int = 0
     corrupt_every: int = 0
+    source: str = ""
 
     def __post_init__(self) -> None:
         if not 0 < self.rate_hz <= 10000:
@@ -106,6 +108,18 @@ class RavenEmulator:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="raven-emulator", daemon=True)
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if config.source:
+            host, _, port = config.source.partition(":")
+            try:
+                self._sock.bind((host, int(port or 0)))
+            except (OSError, ValueError) as exc:
+                self._sock.close()
+                raise ConfigError(f"Raven emulator cannot send from {config.source!r}: {exc}") from None
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The (host, port) the packets come from (the port is known once one was sent, or if bound)."""
+        return self._sock.getsockname()
 
     def start(self) -> "RavenEmulator":
         self._thread.start()
