@@ -28,14 +28,19 @@ def _render(results: list[tuple[Path, dict[str, Any]]], as_json: bool) -> None:
 
 
 def _summary(report: dict[str, Any]) -> str:
-    """One line per source file: what was found and which quirks were handled."""
+    """One line per source file (its name, then what was found and which quirks were handled), one line
+    per discontinuity found in a file."""
     lines = [f"imported {report.get('source') or report.get('kinematics', {}).get('path')}"]
+    keys = ("rows", "records", "frames", "header_quirk", "malformed_rows_skipped", "all_placeholder_rows",
+            "host_times_adjusted", "note", "row_widths", "pds_block_placeholders")
     for name, facts in report.items():
         if isinstance(facts, dict) and "path" in facts:
-            keys = ("rows", "records", "frames", "header_quirk", "malformed_rows_skipped", "all_placeholder_rows",
-                    "host_times_adjusted", "note", "row_widths", "pds_block_placeholders")
-            shown = ", ".join(f"{k}={facts[k]}" for k in keys if k in facts)
-            lines.append(f"  {name}: {shown}")
+            shown = [Path(facts["path"]).name] + [f"{k}={facts[k]}" for k in keys if k in facts]
+            lines.append(f"  {name}: {', '.join(shown)}")
+        elif isinstance(facts, str) and name != "source":
+            lines.append(f"  {name}: {facts}")
+    for item in report.get("discontinuities", []):
+        lines.append(f"  discontinuity: {item['file']} line {item['line']}: {item['what']}")
     return "\n".join(lines)
 
 

@@ -113,7 +113,7 @@ def import_trial(path: Path, root: Path, fmt: str, out_root: Path) -> tuple[Path
                               "clock": "no host clock in the source: t_host_ns = 2010-01-01 + frame / 30 Hz",
                               "clutch": "not recorded by the source: empty"}
     devices = {"video": {"kind": "video", "url": f"import://{fmt}/{path.name}", "streams": ["video"]},
-               "robot": {"kind": "raven", "url": f"import://{fmt}/{path.name}", "streams": ["mtm", "psm"]}}
+               "robot": {"kind": "davinci", "url": f"import://{fmt}/{path.name}", "streams": ["mtm", "psm"]}}
     metadata = SessionMetadata(subject, task, trial, "davinci", f"imported from {fmt} {path.name}")
     transcription = transcription_for(path, root, fmt)
     report["transcription"] = file_facts(transcription) if transcription else "none found: no labels written"
