@@ -47,12 +47,16 @@ def _summary(report: dict[str, Any]) -> str:
 @app.command("midas-dcs")
 def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
               platform: str = typer.Option("unknown", "--platform", help="Platform to record (not in the source)."),
+              split: bool = typer.Option(False, "--split", help="A folder holding several recordings (host time "
+                                         "going back, row shape changing mid-file) becomes one session per "
+                                         "recording; without it such a folder is refused (exit 4)."),
               as_json: bool = JSON_OPTION) -> None:
-    """Import one folder of the original MiDAS system; quirks are reported here and in logs/import_report.json.
+    """Import one folder of the original MiDAS system; quirks and discontinuities (file, line, what) are
+    reported here and in logs/import_report.json.
 
     Example: midas import midas-dcs ../shared/data/midas-dcs-sample/trakt_Strakt_T1_2024-07-05 --out sessions
     """
-    _render([import_midas_dcs(folder, out_dir, platform)], as_json)
+    _render(import_midas_dcs(folder, out_dir, platform, split), as_json)
 
 
 @app.command("jigsaws")
