@@ -89,3 +89,14 @@ def test_clean_sample_has_no_discontinuities(tmp_path: Path) -> None:
     (item,) = json.loads(result.stdout)
     assert item["import_report"]["discontinuities"] == [] and "recording" not in item["import_report"]
     assert np.isclose(Session.open(item["path"]).stream_spec("fps").nominal_rate_hz, 299 / 5.9134205, rtol=1e-3)
+
+
+def test_jigsaws_file_with_a_partial_line_is_refused_naming_it(tmp_path: Path) -> None:
+    source = tmp_path / "Suturing"
+    (source / "kinematics" / "AllGestures").mkdir(parents=True)
+    lines = [" ".join(["0.1"] * 76)] * 6
+    lines[3] = " ".join(["0.1"] * 40)  # torn mid-row
+    (source / "kinematics" / "AllGestures" / "Suturing_B001.txt").write_text("\n".join(lines) + "\n")
+    result = midas("import", "jigsaws", str(source), "--out", str(tmp_path / "out"))
+    assert result.returncode == 4, result.stderr
+    assert "Suturing_B001.txt" in result.stderr and "line 4: 40 values where jigsaws kinematics have 76" in result.stderr
