@@ -556,7 +556,7 @@ def coverage_warnings(covered: dict[str, dict[str, Any]], options: AlignOptions)
     lines = []
     for stream, c in covered.items():
         if min(c["samples_share"], c["span_share"]) < COVERAGE_WARNING:
-            hint = " (--clock RATE aligns onto a regular clock spanning every stream)" if options.clock_hz is None else ""
+            hint = "" if options.clock_hz else " (--clock RATE aligns onto a regular clock spanning every stream)"
             lines.append(f"the {clock} covers {c['samples_share']:.1%} of the samples of stream {stream!r} "
                          f"({c['samples_inside']} of {c['samples']}) and {c['span_share']:.1%} of its "
                          f"{c['span_s']:g} s span{hint}")

@@ -96,7 +96,8 @@ def read_sources(folder: Path, discontinuities: list[dict[str, Any]]) -> list[So
             continue
         header, rows, lines = _rows(path)
         name = str(path.relative_to(folder))
-        segments, found = split_rows(name, rows, lines, HOST_TIME[key.split("_")[0] if key.startswith("smartwatch") else key])
+        kind = "smartwatch" if key.startswith("smartwatch_") else key
+        segments, found = split_rows(name, rows, lines, HOST_TIME[kind])
         discontinuities += found
         sources.append(SourceFile(key, path, name, header, segments))
     return sources
@@ -307,16 +308,23 @@ def import_midas_dcs(folder: Path | str, out_root: Path | str, platform: str = "
         where = "; ".join(f"{d['file']} line {d['line']}: {d['what'].removesuffix(': a new recording')}" for d in cuts)
         raise SessionError(f"{folder} holds {len(parts)} recordings written into one folder ({where}): "
                            "import them as separate sessions with --split")
-    results = []
+    built = []
     for index, recording in enumerate(parts):
         report: dict[str, Any] = {"source": str(folder), "format": "midas-dcs (UVA-DSA/MiDAS 2024)",
                                   "folder_metadata": meta, "discontinuities": discontinuities}
         if len(parts) > 1:
             report["recording"] = f"{index + 1} of {len(parts)} in the folder (split at the discontinuities)"
         streams = [(s, c) for s, c in build_streams(sources, recording, report, discontinuities) if len(c[0])]
+        built.append((index, streams, report))
+    empty = [index + 1 for index, streams, _ in built if not streams]
+    if len(empty) == len(built):
+        raise SessionError(f"{folder} holds no samples in any stream (see the report: {built[0][2]})")
+    results = []
+    for index, streams, report in built:
         if not streams:
-            raise SessionError(f"{folder} holds no samples in any stream"
-                               + (f" of recording {index + 1}" if len(parts) > 1 else "") + f" (see the report: {report})")
+            continue
+        if empty:
+            report["recordings_without_samples"] = empty  # not written: nothing to import
         devices = {spec.device: {"kind": spec.device, "url": f"import://{folder.name}/{spec.name}",
                                  "settings": {"imported": True}, "streams": [spec.name]} for spec, _ in streams}
         note = f"imported from MiDAS folder {folder.name} (recorded {meta['date']})"
