@@ -100,3 +100,16 @@ def test_jigsaws_file_with_a_partial_line_is_refused_naming_it(tmp_path: Path) -
     result = midas("import", "jigsaws", str(source), "--out", str(tmp_path / "out"))
     assert result.returncode == 4, result.stderr
     assert "Suturing_B001.txt" in result.stderr and "line 4: 40 values where jigsaws kinematics have 76" in result.stderr
+
+
+def test_small_steps_back_are_reported_and_kept_large_ones_cut() -> None:
+    from midas_cli.importers.common import split_rows
+
+    s = 10**9
+    times = [100 * s, 101 * s, 101 * s - 2_000_000, 102 * s, 50 * s, 51 * s]
+    rows = [["1", "2", str(t)] for t in times]
+    rows.insert(3, ["1", str(102 * s)])  # torn line
+    segments, found = split_rows("f.csv", rows, list(range(2, 2 + len(rows))), lambda r: r[-1])
+    assert [len(seg.rows) for seg in segments] == [4, 2]
+    assert [(d["line"], d["what"].split(" (")[0].split(" by")[0]) for d in found] == [
+        (4, "host time goes back"), (5, "partial line"), (7, "host time jumps back")]

@@ -84,10 +84,14 @@ class Segment:
         self.t_last = max(self.t_last, t_ns)
 
 
+NEW_RECORDING_BACK_NS = 1_000_000_000  # host time going back further than this starts a new recording
+
+
 def split_rows(file: str, rows: list[list[str]], lines: list[int], host_time: Callable[[list[str]], str]
                ) -> tuple[list[Segment], list[dict[str, Any]]]:
     """Cut a file's data rows where a new recording starts: host time (``host_time(row)``, integer ns)
-    jumping back, or the row shape changing for good. A row whose width matches neither its
+    jumping back by more than a second (a smaller step back is reported and kept: out of order), or the
+    row shape changing for good. A row whose width matches neither its
     neighbours', or whose host time is not an integer, is a partial line: dropped. Returns the segments
     (in file order) and every discontinuity as {file, line, what}."""
     segments: list[Segment] = []
@@ -105,10 +109,13 @@ def split_rows(file: str, rows: list[list[str]], lines: list[int], host_time: Ca
             if current is not None:
                 found.append({"file": file, "line": line,
                               "what": f"row shape changes from {current.width} to {len(row)} values: a new recording"})
-        elif t_ns < current.t_last:
+        elif t_ns < current.t_last - NEW_RECORDING_BACK_NS:
             found.append({"file": file, "line": line, "what": f"host time jumps back by "
                           f"{(current.t_last - t_ns) / 1e9:.3f} s: a new recording"})
         else:
+            if t_ns < current.t_last:
+                found.append({"file": file, "line": line, "what": f"host time goes back by "
+                              f"{(current.t_last - t_ns) / 1e9:.6f} s: out of order, kept"})
             current.add(line, row, t_ns)
             continue
         current = Segment(file)
