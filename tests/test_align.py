@@ -109,3 +109,61 @@ def test_downsampling_keeps_regular_frames_despite_ns_rounding() -> None:
 
     frame_ns = np.round(np.arange(90) * 1e9 / 30).astype(np.int64)  # frame 3 is at 99 999 999 ns
     assert downsample_rows(frame_ns, 10.0).tolist() == list(range(0, 90, 3))
+
+
+def _short_video_session(root: Path, video_s: float = 1.0, demo_s: float = 10.0) -> Path:
+    """A 30 Hz video clock of ``video_s`` at the start of a 100 Hz ``demo`` stream of ``demo_s``."""
+    from midas_cli.clock import HostClock
+    from midas_cli.session.schema import SEQ, T_HOST, StreamSpec
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+    from tests.conftest import SPEC
+
+    video = StreamSpec("video", "video", (SEQ, T_HOST), 30.0, "video frame times")
+    t0 = 1_720_000_000 * 10**9
+    writer = SessionWriter.create(root, SessionMetadata("1", "pegs", 1), HostClock(t0),
+                                  {"video": {"kind": "video"}, "demo": {"kind": "demo"}}, [video, SPEC], start_ns=t0)
+    frames = int(video_s * 30)
+    writer.append("video", video.format_rows([(i, t0 + round(i * 1e9 / 30)) for i in range(frames)]))
+    writer.append("demo", SPEC.format_rows([(i, t0 + i * 10 * MS, float(i)) for i in range(int(demo_s * 100))]))
+    writer.finalize("complete", "test", t0 + int(demo_s * 1e9), {})
+    return writer.folder
+
+
+def test_align_reports_coverage_and_warns_when_the_video_clock_covers_a_fraction(tmp_path: Path) -> None:
+    session = _short_video_session(tmp_path)
+    result = midas("align", str(session), "--json", check=True)
+    summary = json.loads(result.stdout)[0]
+    assert summary["frames"] == 30
+    assert summary["coverage"]["demo"] == {"samples_share": 0.097, "span_share": 0.0968}  # 97 of 1000; 0.967 of 9.99 s
+    warnings = [line for line in result.stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "'demo'" in warnings[0] and "9.7%" in warnings[0] and "97 of 1000" in warnings[0]
+    meta = json.loads((session / "derived" / "aligned.json").read_text())
+    assert meta["coverage"]["demo"]["samples_inside"] == 97 and meta["coverage"]["demo"]["samples"] == 1000
+
+
+def test_align_onto_a_regular_clock_spanning_the_recording(tmp_path: Path) -> None:
+    session = _short_video_session(tmp_path)
+    result = midas("align", str(session), "--clock", "30", "--json", check=True)
+    summary = json.loads(result.stdout)[0]
+    assert summary["frames"] == 301  # demo samples over 9.99 s -> ticks 0..300 at 30 Hz (the last at 10 s)
+    assert summary["coverage"]["demo"]["samples_share"] == 1.0 and "warning" not in result.stderr
+    table = read_aligned(session)
+    assert np.diff(table.t_host_ns).min() >= 33_333_333 and np.diff(table.t_host_ns).max() <= 33_333_334
+    assert not np.isnan(table.column("demo.x_mm")).any()  # every tick has a fresh demo sample
+    assert np.isnan(table.column("video_delta_ms")[40:]).all()  # the video stream is just another stream here
+    assert json.loads((session / "derived" / "aligned.json").read_text())["clock_hz"] == 30.0
+    assert midas("align", str(session), "--clock", "fast").returncode == 2
+
+
+def test_align_without_video_needs_a_regular_clock(small_session: Path) -> None:
+    refused = midas("align", str(small_session))
+    assert refused.returncode == 4 and "no 'video' stream" in refused.stderr and "--clock" in refused.stderr
+    result = midas("align", str(small_session), "--clock", "50", "--json", check=True)
+    assert json.loads(result.stdout)[0]["frames"] > 1
+
+
+def test_default_alignment_of_a_fully_covered_session_says_nothing(tmp_path: Path) -> None:
+    session = raven_session(tmp_path, duration_s=5.0, latency_ms=10.0)
+    result = midas("align", str(session), "--json", check=True)
+    assert "warning" not in result.stderr
+    assert all(c["samples_share"] >= 0.95 for c in json.loads(result.stdout)[0]["coverage"].values())

@@ -45,18 +45,33 @@ REFERENCE = "video"
 @dataclass(frozen=True)
 class AlignOptions:
     """``method`` causal|nearest; ``rate_hz`` downsamples the frame clock (None keeps every frame);
-    gaps in HandKP up to ``spline_max_gap_s`` are spline-filled, longer ones forward-filled."""
+    gaps in HandKP up to ``spline_max_gap_s`` are spline-filled, longer ones forward-filled;
+    ``clock_hz`` None aligns onto the video frame clock, a rate (Hz) onto a regular clock at that rate
+    spanning every stream's samples (for a short or missing video clock)."""
 
     method: str = "causal"
     rate_hz: float | None = None
     spline_max_gap_s: float = 1.0
     stale_periods: float = 3.0
+    clock_hz: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ConfigError(f"alignment method {self.method!r} is unknown (expected one of {', '.join(METHODS)})")
         if self.rate_hz is not None and not 0 < self.rate_hz <= 1000:
             raise ConfigError(f"--rate must be in (0, 1000] Hz, got {self.rate_hz}")
+        if self.clock_hz is not None and not 0 < self.clock_hz <= 1000:
+            raise ConfigError(f"--clock must be 'video' or a rate in (0, 1000] Hz, got {self.clock_hz}")
+
+
+def parse_clock(text: str) -> float | None:
+    """``--clock`` value: 'video' -> None (the video frame clock), a number -> that rate in Hz."""
+    if text.strip().lower() == REFERENCE:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ConfigError(f"--clock must be 'video' or a rate in Hz such as 30, got {text!r}") from None
 
 
 class ColumnSet:
@@ -167,16 +182,37 @@ def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns
     return idx, valid, np.where(valid, offset / 1e6, np.nan)
 
 
+def coverage(sample_ns: np.ndarray, frame_ns: np.ndarray) -> dict[str, Any]:
+    """How much of a stream the frame clock covers: of its samples (sample_ns (M,) ascending, host ns)
+    the count and share inside [first frame, last frame], and the share of its time span (first to
+    last sample) inside that interval (1.0 for a single sample inside)."""
+    if len(sample_ns) == 0 or len(frame_ns) == 0:
+        return {"samples": int(len(sample_ns)), "samples_inside": 0, "samples_share": 0.0, "span_s": 0.0,
+                "span_share": 0.0}
+    first, last = int(frame_ns[0]), int(frame_ns[-1])
+    inside = int(np.searchsorted(sample_ns, last, side="right") - np.searchsorted(sample_ns, first, side="left"))
+    span = int(sample_ns[-1] - sample_ns[0])
+    overlap = max(0, min(last, int(sample_ns[-1])) - max(first, int(sample_ns[0])))
+    span_share = overlap / span if span > 0 else float(inside > 0)
+    return {"samples": int(len(sample_ns)), "samples_inside": inside,
+            "samples_share": round(inside / len(sample_ns), 4), "span_s": round(span / 1e9, 3),
+            "span_share": round(span_share, 4)}
+
+
 def associate_stream(table: np.ndarray, spec_columns: list[str], frame_ns: np.ndarray, method: str,
-                     stale_ns: int, out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     stale_ns: int, out: np.ndarray | None = None, covered: dict[str, Any] | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Values of ``spec_columns`` of a stream (structured array, see ``Session.read_columns``) at each
     frame, NaN where masked, as ``out`` (C, N) (row j = column j; allocated if None), and delta_ms (N,).
-    Only the chosen rows are read, so a memory-mapped stream is never copied whole."""
+    Only the chosen rows are read, so a memory-mapped stream is never copied whole. ``covered``, if
+    given, receives the stream's ``coverage`` by the frames."""
     sample_ns = np.ascontiguousarray(table["t_host_ns"], dtype=np.int64)  # one strided pass over the rows
     order = None
     if len(sample_ns) > 1 and (np.diff(sample_ns) < 0).any():
         order = np.argsort(sample_ns, kind="stable")
         sample_ns = sample_ns[order]
+    if covered is not None:
+        covered.update(coverage(sample_ns, frame_ns))
     idx, valid, delta = associate(sample_ns, frame_ns, method, stale_ns)
     values = np.empty((len(spec_columns), len(frame_ns))) if out is None else out
     if len(sample_ns):
@@ -196,19 +232,32 @@ def value_columns(session: Session, stream: str) -> list[Any]:
 
 
 def stale_ns_for(session: Session, stream: str, options: AlignOptions) -> int:
-    rate = session.stream_spec(stream).nominal_rate_hz
-    return int(options.stale_periods * 1e9 / rate) if rate > 0 else int(1e9)
+    rate = session.stream_spec(stream).nominal_rate_hz  # None: an event stream
+    return int(options.stale_periods * 1e9 / rate) if rate else int(1e9)
 
 
 def reference_frames(session: Session) -> tuple[np.ndarray, np.ndarray]:
     """Video frame indices (N,) and host times (N,) ns: the reference clock, sorted by time."""
     if REFERENCE not in session.stream_names:
-        raise SessionError(f"{session.path} has no {REFERENCE!r} stream: it is the frame clock `align` needs")
+        raise SessionError(f"{session.path} has no {REFERENCE!r} stream: it is the frame clock `align` needs "
+                           "(--clock RATE aligns onto a regular clock instead, e.g. --clock 30)")
     video = session.read_columns(REFERENCE)
     if len(video) == 0:
         raise SessionError(f"{session.path}: the video stream has no frames")
     order = np.argsort(video["t_host_ns"], kind="stable")
     return np.asarray(video["seq"], np.int64)[order], np.asarray(video["t_host_ns"], np.int64)[order]
+
+
+def regular_frames(data: dict[str, np.ndarray], rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """A regular clock at ``rate_hz`` from the first sample of any stream in ``data`` to the first tick at
+    or after the last one: frame indices (N,) and host times (N,) ns (frame k at first + k / rate)."""
+    times = [np.asarray(t["t_host_ns"], dtype=np.int64) for t in data.values() if len(t)]
+    if not times:
+        raise SessionError("no stream has samples: nothing to span with a regular clock")
+    first, last = min(int(t.min()) for t in times), max(int(t.max()) for t in times)
+    n = int(np.ceil((last - first) * rate_hz / 1e9 - 1e-9)) + 1
+    frames = np.arange(n, dtype=np.int64)
+    return frames, first + np.round(frames * 1e9 / rate_hz).astype(np.int64)
 
 
 def read_streams(session: Session) -> dict[str, np.ndarray]:
@@ -218,19 +267,25 @@ def read_streams(session: Session) -> dict[str, np.ndarray]:
 
 
 def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: ColumnSet, frame_ns: np.ndarray,
-                    options: AlignOptions, shifts_ns: dict[str, int]) -> None:
+                    options: AlignOptions, shifts_ns: dict[str, int],
+                    covered: dict[str, dict[str, Any]] | None = None) -> None:
     """Associate every stream in ``data`` with the frames; a stream in ``shifts_ns`` is associated at
-    frame time + shift (compensating a known latency)."""
+    frame time + shift (compensating a known latency). ``covered``, if given, receives each stream's
+    ``coverage`` by the frames."""
     cols_of = {stream: value_columns(session, stream) for stream in data}
     names = {stream: [f"{stream}.{c.name}" for c in cols] + [f"{stream}_delta_ms"] for stream, cols in cols_of.items()}
     storage = columns.claim([n for stream_names in names.values() for n in stream_names])  # one claim: no regrowth
     starts = np.cumsum([0, *(len(n) for n in names.values())])
     blocks = {stream: storage[start : start + len(names[stream])] for stream, start in zip(names, starts)}
 
+    if covered is not None:
+        covered.update({stream: {} for stream in data})  # filled by the threads, each its own entry
+
     def one(stream: str) -> None:
         names = [c.name for c in cols_of[stream]]
+        found = None if covered is None else covered[stream]
         _, delta = associate_stream(data[stream], names, frame_ns + shifts_ns.get(stream, 0), options.method,
-                                    stale_ns_for(session, stream, options), out=blocks[stream][:-1])
+                                    stale_ns_for(session, stream, options), out=blocks[stream][:-1], covered=found)
         blocks[stream][-1] = delta
 
     # numpy's searchsorted and gathers release the GIL: streams are associated on every core
@@ -454,11 +509,16 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
     the raw streams' columns ((N, k) column-major, final, the table's first k columns) as soon as they
     are associated, when every frame is kept (``align_and_write`` starts writing them)."""
     session = Session.open(path)
-    frames, frame_ns = reference_frames(session)
+    if options.clock_hz is None:
+        frames, frame_ns = reference_frames(session)
+        data = read_streams(session)
+    else:
+        data = {name: session.read_columns(name) for name in session.stream_names}
+        frames, frame_ns = regular_frames(data, options.clock_hz)
     t_s = (frame_ns - frame_ns[0]) / 1e9
     columns = ColumnSet(len(frames))
-    data = read_streams(session)
-    add_raw_streams(session, data, columns, frame_ns, options, {})
+    covered: dict[str, dict[str, Any]] = {}
+    add_raw_streams(session, data, columns, frame_ns, options, {}, covered)
     if on_raw_columns is not None and options.rate_hz is None:
         on_raw_columns(columns.table(np.arange(columns.n)))
     in_parallel(columns, [lambda c: add_emht_features(c, t_s), lambda c: add_handkp_features(c, t_s, options)])
@@ -470,7 +530,12 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
     meta = {
         "format": "midas-aligned-v2",  # v2: values in aligned.values.npy, no mask
         "session_id": session.manifest["session_id"],
-        "reference": "video frame times (t_host_ns of the video stream); frame = video seq",
+        "reference": ("video frame times (t_host_ns of the video stream); frame = video seq"
+                      if options.clock_hz is None else
+                      f"regular clock at {options.clock_hz:g} Hz from the first to the last sample of any stream; "
+                      "frame = tick index"),
+        "clock_hz": options.clock_hz,
+        "coverage": covered,
         "method": options.method,
         "rate_hz": options.rate_hz,
         "stale_after_periods": options.stale_periods,
@@ -480,6 +545,22 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
                                   "held_out": c.info.get("held_out")} for c in calibrations],
     }
     return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
+
+
+COVERAGE_WARNING = 0.95
+
+
+def coverage_warnings(covered: dict[str, dict[str, Any]], options: AlignOptions) -> list[str]:
+    """One line per stream of which the frame clock covers under 95% of the samples or of the time span."""
+    clock = "video frame clock" if options.clock_hz is None else f"{options.clock_hz:g} Hz clock"
+    lines = []
+    for stream, c in covered.items():
+        if min(c["samples_share"], c["span_share"]) < COVERAGE_WARNING:
+            hint = "" if options.clock_hz else " (--clock RATE aligns onto a regular clock spanning every stream)"
+            lines.append(f"the {clock} covers {c['samples_share']:.1%} of the samples of stream {stream!r} "
+                         f"({c['samples_inside']} of {c['samples']}) and {c['span_share']:.1%} of its "
+                         f"{c['span_s']:g} s span{hint}")
+    return lines
 
 
 def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), csv: bool = False) -> dict[str, Any]:
@@ -499,8 +580,11 @@ def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), cs
             started.abort()
         raise
     masked = {s: float(np.isnan(table.column(s)).mean()) for s in table.columns if s.endswith("_delta_ms")}
+    covered = table.meta["coverage"]
     return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
             "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},
+            "coverage": {s: {k: c[k] for k in ("samples_share", "span_share")} for s, c in covered.items()},
+            "warnings": coverage_warnings(covered, options),
             "calibrations": [c["file"] for c in table.meta["calibrations_applied"]],
             "files": {k: str(v) for k, v in written.items()}}
 

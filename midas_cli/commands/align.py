@@ -10,7 +10,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write
+from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write, parse_clock
 from midas_cli.commands.common import JSON_OPTION, err, out, print_json
 from midas_cli.errors import ConfigError
 
@@ -21,6 +21,9 @@ def align(
                                "(latest at or before the frame / nearest in time)."),
     rate: Optional[float] = typer.Option(None, "--rate", help="Downsample the frame clock to this rate (Hz), "
                                          "e.g. 10; default: every video frame."),
+    clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
+                              "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "
+                              "session whose video clock is short or absent."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
     csv: bool = typer.Option(False, "--csv", help="Also write derived/aligned.csv (6 significant digits; "
                              "slow for long sessions: the npz holds the exact values). Without it, an "
@@ -32,12 +35,20 @@ def align(
     velocity / grasper distance / clutch derived) and write derived/aligned.npz, .values.npy and .json (and .csv
     with --csv). Streams are read from their binary copies (streams/*.npy) when they match the CSVs.
 
+    Each stream's coverage by the clock (share of its samples and of its time span inside the first to
+    last frame) is in the output and in derived/aligned.json; under 95% gets a warning on stderr.
+
     Example: midas align sessions/*/ --rate 10 --jobs 2
+
+    Example (a watch-only session, or a video clock covering a fraction): midas align SESSION --clock 30
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    options = AlignOptions(method=method, rate_hz=rate)
+    options = AlignOptions(method=method, rate_hz=rate, clock_hz=parse_clock(clock))
     results = _run(sessions, options, jobs, csv)
+    for r in results:
+        for warning in r["warnings"]:
+            err.print(f"midas: warning: {r['session']}: {warning}", markup=False, highlight=False, soft_wrap=True)
     if as_json:
         print_json(results)
         return

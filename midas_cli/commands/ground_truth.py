@@ -95,7 +95,7 @@ def _render(results: list[GroundTruthResult]) -> None:
     if not results:
         return
     pedals = list(results[0].pressed_fraction)
-    table = Table("input", "frames", "fps", "x real time", *[f"{p} %" for p in pedals], "output", header_style="bold")
+    table = Table("input", "frames", "processed frames/s", "x real time", *[f"{p} %" for p in pedals], "output", header_style="bold")
     for r in results:
         table.add_row(Path(r.input).name, str(r.frames), f"{r.speed_fps:.0f}", f"{r.speed_fps / REAL_TIME_FPS:.1f}",
                       *[f"{100 * r.pressed_fraction.get(p, 0):.1f}" for p in pedals], r.csv)

@@ -28,26 +28,35 @@ def _render(results: list[tuple[Path, dict[str, Any]]], as_json: bool) -> None:
 
 
 def _summary(report: dict[str, Any]) -> str:
-    """One line per source file: what was found and which quirks were handled."""
+    """One line per source file (its name, then what was found and which quirks were handled), one line
+    per discontinuity found in a file."""
     lines = [f"imported {report.get('source') or report.get('kinematics', {}).get('path')}"]
+    keys = ("rows", "records", "frames", "header_quirk", "malformed_rows_skipped", "all_placeholder_rows",
+            "host_times_adjusted", "note", "row_widths", "pds_block_placeholders")
     for name, facts in report.items():
         if isinstance(facts, dict) and "path" in facts:
-            keys = ("rows", "records", "frames", "header_quirk", "malformed_rows_skipped", "all_placeholder_rows",
-                    "host_times_adjusted", "note", "row_widths", "pds_block_placeholders")
-            shown = ", ".join(f"{k}={facts[k]}" for k in keys if k in facts)
-            lines.append(f"  {name}: {shown}")
+            shown = [Path(facts["path"]).name] + [f"{k}={facts[k]}" for k in keys if k in facts]
+            lines.append(f"  {name}: {', '.join(shown)}")
+        elif isinstance(facts, str) and name != "source":
+            lines.append(f"  {name}: {facts}")
+    for item in report.get("discontinuities", []):
+        lines.append(f"  discontinuity: {item['file']} line {item['line']}: {item['what']}")
     return "\n".join(lines)
 
 
 @app.command("midas-dcs")
 def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
               platform: str = typer.Option("unknown", "--platform", help="Platform to record (not in the source)."),
+              split: bool = typer.Option(False, "--split", help="A folder holding several recordings (host time "
+                                         "going back, row shape changing mid-file) becomes one session per "
+                                         "recording; without it such a folder is refused (exit 4)."),
               as_json: bool = JSON_OPTION) -> None:
-    """Import one folder of the original MiDAS system; quirks are reported here and in logs/import_report.json.
+    """Import one folder of the original MiDAS system; quirks and discontinuities (file, line, what) are
+    reported here and in logs/import_report.json.
 
     Example: midas import midas-dcs ../shared/data/midas-dcs-sample/trakt_Strakt_T1_2024-07-05 --out sessions
     """
-    _render([import_midas_dcs(folder, out_dir, platform)], as_json)
+    _render(import_midas_dcs(folder, out_dir, platform, split), as_json)
 
 
 @app.command("jigsaws")

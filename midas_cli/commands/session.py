@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Any, Optional
@@ -104,6 +105,7 @@ def list_sessions(
         start_ns = session.manifest["start"].get("host_ns")
         summary["start_host_ns"] = start_ns if isinstance(start_ns, int) else None
         rows.append(summary)
+    rows.sort(key=lambda r: _natural_key(r["path"]))
     if hidden:
         err.print(f"{hidden} failed session(s) hidden (recordings that never started; --all lists them)")
     if latest:
@@ -118,6 +120,11 @@ def list_sessions(
         _print_session_table(rows)
     if unreadable:
         raise typer.Exit(4)
+
+
+def _natural_key(text: str) -> list[Any]:
+    """Sort key in which digit runs compare as numbers: T2 before T10."""
+    return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", text) if part]
 
 
 def _status_filter(status: Optional[str]) -> Optional[set[str]]:

@@ -23,13 +23,15 @@ from __future__ import annotations
 import csv
 import re
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from midas_cli.errors import SessionError
-from midas_cli.importers.common import file_facts, strictly_increasing, write_session
+from midas_cli.importers.common import (Segment, file_facts, rate_hz, recording_of, split_rows, strictly_increasing,
+                                       write_session)
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata
 
@@ -43,12 +45,18 @@ _FRAME_FROM_PATH = re.compile(r"(\d+)_(\d+)\.\w+$")
 RAW_HOST = Column("computer_time_ns", "int", "ns", clock="host", description="host time as the source wrote it")
 
 
-def _rows(path: Path) -> tuple[list[str], list[list[str]]]:
+def _rows(path: Path) -> tuple[list[str], list[list[str]], list[int]]:
+    """Header, data rows and each data row's 1-based line number (blank lines skipped)."""
+    rows, lines = [], []
     with open(path, newline="", encoding="utf-8") as fh:
-        rows = [row for row in csv.reader(fh) if row]
+        reader = csv.reader(fh)
+        for row in reader:
+            if row:
+                rows.append(row)
+                lines.append(reader.line_num)
     if not rows:
         raise SessionError(f"{path} is empty (expected at least a header line)")
-    return rows[0], rows[1:]
+    return rows[0], rows[1:], lines[1:]
 
 
 def parse_folder_name(folder: Path) -> dict[str, str]:
@@ -59,18 +67,53 @@ def parse_folder_name(folder: Path) -> dict[str, str]:
     return match.groupdict()
 
 
-def pds_stream(path: Path, report: dict[str, Any]) -> tuple[StreamSpec, list[np.ndarray]] | None:
-    """PDS.csv -> stream ``fps``: seq, t_host_ns, computer_time_ns, ch1..7_pressure (empty = -1), ch1..7_pressed."""
-    header, rows = _rows(path)
-    facts: dict[str, Any] = {**file_facts(path), "header_columns": len(header), "rows": len(rows)}
-    report["pds"] = facts
+# host time (ns) of a data row, per source file: the column that tells one recording from another
+HOST_TIME: dict[str, Callable[[list[str]], str]] = {
+    "pds": lambda row: row[-1], "synced_data": lambda row: row[0], "trakstar": lambda row: row[-1],
+    "video": lambda row: row[1] if len(row) > 1 else "", "smartwatch": lambda row: row[-1]}
+
+
+@dataclass
+class SourceFile:
+    """One CSV of the folder, cut into segments (one per recording it holds)."""
+
+    key: str  # report key: pds, synced_data, trakstar, video, smartwatch_<side>
+    path: Path
+    name: str  # path inside the folder, as discontinuities name it
+    header: list[str]
+    segments: list[Segment]
+
+
+def read_sources(folder: Path, discontinuities: list[dict[str, Any]]) -> list[SourceFile]:
+    """Every source CSV of the folder, checked for host-time order and row shape."""
+    candidates = [("video", folder / "video.csv"), ("synced_data", folder / "synced_data.csv"),
+                  ("pds", folder / "PDS.csv"), ("trakstar", folder / "Trakstar" / "trakstar.csv")]
+    candidates += [(f"smartwatch_{p.parent.name.removeprefix('sw_')}", p)
+                   for p in sorted(folder.glob("smartwatch_data/sw_*/sw_data.csv"))]
+    sources = []
+    for key, path in candidates:
+        if not path.is_file():
+            continue
+        header, rows, lines = _rows(path)
+        name = str(path.relative_to(folder))
+        kind = "smartwatch" if key.startswith("smartwatch_") else key
+        segments, found = split_rows(name, rows, lines, HOST_TIME[kind])
+        discontinuities += found
+        sources.append(SourceFile(key, path, name, header, segments))
+    return sources
+
+
+def pds_stream(path: Path, header: list[str], rows: list[list[str]], facts: dict[str, Any]
+               ) -> tuple[StreamSpec, list[np.ndarray]] | None:
+    """PDS.csv rows -> stream ``fps``: seq, t_host_ns, computer_time_ns, ch1..7_pressure (empty = -1), ch1..7_pressed."""
+    facts.update(header_columns=len(header), rows=len(rows))
     if not rows:
         facts["note"] = f"header only ({','.join(header)}): no pedal data recorded"
         return None
     widths = Counter(len(r) for r in rows)
     facts["row_widths"] = dict(widths)
     good = [r for r in rows if len(r) == 2 * PEDALS + 1]
-    facts["malformed_rows_skipped"] = len(rows) - len(good)
+    facts["malformed_rows_skipped"] = len(rows) - len(good) + facts.get("partial_lines_dropped", 0)
     if not good:
         raise SessionError(f"{path}: no row has {2 * PEDALS + 1} values (found widths {dict(widths)})")
     if header == PDS_HEADER_14:
@@ -90,17 +133,15 @@ def pds_stream(path: Path, report: dict[str, Any]) -> tuple[StreamSpec, list[np.
                 for k in range(1, PEDALS + 1)]
     columns += [Column(f"ch{k}_pressed", "int", "bool", description=f"Pedal {k} pressed (board threshold)")
                 for k in range(1, PEDALS + 1)]
-    spec = StreamSpec("fps", "pds", tuple(columns), 0.0, "MiDAS PDS pedal board (imported)")
+    spec = StreamSpec("fps", "pds", tuple(columns), rate_hz(t_host), "MiDAS PDS pedal board (imported)")
     data = [np.arange(len(good), dtype=np.int64), t_host, raw, *np.where(placeholder, np.nan, pressure).T,
             *pressed.astype(np.int64).T]
     return spec, data
 
 
-def trakstar_stream(path: Path, report: dict[str, Any]) -> tuple[StreamSpec, list[np.ndarray]] | None:
-    """trakstar.csv -> stream ``emht`` (s1..s4 position mm, angles deg; quality not recorded -> empty)."""
-    header, rows = _rows(path)
-    facts: dict[str, Any] = {**file_facts(path), "rows": len(rows)}
-    report["trakstar"] = facts
+def trakstar_stream(rows: list[list[str]], facts: dict[str, Any]) -> tuple[StreamSpec, list[np.ndarray]] | None:
+    """trakstar.csv rows -> stream ``emht`` (s1..s4 position mm, angles deg; quality not recorded -> empty)."""
+    facts["rows"] = len(rows)
     if not rows:
         facts["note"] = "header only: the tracker did not run in this session; no emht stream"
         return None
@@ -119,31 +160,41 @@ def trakstar_stream(path: Path, report: dict[str, Any]) -> tuple[StreamSpec, lis
     order = np.argsort(host, kind="stable")
     t_host, adjusted = strictly_increasing(host[order])
     facts.update(records=len(times), host_times_adjusted=adjusted)
-    spec = _emht_spec()
+    spec = _emht_spec(rate_hz(t_host))
     return spec, [np.arange(len(times), dtype=np.int64), t_host, times[order], *block[order].reshape(len(times), 28).T]
 
 
-def _emht_spec() -> StreamSpec:
+def _emht_spec(rate: float | None) -> StreamSpec:
     columns = [SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device", description="trakSTAR time")]
     for s in range(1, 5):
         columns += [Column(f"s{s}_{a}_mm", "float", "mm", 3, frame="emht_transmitter") for a in "xyz"]
         columns += [Column(f"s{s}_{a}_deg", "float", "deg", 3) for a in ("azimuth", "elevation", "roll")]
         columns.append(Column(f"s{s}_quality", "float", "", 3, description="not recorded by the source"))
-    return StreamSpec("emht", "trakstar", tuple(columns), 0.0, "trakSTAR records (imported)")
+    return StreamSpec("emht", "trakstar", tuple(columns), rate, "trakSTAR records (imported)")
 
 
-def synced_facts(path: Path, report: dict[str, Any]) -> list[tuple[int, int]]:
-    """Report synced_data.csv's quirks; return its video (frame, host ns) pairs (placeholders dropped)."""
-    header, rows = _rows(path)
+def synced_facts(header: list[str], rows: list[list[str]], facts: dict[str, Any]) -> list[tuple[int, int]]:
+    """Report synced_data.csv's quirks; return its video (frame, host ns) pairs (placeholders dropped).
+
+    Its pedal block is read by the row's width: 8 values (PDS time + 7 pedals, as the header says:
+    0/-1/-2 are "no new sample" placeholders) or 15 (pressure 1..7 with -1 = none, pressed 1..7 as
+    real 0/1 values, host time)."""
     widths = Counter(len(r) for r in rows)
-    pds_values = [r[SYNCED_PDS_START:] for r in rows]
-    placeholders = Counter(v for block in pds_values for v in block if v in ("0", "-1", "-2"))
-    report["synced_data"] = {**file_facts(path), "header_columns": len(header), "row_widths": dict(widths),
-                             "pds_block_values": sorted({len(b) for b in pds_values}),
-                             "pds_block_placeholders": dict(placeholders),
-                             "trakstar_rows_all_zero": sum(all(v == "0" for v in r[1:10]) for r in rows),
-                             "use": "not imported as data (LIFO-synced, stale samples); video columns give "
-                                    "the frame clock when video.csv has no rows"}
+    placeholders: Counter[str] = Counter()
+    pressed: Counter[str] = Counter()
+    for row in rows:
+        block = row[SYNCED_PDS_START:]
+        if len(block) == 2 * PEDALS + 1:
+            placeholders.update(v for v in block[:PEDALS] if v == "-1")
+            pressed.update(block[PEDALS:2 * PEDALS])
+        else:
+            placeholders.update(v for v in block if v in ("0", "-1", "-2"))
+    facts.update(header_columns=len(header), row_widths=dict(widths),
+                 pds_block_values=sorted({len(r[SYNCED_PDS_START:]) for r in rows}),
+                 pds_block_placeholders=dict(placeholders), pds_block_pressed_values=dict(pressed),
+                 trakstar_rows_all_zero=sum(all(v == "0" for v in r[1:10]) for r in rows),
+                 use="not imported as data (LIFO-synced, stale samples); video columns give "
+                     "the frame clock when video.csv has no rows")
     frames = []
     for row in rows:
         match = _FRAME_FROM_PATH.search(row[11]) if len(row) > 11 else None
@@ -152,17 +203,12 @@ def synced_facts(path: Path, report: dict[str, Any]) -> list[tuple[int, int]]:
     return frames
 
 
-def video_stream(folder: Path, report: dict[str, Any]) -> tuple[StreamSpec, list[np.ndarray]] | None:
-    pairs: list[tuple[int, int]] = []
-    if (folder / "video.csv").is_file():
-        _, rows = _rows(folder / "video.csv")
-        pairs = [(int(r[0]), int(r[1])) for r in rows if len(r) >= 2]
-        report["video"] = {**file_facts(folder / "video.csv"), "rows": len(rows)}
-    if (folder / "synced_data.csv").is_file():
-        synced = synced_facts(folder / "synced_data.csv", report)
-        if not pairs:
-            pairs = synced
-            report.setdefault("video", {})["source"] = "synced_data.csv video_time/video_id (frame from file name)"
+def video_stream(video_rows: list[list[str]] | None, synced: list[tuple[int, int]],
+                 report: dict[str, Any]) -> tuple[StreamSpec, list[np.ndarray]] | None:
+    pairs = [(int(r[0]), int(r[1])) for r in video_rows or [] if len(r) >= 2]
+    if not pairs and synced:
+        pairs = synced
+        report.setdefault("video", {})["source"] = "synced_data.csv video_time/video_id (frame from file name)"
     if not pairs:
         return None
     frames = np.array(sorted(set(pairs)), dtype=np.int64)
@@ -173,50 +219,116 @@ def video_stream(folder: Path, report: dict[str, Any]) -> tuple[StreamSpec, list
     return spec, [frames[:, 0], t_host, frames[:, 1]]
 
 
-def smartwatch_streams(folder: Path, report: dict[str, Any]) -> list[tuple[StreamSpec, list[np.ndarray]]]:
+def smartwatch_streams(side: str, rows: list[list[str]], facts: dict[str, Any]
+                       ) -> list[tuple[StreamSpec, list[np.ndarray]]]:
     streams = []
-    for path in sorted(folder.glob("smartwatch_data/sw_*/sw_data.csv")):
-        side = path.parent.name.removeprefix("sw_")
-        _, rows = _rows(path)
-        facts: dict[str, Any] = {**file_facts(path), "rows": len(rows)}
-        report[f"smartwatch_{side}"] = facts
-        for sensor in sorted({r[2] for r in rows if len(r) == 7}):
-            picked = [r for r in rows if len(r) == 7 and r[2] == sensor]
-            watch_ms = np.array([int(r[0]) for r in picked], dtype=np.int64)
-            host_raw = np.array([int(r[6]) for r in picked], dtype=np.int64)
-            t_host, adjusted = strictly_increasing(host_raw)
-            offset_days = float(np.median(host_raw / 1e6 - watch_ms)) / 86_400_000
-            facts[sensor] = {"samples": len(picked), "host_times_adjusted": adjusted,
-                             "watch_clock_behind_host_days": round(offset_days, 3),
-                             "note": "server_epoch_ms holds host ns; sw_epoch_ms is the watch clock"}
-            columns = (SEQ, T_HOST, RAW_HOST, Column("t_watch_ms", "int", "ms", clock="device", description="watch clock"),
-                       *(Column(f"{a}", "float", "", 6, frame="watch") for a in ("x", "y", "z")))
-            spec = StreamSpec(f"smartwatch_{side}_{sensor}", f"smartwatch_{side}", columns, 0.0, f"{side} watch {sensor}")
-            values = np.array([[float(v) for v in r[3:6]] for r in picked])
-            streams.append((spec, [np.arange(len(picked), dtype=np.int64), t_host, host_raw, watch_ms, *values.T]))
+    facts["rows"] = len(rows)
+    for sensor in sorted({r[2] for r in rows if len(r) == 7}):
+        picked = [r for r in rows if len(r) == 7 and r[2] == sensor]
+        watch_ms = np.array([int(r[0]) for r in picked], dtype=np.int64)
+        host_raw = np.array([int(r[6]) for r in picked], dtype=np.int64)
+        t_host, adjusted = strictly_increasing(host_raw)
+        offset_days = float(np.median(host_raw / 1e6 - watch_ms)) / 86_400_000
+        facts[sensor] = {"samples": len(picked), "host_times_adjusted": adjusted,
+                         "watch_clock_behind_host_days": round(offset_days, 3),
+                         "note": "server_epoch_ms holds host ns; sw_epoch_ms is the watch clock"}
+        columns = (SEQ, T_HOST, RAW_HOST, Column("t_watch_ms", "int", "ms", clock="device", description="watch clock"),
+                   *(Column(f"{a}", "float", "", 6, frame="watch") for a in ("x", "y", "z")))
+        spec = StreamSpec(f"smartwatch_{side}_{sensor}", f"smartwatch_{side}", columns, rate_hz(t_host),
+                          f"{side} watch {sensor}")
+        values = np.array([[float(v) for v in r[3:6]] for r in picked])
+        streams.append((spec, [np.arange(len(picked), dtype=np.int64), t_host, host_raw, watch_ms, *values.T]))
     return streams
 
 
-def import_midas_dcs(folder: Path | str, out_root: Path | str, platform: str = "unknown") -> tuple[Path, dict[str, Any]]:
-    """Import one original MiDAS session folder; returns (new session path, import report)."""
+def recordings(sources: list[SourceFile]) -> list[dict[str, Segment]]:
+    """The recordings the folder holds: per recording, each file's segment that belongs to it. The
+    file cut into the most segments defines them; other files' segments join by host time."""
+    cut = [s for s in sources if s.segments]
+    if not cut:
+        return [{}]
+    reference = max(cut, key=lambda s: len(s.segments)).segments
+    found: list[dict[str, Segment]] = [{} for _ in reference]
+    for source in cut:
+        for segment in source.segments:
+            chosen = found[recording_of(segment, reference)]
+            if source.key in chosen:
+                raise SessionError(f"{source.path}: two parts (lines {chosen[source.key].lines[0]} and "
+                                   f"{segment.lines[0]}) fall in one recording's time span; cannot tell the "
+                                   "recordings apart: split the folder by hand")
+            chosen[source.key] = segment
+    return found
+
+
+def build_streams(sources: list[SourceFile], parts: dict[str, Segment], report: dict[str, Any],
+                  discontinuities: list[dict[str, Any]]) -> list[tuple[StreamSpec, list[np.ndarray]]]:
+    """The streams of one recording from its segment of each file (a file without one adds its facts)."""
+    streams: list[tuple[StreamSpec, list[np.ndarray]]] = []
+    by_key = {s.key: s for s in sources}
+    for source in sources:
+        segment = parts.get(source.key)
+        facts = report[source.key] = file_facts(source.path)
+        if segment is not None and len(source.segments) > 1:
+            facts["lines"] = f"{segment.lines[0]}-{segment.lines[-1]}"
+        partial = sum(d["what"].startswith("partial line") for d in discontinuities if d["file"] == source.name)
+        if partial:
+            facts["partial_lines_dropped"] = partial
+        rows = segment.rows if segment else []
+        if source.key == "pds":
+            found = pds_stream(source.path, source.header, rows, facts)
+            streams += [found] if found else []
+        elif source.key == "trakstar":
+            found = trakstar_stream(rows, facts)
+            streams += [found] if found else []
+        elif source.key.startswith("smartwatch_"):
+            streams += smartwatch_streams(source.key.removeprefix("smartwatch_"), rows, facts)
+        elif source.key == "video":
+            facts["rows"] = len(rows)
+    synced = parts.get("synced_data")
+    frames = synced_facts(by_key["synced_data"].header, synced.rows, report["synced_data"]) if synced else []
+    video = video_stream(parts["video"].rows if "video" in parts else None, frames, report)
+    return ([video] if video else []) + streams
+
+
+def import_midas_dcs(folder: Path | str, out_root: Path | str, platform: str = "unknown", split: bool = False
+                     ) -> list[tuple[Path, dict[str, Any]]]:
+    """Import one original MiDAS session folder; returns (new session path, import report) per recording.
+
+    A folder into which several recordings were written at once (host time going back, row shape
+    changing) is refused unless ``split``, which writes one session per recording."""
     folder = Path(folder)
     if not folder.is_dir():
         raise SessionError(f"{folder} is not a folder")
     meta = parse_folder_name(folder)
-    report: dict[str, Any] = {"source": str(folder), "format": "midas-dcs (UVA-DSA/MiDAS 2024)",
-                              "folder_metadata": meta}
-    streams = []
-    video = video_stream(folder, report)
-    streams += [video] if video else []
-    for path, reader in ((folder / "PDS.csv", pds_stream), (folder / "Trakstar" / "trakstar.csv", trakstar_stream)):
-        found = reader(path, report) if path.is_file() else None
-        streams += [found] if found else []
-    streams += smartwatch_streams(folder, report)
-    streams = [(s, c) for s, c in streams if len(c[0])]
-    if not streams:
-        raise SessionError(f"{folder} holds no samples in any stream (see the report: {report})")
-    devices = {spec.device: {"kind": spec.device, "url": f"import://{folder.name}/{spec.name}",
-                             "settings": {"imported": True}, "streams": [spec.name]} for spec, _ in streams}
-    metadata = SessionMetadata(meta["subject"], meta["task"], int(meta["trial"]), platform,
-                               f"imported from MiDAS folder {folder.name} (recorded {meta['date']})")
-    return write_session(Path(out_root), metadata, devices, streams, report), report
+    discontinuities: list[dict[str, Any]] = []
+    sources = read_sources(folder, discontinuities)
+    parts = recordings(sources)
+    if len(parts) > 1 and not split:
+        cuts = [d for d in discontinuities if d["what"].endswith("a new recording")]
+        where = "; ".join(f"{d['file']} line {d['line']}: {d['what'].removesuffix(': a new recording')}" for d in cuts)
+        raise SessionError(f"{folder} holds {len(parts)} recordings written into one folder ({where}): "
+                           "import them as separate sessions with --split")
+    built = []
+    for index, recording in enumerate(parts):
+        report: dict[str, Any] = {"source": str(folder), "format": "midas-dcs (UVA-DSA/MiDAS 2024)",
+                                  "folder_metadata": meta, "discontinuities": discontinuities}
+        if len(parts) > 1:
+            report["recording"] = f"{index + 1} of {len(parts)} in the folder (split at the discontinuities)"
+        streams = [(s, c) for s, c in build_streams(sources, recording, report, discontinuities) if len(c[0])]
+        built.append((index, streams, report))
+    empty = [index + 1 for index, streams, _ in built if not streams]
+    if len(empty) == len(built):
+        raise SessionError(f"{folder} holds no samples in any stream (see the report: {built[0][2]})")
+    results = []
+    for index, streams, report in built:
+        if not streams:
+            continue
+        if empty:
+            report["recordings_without_samples"] = empty  # not written: nothing to import
+        devices = {spec.device: {"kind": spec.device, "url": f"import://{folder.name}/{spec.name}",
+                                 "settings": {"imported": True}, "streams": [spec.name]} for spec, _ in streams}
+        note = f"imported from MiDAS folder {folder.name} (recorded {meta['date']})"
+        metadata = SessionMetadata(meta["subject"], meta["task"], int(meta["trial"]), platform,
+                                   note + (f", recording {index + 1} of {len(parts)}" if len(parts) > 1 else ""))
+        results.append((write_session(Path(out_root), metadata, devices, streams, report), report))
+    return results

@@ -48,8 +48,33 @@ def kinematics_files(folder: Path, fmt: str) -> list[Path]:
     return files
 
 
+WIDTHS = {"jigsaws": 76, "compass": 32}
+
+
+def shape_discontinuities(path: Path, fmt: str) -> list[dict[str, Any]]:
+    """Every data line whose value count is not the format's (a partial line, another column block):
+    {file, line, what}. The sources have no host clock, so row shape is the only order check."""
+    found = []
+    with open(path, encoding="utf-8") as fh:
+        for number, line in enumerate(fh, start=1):
+            if not line.strip() or (fmt == "compass" and number == 1):
+                continue
+            values = len(line.split()) if fmt == "jigsaws" else len(line.rstrip("\r\n").split(","))
+            if values != WIDTHS[fmt]:
+                found.append({"file": path.name, "line": number,
+                              "what": f"{values} values where {fmt} kinematics have {WIDTHS[fmt]} (partial line?)"})
+    return found
+
+
 def read_arms(path: Path, fmt: str) -> dict[tuple[str, str], dict[str, np.ndarray]]:
-    """Per (robot, side): position (N, 3) mm, quaternion (N, 4), velocity (N, 3) mm/s, grasper (N,) deg."""
+    """Per (robot, side): position (N, 3) mm, quaternion (N, 4), velocity (N, 3) mm/s, grasper (N,) deg.
+    A file with a line of the wrong shape is refused, naming every such line."""
+    found = shape_discontinuities(path, fmt)
+    if found:
+        shown = "; ".join(f"line {d['line']}: {d['what']}" for d in found[:5])
+        more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
+        raise SessionError(f"{path}: rows of the wrong shape, {shown}{more}: fix or remove those lines, "
+                           "the rows around them would otherwise be shifted in time")
     if fmt == "jigsaws":
         table = pd.read_csv(path, sep=r"\s+", header=None, engine="python").to_numpy(float)
         if table.shape[1] != 76:
@@ -111,9 +136,9 @@ def import_trial(path: Path, root: Path, fmt: str, out_root: Path) -> tuple[Path
         streams.append((kinematics_spec(robot, RATE_HZ), columns + [np.full(n, np.nan)]))
     report: dict[str, Any] = {"format": fmt, "kinematics": file_facts(path), "rows": n,
                               "clock": "no host clock in the source: t_host_ns = 2010-01-01 + frame / 30 Hz",
-                              "clutch": "not recorded by the source: empty"}
+                              "clutch": "not recorded by the source: empty", "discontinuities": []}
     devices = {"video": {"kind": "video", "url": f"import://{fmt}/{path.name}", "streams": ["video"]},
-               "robot": {"kind": "raven", "url": f"import://{fmt}/{path.name}", "streams": ["mtm", "psm"]}}
+               "robot": {"kind": "davinci", "url": f"import://{fmt}/{path.name}", "streams": ["mtm", "psm"]}}
     metadata = SessionMetadata(subject, task, trial, "davinci", f"imported from {fmt} {path.name}")
     transcription = transcription_for(path, root, fmt)
     report["transcription"] = file_facts(transcription) if transcription else "none found: no labels written"
