@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
 import pytest
@@ -67,8 +68,22 @@ def test_unknown_backend_is_refused_before_recording(tmp_path: Path) -> None:
 
 
 def test_a_rig_whose_hardware_is_absent_fails_fast_with_exit_3(tmp_path: Path) -> None:
-    result = midas("record", "--rig", str(REPO / "sessions_template/rigs/raven-ii.toml"), "--subject", "1",
-                   "--trial", "1", "--out", str(tmp_path), "--no-tui")
+    """The shipped Raven-II rig, its fixed host resources (serial ports, OBS on 4455, UDP 36000 on every
+    interface) moved to ones that are surely absent or free, so nothing else on the host is touched."""
+    with socket.socket() as tcp, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+        tcp.bind(("127.0.0.1", 0))
+        udp.bind(("127.0.0.1", 0))
+        obs_port, raven_port = tcp.getsockname()[1], udp.getsockname()[1]
+    text = (REPO / "sessions_template/rigs/raven-ii.toml").read_text()
+    for fixed, local in (("/dev/ttyUSB0", f"{tmp_path}/ttyUSB0"), ("/dev/ttyACM0", f"{tmp_path}/ttyACM0"),
+                         ("obs://localhost:4455", f"obs://127.0.0.1:{obs_port}"),
+                         ("raven://0.0.0.0:36000", f"raven://127.0.0.1:{raven_port}")):
+        assert fixed in text, f"the template no longer says {fixed}: update this test"
+        text = text.replace(fixed, local)
+    rig = tmp_path / "raven-ii.toml"
+    rig.write_text(text)
+    result = midas("record", "--rig", str(rig), "--subject", "1", "--trial", "1", "--out", str(tmp_path / "out"),
+                   "--no-tui")
     assert result.returncode == 3, result.stderr
     assert "could not open" in result.stderr.splitlines()[-1] or "ttyUSB0" in result.stderr.splitlines()[-1]
 

@@ -18,7 +18,7 @@ from midas_cli.labels.taxonomy import load_taxonomy, parse_taxonomy
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from tests.conftest import midas
+from tests.conftest import midas, record_until
 
 FPS = 30.0
 VIDEO = StreamSpec("video", "video", (SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")), FPS)
@@ -254,8 +254,9 @@ def test_plain_csv_export_lists_segments_in_frames_and_seconds(tmp_path: Path) -
 def test_a_recorded_simulated_session_is_labelled_on_its_own_frames(tmp_path: Path) -> None:
     """The simulated recorder's video stream starts at a frame > 0 (its timecode is seq / 30): a segment
     over 0..100 s is clipped at both ends, and labels land on the recorded frame indices."""
-    midas("record", "--simulate", "--duration", "2", "--no-tui", "--subject", "1", "--task", "t", "--trial", "1",
-          "--out", str(tmp_path / "rec"), check=True)
+    result = record_until(tmp_path / "rec", ["--simulate", "--no-tui", "--subject", "1", "--task", "t", "--trial", "1"],
+                          {"video": 10})
+    assert result.returncode == 0, result.stderr
     session = next((tmp_path / "rec").iterdir())
     export = via_csv(tmp_path / "e.csv", [("1_xxxxxx", [0, 100], [], {"1": "7"})])
     report = import_via(export, session, peg()).report.to_json()

@@ -106,7 +106,8 @@ def test_manifest_reports_the_start_event_and_the_stop_check(recorded) -> None:
 def test_sync_marker_is_found_in_the_pixels_near_its_host_time(recorded) -> None:
     session, _ = recorded
     toggles = pd.read_csv(session / "streams" / "video_marker.csv")
-    assert toggles["enabled"].tolist()[:4] == [1, 0, 1, 0]
+    enabled = toggles["enabled"].tolist()  # shown, hidden, shown, ... (how many depends on when OBS started)
+    assert len(enabled) >= 3 and enabled == [1 - i % 2 for i in range(len(enabled))]
     assert (toggles["t_ack_ns"] >= toggles["t_host_ns"]).all()
     video = next((session / "video").glob("*.mkv"))
     onsets = marker_onsets(region_brightness(video, MARKER_ROI))
@@ -185,4 +186,6 @@ def test_a_mixed_session_with_obs_emulators_and_lsl_verifies(obs: ObsServer, tmp
     session = Session.open(path)
     assert {"emht", "fps", "video", "raven", "hr"} <= set(session.stream_names)
     assert all(session.manifest["streams"][name]["samples"] > 0 for name in session.stream_names)
-    assert len(list((path / "video").glob("*.mkv"))) == 1
+    # one segment, or more if a busy host stalled OBS past the stall timeout (a reconnect, explained)
+    segments = list((path / "video").glob("*.mkv"))
+    assert len(segments) == 1 + session.manifest["devices"]["video"]["reconnects"]

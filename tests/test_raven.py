@@ -334,3 +334,30 @@ def test_record_keeps_only_the_consoles_datagrams_and_counts_them_over_a_reconne
     assert frame["seq"].to_list() == list(range(60)) and frame["sequence"].to_list() == list(range(1, 61))
     assert stderr.count("dropping datagrams from 127.0.0.") == 1, stderr
     assert midas("session", "verify", str(session)).returncode == 0
+
+
+def test_a_new_process_resumes_counting_from_the_raw_file(tmp_path: Path, caplog, monkeypatch) -> None:
+    """Without the worker's tally (another process), seq, packets and wrong-size counts still continue
+    from the raw file; what it cannot know (forwarded, foreign) restarts, and the log says so."""
+    from midas_cli.devices.raven import device as raven_device
+
+    port = free_udp_port()
+    packets = [encode_packet(p) for p in PacketSource(RavenEmulatorConfig(seed=1)).block(0, 6)]
+    rows = []
+    with _udp() as console:
+        for connection in range(2):
+            if connection:
+                monkeypatch.setattr(raven_device, "_TALLIES", {})
+            device = _device(tmp_path, f"raven://:{port}")
+            device.open()
+            console.sendto(packets[3 * connection][:10], ("127.0.0.1", port))
+            for datagram in packets[3 * connection:3 * connection + 3]:
+                console.sendto(datagram, ("127.0.0.1", port))
+            rows += _read_until(device, 3)
+            if connection:
+                device.finish()
+            device.close()
+    assert [row[0] for row in rows] == list(range(6)) and [row[2] for row in rows] == list(range(1, 7))
+    info = device.final_info
+    assert (info["packets"], info["wrong_size"], info["sequence_gaps"]) == (6, 2, 0)
+    assert "counting resumes from" in caplog.text

@@ -1,32 +1,48 @@
-"""Done-when check of issue 7 on a simulated Raven-II peg-transfer dataset (15 trials, `midas simulate`):
+"""Done-when check of issue 7 on a simulated Raven-II peg-transfer dataset (10 trials, `midas simulate`):
 MS-TCN++ and the transformer trained on EmHT reach frame accuracy >= 0.80 under the gesture split, and a
-shuffled-label control stays near chance (the pipeline learns from the signal, not from structure)."""
+shuffled-label control stays near chance (the pipeline learns from the signal, not from structure).
+
+Sized to prove that and no more: on 10 trials (3 subjects) MS-TCN++ passes validation accuracy 0.95
+by epoch 4-5 and the transformer by epoch 3-4, so 8 epochs leave a margin (test accuracy 1.0 and 0.975
+with seed 0, 1.0 and 1.0 with seed 1; the control 0.23, chance about 1/8). The earlier 15 trials x 15
+epochs gave the same verdicts at about three times the cost."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
+import torch
 
 from conftest import midas
 from midas_cli.analysis.align import align_and_write
 from midas_cli.models.data import DatasetConfig
 from midas_cli.models.train import TrainConfig, train_run
 
-# Training on CPU: ~2.5 min for MS-TCN++ on a quiet 2-core machine, several times that under load.
+# Training on CPU: about 2 min for the three runs on a quiet 2-core machine, several times that under load.
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
 
 EMHT = DatasetConfig(("emht",), ("pos", "ori", "vel"), exclude_clutch=True)
-EPOCHS = 15
+EPOCHS = 8
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """One intra-op thread: these small convolutions gain little from a second one, and on a shared
+    2-core machine two threads waiting on each other ran slower than one (5.9 vs 4.3 s an epoch)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
 def raven(tmp_path_factory) -> list[Path]:
-    root = tmp_path_factory.mktemp("raven15")
-    result = midas("simulate", "dataset", "--platform", "raven-ii", "--trials", "15", "--subjects", "3",
+    root = tmp_path_factory.mktemp("raven10")
+    result = midas("simulate", "dataset", "--platform", "raven-ii", "--trials", "10", "--subjects", "3",
                    "--seed", "3", "--out", str(root), "--jobs", "2", timeout=1800, check=True)
     sessions = [Path(line) for line in result.stdout.split() if line.strip()]
-    assert len(sessions) == 15
+    assert len(sessions) == 10
     for session in sessions:
         align_and_write(session)
     return sessions
