@@ -31,8 +31,8 @@ META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 TRACEBACK = "Traceback (most recent call last)"
 
 
-def _spawn(out: Path, *extra: str, group: bool = False) -> subprocess.Popen:
-    env = {**os.environ, "NO_COLOR": "1"}
+def _spawn(out: Path, *extra: str, group: bool = False, faulthandler: bool = False) -> subprocess.Popen:
+    env = {**os.environ, "NO_COLOR": "1", **({"PYTHONFAULTHANDLER": "1"} if faulthandler else {})}
     return subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--out", str(out), *META, *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             start_new_session=group)
@@ -123,10 +123,15 @@ def test_a_signal_right_after_the_manifest_appears_still_stops_the_recording(tmp
 def test_ctrl_c_during_start_up_never_prints_a_traceback(tmp_path: Path, delay_s: float) -> None:
     """Before the session exists: exit 130 and no folder; after: a finalised session. (The first
     few tens of ms belong to the Python interpreter's own start, before any midas code runs.)"""
-    process = _spawn(tmp_path, "--simulate", "--no-tui")
+    process = _spawn(tmp_path, "--simulate", "--no-tui", faulthandler=True)
     time.sleep(delay_s)
     process.send_signal(signal.SIGINT)
-    stdout, stderr = process.communicate(timeout=60)
+    try:
+        stdout, stderr = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:  # say where it hangs: faulthandler dumps every thread on SIGABRT
+        process.send_signal(signal.SIGABRT)
+        stdout, stderr = process.communicate(timeout=30)
+        raise AssertionError(f"SIGINT {delay_s} s after start did not end midas record:\n{stderr[-6000:]}")
     assert TRACEBACK not in stderr and "KeyboardInterrupt" not in stderr, stderr
     sessions = _sessions(tmp_path)
     if process.returncode == 130:
