@@ -14,7 +14,6 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
-import queue
 import shutil
 import signal
 import threading

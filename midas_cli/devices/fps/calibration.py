@@ -23,7 +23,7 @@ import numpy as np
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.fps.driver import FpsDevice
-from midas_cli.devices.pedals import DAVINCI_PEDALS, PedalThresholds, adc_to_volts
+from midas_cli.devices.pedals import PedalThresholds, adc_to_volts
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.session.reader import Session
 
