@@ -3,7 +3,9 @@ and `midas record` failing fast (exit 3) when OBS cannot be reached."""
 
 from __future__ import annotations
 
+import time
 from fractions import Fraction
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +16,7 @@ from midas_cli.devices.obs.connection import ObsConnection, resolve_password
 from midas_cli.devices.obs.frames import FrameClock, WrittenRows, check_recording, segment_files
 from midas_cli.devices.obs.marker import MarkerPlan, SyncMarker
 from midas_cli.devices.obs.profile import recover_stale
-from midas_cli.devices.obs.saved import SavedSettings, SettingsStore
+from midas_cli.devices.obs.saved import SavedSettings, SettingsStore, process_start
 from midas_cli.devices.registry import describe_device
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.rig import parse_rig
@@ -234,6 +236,29 @@ def test_saved_copy_is_written_once_and_knows_its_owner(tmp_path) -> None:
     assert other.owner() == "alive"  # pid 1 runs (the PID alone decides without a start time)
     assert SavedSettings(**{**first.__dict__, "owner_pid": _dead_pid()}).owner() == "stale"
     assert SavedSettings(**{**first.__dict__, "owner_start": "1"}).owner() == "stale"  # PID reused
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="zombies are told apart through /proc")
+def test_an_owner_killed_but_not_yet_reaped_is_gone(tmp_path) -> None:
+    """A SIGKILLed midas whose parent never reaps it (a container whose PID 1 reaps nobody) stays a
+    zombie with its PID and start time: its copy is stale all the same, not 'in use by another midas'."""
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        saved = SavedSettings.for_this_process("127.0.0.1:4455", tmp_path / "s" / "video", "")
+        owned = SavedSettings(**{**saved.__dict__, "owner_pid": child.pid, "owner_start": process_start(child.pid)})
+        assert owned.owner_start and owned.owner() == "alive"
+        child.kill()
+        deadline = time.monotonic() + 60
+        while Path(f"/proc/{child.pid}/stat").read_text().split(")")[-1].split()[0] != "Z":  # killed, unreaped
+            assert time.monotonic() < deadline, "the child never became a zombie"
+            time.sleep(0.01)
+        assert process_start(child.pid) is None and owned.owner() == "stale"
+    finally:
+        child.kill()
+        child.wait()
 
 
 def test_a_stale_copy_is_restored_and_the_orphan_recording_stopped(tmp_path) -> None:

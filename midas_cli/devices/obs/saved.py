@@ -36,7 +36,8 @@ def state_dir() -> Path:
 
 def process_start(pid: int) -> str | None:
     """When process ``pid`` started (clock ticks since boot, from /proc), None if there is no such
-    process; "" where /proc cannot tell (the PID alone then decides)."""
+    process or it has ended (a zombie: killed, not yet reaped, which is common in containers whose PID 1
+    reaps nobody); "" where /proc cannot tell (the PID alone then decides)."""
     if not Path("/proc/self/stat").exists():  # no procfs (macOS)
         return _pid_exists_without_proc(pid)
     try:
@@ -45,7 +46,10 @@ def process_start(pid: int) -> str | None:
         return None
     except OSError:
         return _pid_exists_without_proc(pid)
-    return text[text.rindex(")") + 2 :].split()[19]  # field 22 of proc(5), counted after "pid (comm)"
+    fields = text[text.rindex(")") + 2 :].split()  # from field 3 of proc(5), counted after "pid (comm)"
+    if fields[0] in ("Z", "X"):  # ended: a zombie holds its PID and start time until its parent reaps it
+        return None
+    return fields[19]  # field 22: start time
 
 
 def _pid_exists_without_proc(pid: int) -> str | None:
