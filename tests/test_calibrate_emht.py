@@ -11,7 +11,7 @@ import torch
 
 from midas_cli.analysis.align import align_and_write
 from midas_cli.analysis.metrics import cosine_similarity
-from midas_cli.analysis.transforms import fit_similarity, matrices_from_angles, rotation_angle_deg
+from midas_cli.geometry import fit_similarity, matrices_from_angles, rotation_angle_deg
 from midas_cli.session.derived import read_aligned
 from tests.analysis_sessions import TRUE_R, TRUE_T, raven_session
 from tests.conftest import midas

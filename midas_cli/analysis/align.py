@@ -28,7 +28,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, load_calibration
-from midas_cli.analysis.transforms import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
+from midas_cli.geometry import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session.derived import AlignedTable, ValuesFile, find_calibration, write_aligned
 from midas_cli.session.reader import Session

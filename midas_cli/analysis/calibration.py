@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from midas_cli import __version__
-from midas_cli.analysis.transforms import apply_similarity
+from midas_cli.geometry import apply_similarity
 from midas_cli.errors import SessionError
 
 SOURCES = ("emht", "handkp")

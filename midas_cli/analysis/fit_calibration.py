@@ -19,7 +19,7 @@ import numpy as np
 from midas_cli.analysis.align import EMHT_SENSORS, HANDS, estimate_lag, hand_points
 from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, MLPConfig, save_calibration
 from midas_cli.analysis.metrics import cosine_similarity, nrmse_percent
-from midas_cli.analysis.transforms import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
+from midas_cli.geometry import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
                                            mean_rotation, rotation_angle_deg)
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session.derived import calib_path
