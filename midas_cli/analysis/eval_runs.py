@@ -122,7 +122,8 @@ def correlation_tables(rows: dict[str, list[dict[str, Any]]],
     worse = worse or {}
     handkp_worse = {k: v for k, v in worse.items() if k == "HandKP-MTM"}
     main = ev.mark_worse(ev.correlation_table(rows["correlation"]), worse)
-    shown = {c: v for c, v in worse.items() if not main.empty and ((main["comparison"] == c) & (main["model"] == "mlp*")).any()}
+    marked = set() if main.empty else set(main.loc[main["model"] == "mlp*", "comparison"])
+    shown = {c: v for c, v in worse.items() if c in marked}
     return {
         "correlation": (main, f"Mean CoS and NRMSE(%) per axis over {n} trial(s) and both hands" + worse_note(shown)),
         "grasper": (ev.summarise(rows["grasper"], ["comparison"], ["iou", "accuracy", "precision"]),

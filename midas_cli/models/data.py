@@ -182,7 +182,8 @@ def build_dataset(sessions: Sequence[Path], config: DatasetConfig, classes: Sequ
     unlabelled = [str(p) for p in sessions if Path(p) not in labelled]
     if not labelled:
         raise SessionError(f"none of the {len(sessions)} sessions has label set {config.label_set!r} "
-                           f"(labels/{config.label_set}.csv): import labels first (`midas labels import-via|import-transcription`)")
+                           f"(labels/{config.label_set}.csv): import labels first "
+                           "(`midas labels import-via|import-transcription`)")
     if unlabelled:
         log.warning("%d of %d sessions skipped: no label set %r: %s", len(unlabelled), len(sessions),
                     config.label_set, ", ".join(unlabelled))
