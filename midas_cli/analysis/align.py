@@ -27,9 +27,9 @@ from typing import Any, Callable
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, load_calibration
-from midas_cli.geometry import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
+from midas_cli.analysis.calibration import MODEL_CHOICES, SOURCES, TARGETS, Calibration, load_calibration
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
 from midas_cli.session.derived import AlignedTable, ValuesFile, find_calibration, write_aligned
 from midas_cli.session.reader import Session
 
@@ -47,15 +47,20 @@ class AlignOptions:
     """``method`` causal|nearest; ``rate_hz`` downsamples the frame clock (None keeps every frame);
     gaps in HandKP up to ``spline_max_gap_s`` are spline-filled, longer ones forward-filled;
     ``clock_hz`` None aligns onto the video frame clock, a rate (Hz) onto a regular clock at that rate
-    spanning every stream's samples (for a short or missing video clock)."""
+    spanning every stream's samples (for a short or missing video clock). ``model`` best|rigid|mlp: the
+    calibration model recorded as the one to use (``calibrations_applied[].selected``; both models'
+    columns are written either way): best = the winner of calibrate's held-out comparison."""
 
     method: str = "causal"
     rate_hz: float | None = None
     spline_max_gap_s: float = 1.0
     stale_periods: float = 3.0
     clock_hz: float | None = None
+    model: str = "best"
 
     def __post_init__(self) -> None:
+        if self.model not in MODEL_CHOICES:
+            raise ConfigError(f"--model {self.model!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
         if self.method not in METHODS:
             raise ConfigError(f"alignment method {self.method!r} is unknown (expected one of {', '.join(METHODS)})")
         if self.rate_hz is not None and not 0 < self.rate_hz <= 1000:
@@ -542,7 +547,8 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
         "handkp_gap_fill": f"cubic spline for gaps <= {options.spline_max_gap_s} s, forward fill beyond",
         "sources": {s: session.manifest["streams"][s].get("sha256") for s in session.stream_names},
         "calibrations_applied": [{"file": f"calib/{c.stem}.json", "models": c.models, "lag_ms": c.lag_ms,
-                                  "held_out": c.info.get("held_out")} for c in calibrations],
+                                  "held_out": c.info.get("held_out"), "selected": c.choose_model(options.model),
+                                  "asked": options.model, "selection": c.selection} for c in calibrations],
     }
     return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
 
@@ -560,6 +566,19 @@ def coverage_warnings(covered: dict[str, dict[str, Any]], options: AlignOptions)
             lines.append(f"the {clock} covers {c['samples_share']:.1%} of the samples of stream {stream!r} "
                          f"({c['samples_inside']} of {c['samples']}) and {c['span_share']:.1%} of its "
                          f"{c['span_s']:g} s span{hint}")
+    return lines
+
+
+def model_warnings(applied: list[dict[str, Any]]) -> list[str]:
+    """One line per calibration whose MLP lost to the rigid fit on held-out trials: which one is used."""
+    lines = []
+    for c in applied:
+        selection = c["selection"]
+        if selection.get("mlp_worse_than_rigid"):
+            errors = selection["held_out"]
+            lines.append(f"{c['file']}: the MLP is worse than the rigid fit on held-out trials (RMSE "
+                         f"{errors['mlp']['rmse_mm']:.2f} vs {errors['rigid']['rmse_mm']:.2f} mm); "
+                         f"{c['selected']} is the one used (--model {c['asked']})")
     return lines
 
 
@@ -584,7 +603,8 @@ def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), cs
     return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
             "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},
             "coverage": {s: {k: c[k] for k in ("samples_share", "span_share")} for s, c in covered.items()},
-            "warnings": coverage_warnings(covered, options),
+            "warnings": coverage_warnings(covered, options) + model_warnings(table.meta["calibrations_applied"]),
             "calibrations": [c["file"] for c in table.meta["calibrations_applied"]],
+            "calibration_models": {c["file"]: c["selected"] for c in table.meta["calibrations_applied"]},
             "files": {k: str(v) for k, v in written.items()}}
 

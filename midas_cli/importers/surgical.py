@@ -25,12 +25,12 @@ import pandas as pd
 
 from midas_cli.analysis.kinematics_schema import kinematics_spec
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import quaternions_from_matrices
 from midas_cli.importers.common import file_facts, write_session
 from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata
 from midas_cli.simulate.gestures import read_transcription
-from midas_cli.geometry import quaternions_from_matrices
 
 RATE_HZ = 30.0
 EPOCH_NS = 1_262_304_000_000_000_000  # 2010-01-01T00:00:00Z: stands in for the missing host clock
