@@ -34,7 +34,6 @@ class StreamSummary:
     t_host_nonincreasing: int = 0
     bad_lines: list[int] = field(default_factory=list)
     torn_tail_bytes: int = 0
-    values_ok: bool = True
 
     def manifest_fields(self) -> dict[str, Any]:
         """The per-stream manifest entries that describe the finished file."""
@@ -61,7 +60,7 @@ def summarize_stream(path: Path, spec: StreamSpec) -> StreamSummary:
 
 def summarize_bytes(data: bytes, spec: StreamSpec) -> StreamSummary:
     """``summarize_stream`` of a stream file's bytes. Values that do not parse leave the times and
-    sequence facts unset (``values_ok`` False); ``values.parse_stream_bytes`` says which and where."""
+    sequence facts unset; ``values.parse_stream_bytes`` says which value and where."""
     summary = StreamSummary(bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
     header_end = data.find(b"\n")
     if header_end < 0:
@@ -80,7 +79,6 @@ def summarize_bytes(data: bytes, spec: StreamSpec) -> StreamSummary:
         seq, t_host = read_seq_and_time(body)
     except (ValueError, TypeError, OverflowError):  # text, overflow, missing values: not a time or a count
         summary.samples = body.count(b"\n")
-        summary.values_ok = False
         return summary
     _fill_time_and_sequence(summary, seq, t_host)
     return summary
