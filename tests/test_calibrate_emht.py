@@ -11,7 +11,7 @@ import torch
 
 from midas_cli.analysis.align import align_and_write
 from midas_cli.analysis.metrics import cosine_similarity
-from midas_cli.analysis.transforms import fit_similarity, matrices_from_angles, rotation_angle_deg
+from midas_cli.geometry import fit_similarity, matrices_from_angles, rotation_angle_deg
 from midas_cli.session.derived import read_aligned
 from tests.analysis_sessions import TRUE_R, TRUE_T, raven_session
 from tests.conftest import midas
@@ -116,3 +116,53 @@ def test_done_when_on_a_simulated_raven_dataset(tmp_path: Path) -> None:
     assert abs(report["lag_ms"] - truth["emht_latency_ms"]) < 1000 / 30
     for axis in "xyz":
         assert cosine_similarity(table.column(f"emht_mtm_mlp.left_{axis}_mm"), table.column(f"mtm.left_{axis}_mm")) >= 0.9
+
+
+def test_select_model_picks_by_held_out_rmse_and_keeps_both_errors() -> None:
+    from midas_cli.analysis.fit_calibration import select_model
+
+    def cv(rigid: float, mlp: float) -> dict:
+        scores = lambda rmse, cos: {"rmse_mm": rmse, "cos_x": cos, "cos_y": cos, "cos_z": cos}  # noqa: E731
+        return {"folds": 3, "rigid": scores(rigid, 0.99), "mlp": scores(mlp, 0.5)}
+
+    better = select_model(cv(rigid=2.35, mlp=1.9), ["rigid", "mlp"])
+    assert better["best"] == "mlp" and not better["mlp_worse_than_rigid"] and better["compared"]
+    assert better["held_out"]["mlp"]["rmse_mm"] == 1.9 and better["held_out"]["rigid"]["rmse_mm"] == 2.35
+    collapsed = select_model(cv(rigid=2.35, mlp=53.1), ["rigid", "mlp"])
+    assert collapsed["best"] == "rigid" and collapsed["mlp_worse_than_rigid"]
+    assert select_model(cv(rigid=2.35, mlp=float("nan")), ["rigid", "mlp"])["best"] == "rigid"
+    one_session = select_model({"folds": 0}, ["rigid", "mlp"])
+    assert one_session["best"] == "mlp" and not one_session["compared"]
+    assert select_model(cv(2.0, 1.0), ["rigid"])["best"] == "rigid"
+
+
+def test_collapsed_mlp_is_reported_not_used_by_default_and_marked_in_the_table(tmp_path: Path) -> None:
+    sessions = [str(raven_session(tmp_path, trial=k, duration_s=15.0, seed=k)) for k in (1, 2)]
+    # a huge weight decay and 3 epochs: the direct HandKP MLP cannot beat the hand-eye rigid fit
+    result = midas("calibrate", "handkp", *sessions, "--target", "mtm", "--epochs", "3", "--weight-decay", "1000",
+                   "--json", check=True)
+    warning = [line for line in result.stderr.splitlines() if "warning" in line]
+    assert len(warning) == 1 and "MLP is worse than the rigid fit on held-out trials" in warning[0]
+    selection = json.loads(result.stdout)["selection"]
+    assert selection["best"] == "rigid" and selection["folds"] == 2
+    assert selection["held_out"]["mlp"]["rmse_mm"] > selection["held_out"]["rigid"]["rmse_mm"]
+    saved = json.loads((Path(sessions[0]) / "calib" / "handkp_to_mtm.json").read_text())
+    assert saved["info"]["selection"] == selection
+
+    aligned = midas("align", sessions[0], "--model", "mlp", "--json", check=True)  # told otherwise
+    assert json.loads(aligned.stdout)[0]["calibration_models"] == {"calib/handkp_to_mtm.json": "mlp"}
+    for session in sessions:
+        aligned = midas("align", session, "--json", check=True)
+        assert json.loads(aligned.stdout)[0]["calibration_models"] == {"calib/handkp_to_mtm.json": "rigid"}
+        assert "rigid is the one used" in aligned.stderr
+    assert read_aligned(Path(sessions[0])).has("handkp_mtm_mlp.left_x_mm")  # kept for the comparison table
+
+    report = midas("eval", "correlation", *sessions, "--no-plots", "--out", str(tmp_path / "best"), "--json", check=True)
+    tables = json.loads(report.stdout)["tables"]
+    assert {r["comparison"]: r["model"] for r in tables["correlation"]}["HandKP-MTM"] == "rigid"
+    assert sorted(r["model"] for r in tables["handkp_all_frames"]) == ["mlp*", "rigid"]
+    markdown = (tmp_path / "best" / "correlation.md").read_text()
+    assert "| mlp* |" in markdown and "* MLP worse than the rigid fit on held-out trials (HandKP-MTM: RMSE" in markdown
+    forced = midas("eval", "correlation", *sessions, "--no-plots", "--model", "mlp", "--out", str(tmp_path / "mlp"),
+                   "--json", check=True)
+    assert {r["comparison"]: r["model"] for r in json.loads(forced.stdout)["tables"]["correlation"]}["HandKP-MTM"] == "mlp*"

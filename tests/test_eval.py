@@ -85,3 +85,16 @@ def test_correlation_table_prefers_mlp_and_averages_sessions() -> None:
     table = correlation_table(rows)
     assert table["model"].tolist() == ["mlp"] and table["X CoS"].iloc[0] == pytest.approx(0.7)
     assert table["n"].iloc[0] == 2
+
+
+def test_correlation_table_uses_the_selected_model_and_marks_a_worse_mlp() -> None:
+    from midas_cli.analysis.evaluation import mark_worse
+
+    rows = [{"session": "a", "comparison": "HandKP-MTM", "model": m, "subset": "all", "hand": "left", "axis": "X",
+             "cos": c, "nrmse": 10.0, "frames": 5, "selected": m == "rigid"} for m, c in (("rigid", 0.9), ("mlp", 0.0))]
+    table = correlation_table(rows)
+    assert table["model"].tolist() == ["rigid"] and table["X CoS"].iloc[0] == pytest.approx(0.9)
+    worse = {"HandKP-MTM": {"mlp_worse_than_rigid": True}}
+    marked = mark_worse(pd.DataFrame({"model": ["rigid", "mlp"]}), worse, "HandKP-MTM")
+    assert marked["model"].tolist() == ["rigid", "mlp*"]
+    assert mark_worse(pd.DataFrame({"model": ["mlp"]}), worse, "EmHT-MTM")["model"].tolist() == ["mlp"]

@@ -129,3 +129,41 @@ def test_macro_precision_recall_and_confusion():
     assert out["summary"]["recall"] == pytest.approx((1 / 3 + 1.0) / 2)
     per = {r["class"]: r for r in out["per_class"]}
     assert per["x"]["support"] == 3 and per["y"]["f1"] == pytest.approx(2 * 0.5 / 1.5)
+
+
+def test_confusion_matrix_leaves_ignore_predictions_out_of_every_cell():
+    # old code: truth 1 / prediction -1 landed in cell (0, 1); truth 0 / prediction -1 crashed bincount
+    assert M.confusion_matrix(np.array([-1, 1]), np.array([1, 1]), 2).tolist() == [[0, 0], [0, 1]]
+    assert M.confusion_matrix(np.array([-1, -1, 1, 0]), np.array([1, 0, 1, -1]), 2).tolist() == [[0, 0], [0, 1]]
+    with pytest.raises(ValueError, match="prediction class indices"):
+        M.confusion_matrix(np.array([2]), np.array([0]), 2)
+
+
+def test_accuracy_leaves_out_unlabelled_truth_and_background_accuracy_counts_all_frames():
+    truth = np.array([0, 0, 0, 1, 1, -1, -1, -1, 1])
+    pred = np.array([0, -1, 1, 1, -1, -1, -1, 0, 1])
+    out = M.evaluate([pred], [truth], ["x", "y"])
+    summary = out["summary"]
+    # labelled frames 0,1,2,3,4,8: right at 0, 3, 8 (the two -1 predictions are wrong)
+    assert summary["accuracy"] == pytest.approx(3 / 6) and summary["frames"] == 6
+    # all 9 frames, background a class: also right at 5 and 6 (predicted -1), wrong at 7
+    assert summary["accuracy_with_background"] == pytest.approx(5 / 9) and summary["frames_all"] == 9
+    assert out["confusion"] == [[1, 1], [0, 2]]
+    per = {r["class"]: r for r in out["per_class"]}
+    assert per["x"]["support"] == 3 and per["y"]["support"] == 3
+    assert per["x"]["recall"] == pytest.approx(1 / 3) and per["y"]["recall"] == pytest.approx(2 / 3)
+    assert per["x"]["precision"] == 1.0 and per["y"]["precision"] == pytest.approx(2 / 3)
+    assert "left out" in out["definitions"]["accuracy"] and "background" in out["definitions"]["accuracy_with_background"]
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_background_accuracy_is_the_reference_all_frame_accuracy(seed):
+    rng = np.random.default_rng(seed)
+    truth = np.repeat(rng.integers(-1, 4, 8), rng.integers(1, 9, 8))
+    pred = np.where(rng.random(len(truth)) < 0.3, rng.integers(-1, 4, len(truth)), truth)
+    summary = M.evaluate([pred], [truth], list("abcd"))["summary"]
+    reference = sum(int(g == r) for g, r in zip(truth, pred)) / len(truth)  # MS-TCN eval.py loop
+    assert summary["accuracy_with_background"] == pytest.approx(reference)
+    labelled = truth != -1
+    if labelled.any():
+        assert summary["accuracy"] == pytest.approx((pred[labelled] == truth[labelled]).mean())

@@ -101,3 +101,21 @@ def test_cli_train_eval_only_and_ablation(sessions, tmp_path):
     assert (tmp_path / "abl" / "table.csv").read_text().splitlines()[0].startswith("Dataset,Model,Modality")
     bad = midas("train", "gestures", root, "--model", "lstm", "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "lstm" in bad.stderr
+
+
+def test_cli_skips_unlabelled_sessions_with_a_note_and_fails_only_when_none_remain(tmp_path):
+    found = write_gesture_dataset(tmp_path / "data", n_trials=3, subjects=1, n_frames=240)
+    unlabelled = found[1]
+    (unlabelled / "labels" / "gestures.csv").unlink()  # a trial nobody annotated
+    run = midas("train", "gestures", str(tmp_path / "data"), "--model", "transformer", "--epochs", "1",
+                "--split", "loto", "--out", str(tmp_path / "run"), "--json", check=True)
+    assert "1 of 3 sessions skipped" in run.stderr and unlabelled.name in run.stderr
+    saved = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert list(saved["skipped_sessions"]) == [str(unlabelled)]
+    assert unlabelled.name not in {t["name"] for t in saved["trials"]} and len(saved["trials"]) == 2
+    summary = json.loads(run.stdout)["test"]
+    assert summary["frames_all"] >= summary["frames"] > 0 and "accuracy_with_background" in summary
+    for session in found:
+        (session / "labels" / "gestures.csv").unlink(missing_ok=True)
+    none = midas("train", "gestures", str(tmp_path / "data"), "--epochs", "1", "--out", str(tmp_path / "x"))
+    assert none.returncode == 4 and "none of the 3 sessions has label set 'gestures'" in none.stderr

@@ -27,11 +27,12 @@ from typing import Any, Callable
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, load_calibration
-from midas_cli.analysis.transforms import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
+from midas_cli.analysis.calibration import MODEL_CHOICES, SOURCES, TARGETS, Calibration, load_calibration
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
 from midas_cli.session.derived import AlignedTable, ValuesFile, find_calibration, write_aligned
 from midas_cli.session.reader import Session
+from midas_cli.session.values import FLOAT_LIMIT, REMEDY
 
 log = logging.getLogger(__name__)
 
@@ -47,15 +48,20 @@ class AlignOptions:
     """``method`` causal|nearest; ``rate_hz`` downsamples the frame clock (None keeps every frame);
     gaps in HandKP up to ``spline_max_gap_s`` are spline-filled, longer ones forward-filled;
     ``clock_hz`` None aligns onto the video frame clock, a rate (Hz) onto a regular clock at that rate
-    spanning every stream's samples (for a short or missing video clock)."""
+    spanning every stream's samples (for a short or missing video clock). ``model`` best|rigid|mlp: the
+    calibration model recorded as the one to use (``calibrations_applied[].selected``; both models'
+    columns are written either way): best = the winner of calibrate's held-out comparison."""
 
     method: str = "causal"
     rate_hz: float | None = None
     spline_max_gap_s: float = 1.0
     stale_periods: float = 3.0
     clock_hz: float | None = None
+    model: str = "best"
 
     def __post_init__(self) -> None:
+        if self.model not in MODEL_CHOICES:
+            raise ConfigError(f"--model {self.model!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
         if self.method not in METHODS:
             raise ConfigError(f"alignment method {self.method!r} is unknown (expected one of {', '.join(METHODS)})")
         if self.rate_hz is not None and not 0 < self.rate_hz <= 1000:
@@ -236,12 +242,43 @@ def stale_ns_for(session: Session, stream: str, options: AlignOptions) -> int:
     return int(options.stale_periods * 1e9 / rate) if rate else int(1e9)
 
 
-def reference_frames(session: Session) -> tuple[np.ndarray, np.ndarray]:
-    """Video frame indices (N,) and host times (N,) ns: the reference clock, sorted by time."""
+def refuse_absurd_values(session: Session, stream: str, table: np.ndarray, columns: list[Any],
+                         chosen: np.ndarray) -> None:
+    """SessionError naming file and line if a float value chosen for a frame (``chosen`` (C, N), row j =
+    ``columns[j]``) is infinite or beyond ``FLOAT_LIMIT`` (a binary copy made before values were checked
+    can hold them; the CSV parser refuses them)."""
+    for j, column in enumerate(columns):
+        if column.dtype != "float" or not (np.abs(chosen[j]) > FLOAT_LIMIT).any():  # inf included, NaN not
+            continue
+        row = int(np.flatnonzero(np.abs(np.asarray(table[column.name], dtype=float)) > FLOAT_LIMIT)[0])
+        raise SessionError(f"{session.stream_path(stream)} line {row + 2}, column {column.name!r}: "
+                           f"{float(table[column.name][row]):g} is out of range; expected a finite number within "
+                           f"+-{FLOAT_LIMIT:.0e}; {REMEDY}")
+
+
+def time_order_warnings(session: Session, data: dict[str, np.ndarray]) -> list[str]:
+    """One line per stream whose host time goes backwards (rows out of order, or a clock stepped back):
+    `align` associates its samples in time order, which the file does not guarantee to be right."""
+    lines = []
+    for stream, table in data.items():
+        t_host = np.asarray(table["t_host_ns"], dtype=np.int64)
+        step = np.diff(t_host)
+        back = np.flatnonzero(step < 0)
+        if len(back):
+            first = int(back[0])
+            lines.append(f"host time of stream {stream!r} ({session.stream_path(stream)}) goes backwards at "
+                         f"{len(back)} row(s), first at line {first + 3} (by {-step[first] / 1e6:.3f} ms); its "
+                         f"samples were associated in time order (`midas session verify` reports the file)")
+    return lines
+
+
+def reference_frames(session: Session, video: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Video frame indices (N,) and host times (N,) ns: the reference clock, sorted by time (``video``:
+    the video stream as ``Session.read_columns`` gives it, read here if None)."""
     if REFERENCE not in session.stream_names:
         raise SessionError(f"{session.path} has no {REFERENCE!r} stream: it is the frame clock `align` needs "
                            "(--clock RATE aligns onto a regular clock instead, e.g. --clock 30)")
-    video = session.read_columns(REFERENCE)
+    video = session.read_columns(REFERENCE) if video is None else video
     if len(video) == 0:
         raise SessionError(f"{session.path}: the video stream has no frames")
     order = np.argsort(video["t_host_ns"], kind="stable")
@@ -287,6 +324,7 @@ def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: Colu
         _, delta = associate_stream(data[stream], names, frame_ns + shifts_ns.get(stream, 0), options.method,
                                     stale_ns_for(session, stream, options), out=blocks[stream][:-1], covered=found)
         blocks[stream][-1] = delta
+        refuse_absurd_values(session, stream, data[stream], cols_of[stream], blocks[stream][:-1])
 
     # numpy's searchsorted and gathers release the GIL: streams are associated on every core
     with ThreadPoolExecutor(max_workers=max(1, min(len(data), os.cpu_count() or 1))) as pool:
@@ -510,11 +548,14 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
     are associated, when every frame is kept (``align_and_write`` starts writing them)."""
     session = Session.open(path)
     if options.clock_hz is None:
-        frames, frame_ns = reference_frames(session)
+        video = session.read_columns(REFERENCE) if REFERENCE in session.stream_names else None
+        frames, frame_ns = reference_frames(session, video)
         data = read_streams(session)
+        time_order = time_order_warnings(session, {REFERENCE: video, **data})
     else:
         data = {name: session.read_columns(name) for name in session.stream_names}
         frames, frame_ns = regular_frames(data, options.clock_hz)
+        time_order = time_order_warnings(session, data)
     t_s = (frame_ns - frame_ns[0]) / 1e9
     columns = ColumnSet(len(frames))
     covered: dict[str, dict[str, Any]] = {}
@@ -536,13 +577,15 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
                       "frame = tick index"),
         "clock_hz": options.clock_hz,
         "coverage": covered,
+        "time_order": time_order,
         "method": options.method,
         "rate_hz": options.rate_hz,
         "stale_after_periods": options.stale_periods,
         "handkp_gap_fill": f"cubic spline for gaps <= {options.spline_max_gap_s} s, forward fill beyond",
         "sources": {s: session.manifest["streams"][s].get("sha256") for s in session.stream_names},
         "calibrations_applied": [{"file": f"calib/{c.stem}.json", "models": c.models, "lag_ms": c.lag_ms,
-                                  "held_out": c.info.get("held_out")} for c in calibrations],
+                                  "held_out": c.info.get("held_out"), "selected": c.choose_model(options.model),
+                                  "asked": options.model, "selection": c.selection} for c in calibrations],
     }
     return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
 
@@ -560,6 +603,19 @@ def coverage_warnings(covered: dict[str, dict[str, Any]], options: AlignOptions)
             lines.append(f"the {clock} covers {c['samples_share']:.1%} of the samples of stream {stream!r} "
                          f"({c['samples_inside']} of {c['samples']}) and {c['span_share']:.1%} of its "
                          f"{c['span_s']:g} s span{hint}")
+    return lines
+
+
+def model_warnings(applied: list[dict[str, Any]]) -> list[str]:
+    """One line per calibration whose MLP lost to the rigid fit on held-out trials: which one is used."""
+    lines = []
+    for c in applied:
+        selection = c["selection"]
+        if selection.get("mlp_worse_than_rigid"):
+            errors = selection["held_out"]
+            lines.append(f"{c['file']}: the MLP is worse than the rigid fit on held-out trials (RMSE "
+                         f"{errors['mlp']['rmse_mm']:.2f} vs {errors['rigid']['rmse_mm']:.2f} mm); "
+                         f"{c['selected']} is the one used (--model {c['asked']})")
     return lines
 
 
@@ -584,7 +640,9 @@ def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), cs
     return {"session": str(path), "frames": len(table.frame), "columns": len(table.columns),
             "masked_fraction": {k.removesuffix("_delta_ms"): round(v, 4) for k, v in masked.items()},
             "coverage": {s: {k: c[k] for k in ("samples_share", "span_share")} for s, c in covered.items()},
-            "warnings": coverage_warnings(covered, options),
+            "warnings": (table.meta["time_order"] + coverage_warnings(covered, options)
+                         + model_warnings(table.meta["calibrations_applied"])),
             "calibrations": [c["file"] for c in table.meta["calibrations_applied"]],
+            "calibration_models": {c["file"]: c["selected"] for c in table.meta["calibrations_applied"]},
             "files": {k: str(v) for k, v in written.items()}}
 

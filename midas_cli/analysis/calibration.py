@@ -24,12 +24,13 @@ from typing import Any
 import numpy as np
 
 from midas_cli import __version__
-from midas_cli.analysis.transforms import apply_similarity
-from midas_cli.errors import SessionError
+from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import apply_similarity
 
 SOURCES = ("emht", "handkp")
 TARGETS = ("mtm", "psm")
 MODELS = ("rigid", "mlp")
+MODEL_CHOICES = ("best", "rigid", "mlp")  # what align/eval use; best = the held-out comparison's winner
 FORMAT = "midas-calibration-v1"
 
 
@@ -71,6 +72,22 @@ class Calibration:
     @property
     def models(self) -> list[str]:
         return ["rigid", "mlp"] if self.mlp is not None else ["rigid"]
+
+    @property
+    def selection(self) -> dict[str, Any]:
+        """The held-out comparison of the models made at calibrate time (``info["selection"]``); a file
+        without one (older midas) counts as uncompared, best = the MLP when fitted."""
+        return self.info.get("selection") or {"best": self.models[-1], "compared": False,
+                                              "reason": "calibration file has no held-out comparison"}
+
+    def choose_model(self, wanted: str = "best") -> str:
+        """``wanted`` best|rigid|mlp -> the model to use: best = the held-out winner; mlp falls back to
+        rigid when no MLP was fitted."""
+        if wanted not in MODEL_CHOICES:
+            raise ConfigError(f"--model {wanted!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
+        if wanted == "best":
+            return self.selection["best"] if self.selection["best"] in self.models else "rigid"
+        return wanted if wanted in self.models else "rigid"
 
     def positions(self, points: np.ndarray, model: str) -> np.ndarray:
         """Source points (N, 3) mm -> target frame (N, 3) mm with ``model`` rigid|mlp."""

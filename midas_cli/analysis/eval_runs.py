@@ -13,10 +13,11 @@ import pandas as pd
 
 from midas_cli.analysis import evaluation as ev
 from midas_cli.analysis.figures import grasper_figure, pedal_figure, trajectory_figure
+from midas_cli.analysis.calibration import MODEL_CHOICES
 from midas_cli.analysis.metrics import binary_scores
 from midas_cli.analysis.report import json_safe, write_tables
 from midas_cli.devices.pedals import adc_to_volts
-from midas_cli.errors import SessionError
+from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session.derived import (AlignedTable, calib_path, find_calibration, output_dir, read_aligned,
                                        read_pedals_ground_truth)
 from midas_cli.session.reader import Session
@@ -55,53 +56,99 @@ def _default_out(paths: list[Path], out: Path | None) -> Path:
     raise SessionError("several sessions given: say where the averaged tables go with --out DIR")
 
 
+def model_choices(table: AlignedTable, wanted: str = "best") -> tuple[dict[str, str], dict[str, dict]]:
+    """Per comparison ("EmHT-MTM", ...) the calibration model to report, and the held-out comparisons
+    (calibrate's ``selection``) of those whose MLP was worse than the rigid fit. ``wanted`` best = the
+    model ``align`` recorded (calibrate's held-out winner unless align was told otherwise); rigid|mlp
+    force it where fitted. An aligned table from an older midas has no record: the MLP when present."""
+    if wanted not in MODEL_CHOICES:
+        raise ConfigError(f"--model {wanted!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
+    names = {f"{source}_to_{target}": name for name, source, target in ev.COMPARISONS}
+    applied = {names[Path(a["file"]).stem]: a for a in table.meta.get("calibrations_applied", [])
+               if Path(a["file"]).stem in names}
+    chosen, worse = {}, {}
+    for name, source, target in ev.COMPARISONS:
+        models = ev.models_for(table, source, target)
+        if not models:
+            continue
+        record = applied.get(name, {})
+        pick = record.get("selected") if wanted == "best" else wanted
+        chosen[name] = pick if pick in models else models[-1]
+        if (record.get("selection") or {}).get("mlp_worse_than_rigid"):
+            worse[name] = record["selection"]
+    return chosen, worse
+
+
 def run_correlation(paths: list[Path], out: Path | None, plots: bool,
-                    progress: Callable[[str], None] = lambda _: None) -> EvalResult:
-    """CoS/NRMSE, grasper and lag tables averaged over ``paths``; figures per session when ``plots``."""
+                    progress: Callable[[str], None] = lambda _: None, model: str = "best") -> EvalResult:
+    """CoS/NRMSE, grasper and lag tables averaged over ``paths``; figures per session when ``plots``.
+    ``model`` (best|rigid|mlp, see :func:`model_choices`) picks the calibration model of the main
+    table; an MLP worse than the rigid fit on held-out trials is marked "mlp*" wherever it is listed."""
     rows: dict[str, list[dict[str, Any]]] = {"correlation": [], "grasper": [], "lag": []}
     tables = []
     files: list[Path] = []
+    worse: dict[str, dict] = {}
     for path in paths:
         progress(Path(path).name)
         table = read_aligned(path)
         session = table.meta.get("session_id", Path(path).name)
-        rows["correlation"] += ev.correlation_rows(table, session)
+        chosen, session_worse = model_choices(table, model)
+        worse.update(session_worse)
+        rows["correlation"] += [{**r, "selected": r["model"] == chosen.get(r["comparison"])}
+                                for r in ev.correlation_rows(table, session)]
         rows["grasper"] += ev.grasper_rows(table, session)
         rows["lag"] += ev.lag_rows(table, session)
         tables.append(table)
         if plots:
-            files += correlation_figures(path, table)
-    result = EvalResult(correlation_tables(rows), rows, files, _provenance(paths, tables))
+            files += correlation_figures(path, table, chosen)
+    result = EvalResult(correlation_tables(rows, worse), rows, files, _provenance(paths, tables))
     result.files += write_tables(_default_out(paths, out), "correlation", result.tables, rows, result.provenance)
     return result
 
 
-def correlation_tables(rows: dict[str, list[dict[str, Any]]]) -> dict[str, tuple[pd.DataFrame, str]]:
+def worse_note(worse: dict[str, dict]) -> str:
+    """Caption footnote for rows marked "mlp*" (empty when none is)."""
+    if not worse:
+        return ""
+    parts = [f"{name}: RMSE {s['held_out']['mlp']['rmse_mm']:.2f} vs {s['held_out']['rigid']['rmse_mm']:.2f} mm"
+             for name, s in sorted(worse.items())]
+    return (f"; * MLP worse than the rigid fit on held-out trials ({'; '.join(parts)}), "
+            "so --model best uses the rigid fit")
+
+
+def correlation_tables(rows: dict[str, list[dict[str, Any]]],
+                       worse: dict[str, dict] | None = None) -> dict[str, tuple[pd.DataFrame, str]]:
     n = len({r["session"] for r in rows["correlation"] + rows["grasper"] + rows["lag"]})
+    worse = worse or {}
+    handkp_worse = {k: v for k, v in worse.items() if k == "HandKP-MTM"}
+    main = ev.mark_worse(ev.correlation_table(rows["correlation"]), worse)
+    marked = set() if main.empty else set(main.loc[main["model"] == "mlp*", "comparison"])
+    shown = {c: v for c, v in worse.items() if c in marked}
     return {
-        "correlation": (ev.correlation_table(rows["correlation"]),
-                        f"Mean CoS and NRMSE(%) per axis over {n} trial(s) and both hands"),
+        "correlation": (main, f"Mean CoS and NRMSE(%) per axis over {n} trial(s) and both hands" + worse_note(shown)),
         "grasper": (ev.summarise(rows["grasper"], ["comparison"], ["iou", "accuracy", "precision"]),
                     f"Grasper open/close IoU, accuracy, precision over {n} trial(s) and both hands"),
-        "handkp_all_frames": (ev.handkp_table(rows["correlation"], "all"),
-                              "HandKP estimation of the MTM trajectory (gaps filled)"),
-        "handkp_detected_frames": (ev.handkp_table(rows["correlation"], "detected"),
-                                   "HandKP estimation of the MTM trajectory (ignoring missing data)"),
+        "handkp_all_frames": (ev.mark_worse(ev.handkp_table(rows["correlation"], "all"), handkp_worse, "HandKP-MTM"),
+                              "HandKP estimation of the MTM trajectory (gaps filled)" + worse_note(handkp_worse)),
+        "handkp_detected_frames": (ev.mark_worse(ev.handkp_table(rows["correlation"], "detected"), handkp_worse,
+                                                 "HandKP-MTM"),
+                                   "HandKP estimation of the MTM trajectory (ignoring missing data)"
+                                   + worse_note(handkp_worse)),
         "lag": (ev.summarise(rows["lag"], ["comparison"], ["lag_ms"]),
                 "Lag of the hand modality behind the robot kinematics (speed cross-correlation)"),
     }
 
 
-def correlation_figures(path: Path, table: AlignedTable) -> list[Path]:
-    """Per session: trajectory overlays (left hand) for each calibrated source, and grasper states."""
+def correlation_figures(path: Path, table: AlignedTable, chosen: dict[str, str]) -> list[Path]:
+    """Per session: trajectory overlays (left hand) for each calibrated source (the ``chosen`` model per
+    comparison), and grasper states."""
     folder = output_dir(path, "plots")
     files = []
     for name, source, target in ev.COMPARISONS:
-        models = ev.models_for(table, source, target)
-        if target == "mtm" and models:
-            prefix = f"{source}_{target}_{models[-1]}"
+        if target == "mtm" and name in chosen:
+            prefix = f"{source}_{target}_{chosen[name]}"
             drawn = trajectory_figure(table, "left", prefix, folder / f"trajectory_{source}_left.png",
-                                      f"{name} ({models[-1]}), left hand")
+                                      f"{name} ({chosen[name]}), left hand")
             files += [drawn] if drawn else []
     states = ev.grasper_states(table)
     left = {label: by_hand["left"] for label, by_hand in states.items() if "left" in by_hand}

@@ -21,8 +21,8 @@ import pandas as pd
 from midas_cli.analysis.align import HANDS, estimate_lag
 from midas_cli.analysis.metrics import (best_lag_frames, binary_scores, closed_states, cosine_similarity,
                                         nrmse_percent, temporal_iou)
-from midas_cli.analysis.transforms import unwrap_deg
 from midas_cli.devices.pedals import adc_to_volts
+from midas_cli.geometry import unwrap_deg
 from midas_cli.session.derived import AlignedTable
 
 COMPARISONS = (("EmHT-MTM", "emht", "mtm"), ("EmHT-PSM", "emht", "psm"),
@@ -207,13 +207,18 @@ def summarise(rows: list[dict[str, Any]], keys: list[str], values: list[str]) ->
 
 
 def correlation_table(rows: list[dict[str, Any]]) -> pd.DataFrame:
-    """The paper's correlation table: one row per comparison (best model, all frames), CoS/NRMSE per axis."""
+    """The paper's correlation table: one row per comparison (the chosen model, all frames), CoS/NRMSE
+    per axis. Rows carry ``selected`` (the model chosen for their session, see eval_runs.model_choices);
+    without it the MLP is preferred where present."""
     frame = pd.DataFrame(rows)
     if frame.empty:
         return frame
     best = frame[frame["subset"] == "all"].copy()
-    best["rank"] = best["model"].map({"mlp": 0, "rigid": 1})
-    best = best[best["rank"] == best.groupby("comparison")["rank"].transform("min")]
+    if "selected" in best:
+        best = best[best["selected"].astype(bool)]
+    else:
+        best["rank"] = best["model"].map({"mlp": 0, "rigid": 1})
+        best = best[best["rank"] == best.groupby("comparison")["rank"].transform("min")]
     return _wide(summarise(best.to_dict("records"), ["comparison", "model", "axis"], ["cos", "nrmse"]),
                  ["comparison", "model"])
 
@@ -225,6 +230,17 @@ def handkp_table(rows: list[dict[str, Any]], subset: str) -> pd.DataFrame:
         return frame
     chosen = frame[(frame["comparison"] == "HandKP-MTM") & (frame["subset"] == subset)]
     return _wide(summarise(chosen.to_dict("records"), ["model", "axis"], ["cos", "nrmse"]), ["model"])
+
+
+def mark_worse(table: pd.DataFrame, worse: dict[str, Any], comparison: str | None = None) -> pd.DataFrame:
+    """``model`` "mlp" -> "mlp*" in the rows of comparisons in ``worse`` (their MLP lost to the rigid fit
+    on held-out trials); ``comparison`` names it for a table without a comparison column."""
+    if table.empty or not worse:
+        return table
+    table = table.copy()
+    names = table["comparison"] if "comparison" in table else pd.Series(comparison, index=table.index)
+    table.loc[(table["model"] == "mlp") & names.isin(list(worse)), "model"] = "mlp*"
+    return table
 
 
 def _wide(summary: pd.DataFrame, index: list[str]) -> pd.DataFrame:

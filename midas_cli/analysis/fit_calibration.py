@@ -19,9 +19,9 @@ import numpy as np
 from midas_cli.analysis.align import EMHT_SENSORS, HANDS, estimate_lag, hand_points
 from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, MLPConfig, save_calibration
 from midas_cli.analysis.metrics import cosine_similarity, nrmse_percent
-from midas_cli.analysis.transforms import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
-                                           mean_rotation, rotation_angle_deg)
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
+                                           mean_rotation, rotation_angle_deg)
 from midas_cli.session.derived import calib_path
 from midas_cli.session.reader import Session
 
@@ -234,6 +234,23 @@ def summarise_folds(metrics: list[dict[str, Any]]) -> dict[str, Any]:
     return summary
 
 
+def select_model(cv: dict[str, Any], models: list[str]) -> dict[str, Any]:
+    """Which model ``align``/``eval`` use by default (``--model best``): the MLP only when its mean
+    held-out RMSE over the leave-one-trial-out folds is no worse than the rigid fit's. Both held-out
+    errors are kept; without folds (one session) nothing is compared and the MLP stays the default."""
+    if "mlp" not in models:
+        return {"best": "rigid", "compared": False, "reason": "no MLP fitted (--rigid-only)"}
+    if not cv.get("folds") or "rigid" not in cv or "mlp" not in cv:
+        return {"best": "mlp", "compared": False,
+                "reason": "no held-out trials (one session): the MLP was not checked against the rigid fit"}
+    held_out = {m: {"rmse_mm": cv[m]["rmse_mm"], "cos": float(np.nanmean([cv[m][f"cos_{a}"] for a in "xyz"]))}
+                for m in ("rigid", "mlp")}
+    worse = not held_out["mlp"]["rmse_mm"] <= held_out["rigid"]["rmse_mm"]  # NaN counts as worse
+    return {"best": "rigid" if worse else "mlp", "compared": True, "folds": cv["folds"],
+            "held_out": held_out, "mlp_worse_than_rigid": worse,
+            "reason": "mean held-out RMSE over the leave-one-trial-out folds (every fold, this session's too)"}
+
+
 def _orientation_offsets(pairs: list[SessionPairs], rotation: np.ndarray) -> dict[str, np.ndarray]:
     """Per sensor O = chordal mean over samples of (R R_sensor)^T R_target (composition of rotations)."""
     offsets = {}
@@ -278,6 +295,9 @@ def calibrate_sessions(paths: list[Path], source: str, target: str, options: Cal
         progress(f"pairing {Path(path).name}")
         pairs.append(build(Session.open(path), target, options))
     final, folds, metrics = cross_validate(pairs, source, target, options, progress)
+    selection = select_model(final.info["cv"], final.models)
+    for model in (final, *folds.values()):
+        model.info = {**model.info, "selection": selection}
     written: dict[str, list[str]] = {}
     for path, pair in zip(paths, pairs):
         model = folds.get(pair.session_id, final)
@@ -287,4 +307,4 @@ def calibrate_sessions(paths: list[Path], source: str, target: str, options: Cal
     return {"source": source, "target": target, "sessions": len(paths),
             "rigid": {"R": final.rotation.tolist(), "t_mm": final.translation.tolist(), "scale": final.scale},
             "lag_ms": final.lag_ms, "models": final.models, "folds": metrics, "cv": final.info["cv"],
-            "written": written}
+            "selection": selection, "written": written}

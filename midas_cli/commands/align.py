@@ -24,6 +24,9 @@ def align(
     clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
                               "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "
                               "session whose video clock is short or absent."),
+    model: str = typer.Option("best", "--model", help="Calibration model to use downstream (eval): best (the "
+                              "winner of calibrate's held-out comparison), rigid or mlp. Both models' columns "
+                              "are written; the choice is recorded in derived/aligned.json."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
     csv: bool = typer.Option(False, "--csv", help="Also write derived/aligned.csv (6 significant digits; "
                              "slow for long sessions: the npz holds the exact values). Without it, an "
@@ -44,7 +47,7 @@ def align(
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    options = AlignOptions(method=method, rate_hz=rate, clock_hz=parse_clock(clock))
+    options = AlignOptions(method=method, rate_hz=rate, clock_hz=parse_clock(clock), model=model)
     results = _run(sessions, options, jobs, csv)
     for r in results:
         for warning in r["warnings"]:
@@ -56,7 +59,7 @@ def align(
     for r in results:
         masked = ", ".join(f"{k} {v:.1%}" for k, v in r["masked_fraction"].items())
         table.add_row(Path(r["session"]).name, str(r["frames"]), str(r["columns"]), masked,
-                      ", ".join(Path(c).stem for c in r["calibrations"]) or "—")
+                      ", ".join(f"{Path(c).stem} ({m})" for c, m in r["calibration_models"].items()) or "—")
     out.print(table)
 
 

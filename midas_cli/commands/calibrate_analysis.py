@@ -12,7 +12,7 @@ from rich.table import Table
 from midas_cli.analysis.calibration import TARGETS, MLPConfig
 from midas_cli.analysis.eval_runs import optimise_pedals
 from midas_cli.analysis.fit_calibration import CalibrationOptions, calibrate_sessions
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, error_line, out, print_json
 from midas_cli.errors import ConfigError
 
 SESSIONS_ARG = typer.Argument(..., help="Session folder(s) with robot kinematics (each is one trial).", file_okay=False)
@@ -71,12 +71,25 @@ def handkp(
     _render(report, as_json)
 
 
+def _warn_if_mlp_worse(report: dict[str, Any]) -> None:
+    """One stderr line when the MLP lost to the rigid fit on held-out trials (e.g. collapsed to a constant)."""
+    selection = report["selection"]
+    if selection.get("mlp_worse_than_rigid"):
+        rigid, mlp = selection["held_out"]["rigid"], selection["held_out"]["mlp"]
+        error_line(f"midas: warning: {report['source']} -> {report['target']}: the MLP is worse than the rigid "
+                   f"fit on held-out trials (mean RMSE {mlp['rmse_mm']:.2f} mm vs {rigid['rmse_mm']:.2f} mm, "
+                   f"CoS {mlp['cos']:.3f} vs {rigid['cos']:.3f}, {selection['folds']} folds); align and eval use "
+                   f"the rigid fit (--model best; --model mlp to use it anyway)")
+
+
 def _render(report: dict[str, Any], as_json: bool) -> None:
+    _warn_if_mlp_worse(report)
     if as_json:
         print_json(report)
         return
     out.print(f"{report['source']} -> {report['target']}: {report['sessions']} session(s), lag "
-              f"{report['lag_ms']:.1f} ms, scale {report['rigid']['scale']:.4f}, models {', '.join(report['models'])}",
+              f"{report['lag_ms']:.1f} ms, scale {report['rigid']['scale']:.4f}, models {', '.join(report['models'])} "
+              f"(align/eval use {report['selection']['best']}: {report['selection']['reason']})",
               markup=False)
     table = Table("held-out session", "lag ms", *[f"{m} RMSE mm" for m in report["models"]],
                   *[f"{m} CoS x/y/z" for m in report["models"]], "orient. err deg",

@@ -24,14 +24,20 @@ PLOTS_OPTION = typer.Option(True, "--plots/--no-plots", help="Write PNG figures 
 
 @app.command()
 def correlation(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION,
-                plots: bool = PLOTS_OPTION, as_json: bool = JSON_OPTION) -> None:
+                plots: bool = PLOTS_OPTION,
+                model: str = typer.Option("best", "--model", help="Calibration model of the main table: best "
+                                          "(the one align recorded: calibrate's held-out winner unless told "
+                                          "otherwise), rigid or mlp. An MLP worse than the rigid fit on "
+                                          "held-out trials is marked mlp* wherever it is listed."),
+                as_json: bool = JSON_OPTION) -> None:
     """CoS and NRMSE per axis (X, Y, Z, roll, pitch, yaw) for EmHT-MTM, EmHT-PSM, HandKP-MTM, HandKP-PSM,
     grasper open/close IoU/accuracy/precision, HandKP with and without missing frames, and the hand
     modalities' lag; averaged over the sessions (trials) and both hands.
 
     Example: midas eval correlation data/raven/*/ --out results/raven-ii
     """
-    _render(run_correlation(sessions, out_dir, plots, lambda m: err.print(f"evaluating {m}", markup=False)), as_json)
+    _render(run_correlation(sessions, out_dir, plots, lambda m: err.print(f"evaluating {m}", markup=False), model),
+            as_json)
 
 
 @app.command()

@@ -168,8 +168,8 @@ def verify(
     strict: bool = typer.Option(False, "--strict", help="Treat declared sequence gaps (outages) as problems."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Check the manifest against the files (counts, sha256, whole lines, monotonic host time,
-    sequence gaps); exit 4 if anything is wrong.
+    """Check the manifest against the files (counts, sha256, whole lines, every value against its
+    column's type and range, monotonic host time, sequence gaps); exit 4 if anything is wrong.
 
     Example: midas session verify sessions/*/
     """

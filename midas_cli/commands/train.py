@@ -59,10 +59,13 @@ def _progress() -> Progress:
 def _render_metrics(metrics: dict, run_dir: Path) -> None:
     summary = metrics["test"]["summary"]
     table = Table("metric", "test", header_style="bold")
-    for key in ("accuracy", "f1", "precision", "recall", "edit", "f1@10", "f1@25", "f1@50", "frames"):
+    for key in ("accuracy", "accuracy_with_background", "f1", "precision", "recall", "edit", "f1@10", "f1@25",
+                "f1@50", "frames", "frames_all"):
         value = summary[key]
         table.add_row(key, f"{value:.3f}" if isinstance(value, float) else str(value))
     out.print(table)
+    out.print("accuracy: labelled frames only; accuracy_with_background: all frames, unlabelled = 'background' "
+              "(MS-TCN eval.py); definitions in metrics.json", markup=False)
     out.print(f"run folder: {run_dir}", markup=False)
 
 

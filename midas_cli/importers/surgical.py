@@ -25,12 +25,12 @@ import pandas as pd
 
 from midas_cli.analysis.kinematics_schema import kinematics_spec
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import quaternions_from_matrices
 from midas_cli.importers.common import file_facts, write_session
 from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata
 from midas_cli.simulate.gestures import read_transcription
-from midas_cli.simulate.truth import quaternion_from_matrix
 
 RATE_HZ = 30.0
 EPOCH_NS = 1_262_304_000_000_000_000  # 2010-01-01T00:00:00Z: stands in for the missing host clock
@@ -88,7 +88,7 @@ def read_arms(path: Path, fmt: str) -> dict[tuple[str, str], dict[str, np.ndarra
 
 def _jigsaws_arm(block: np.ndarray) -> dict[str, np.ndarray]:
     rotation = block[:, 3:12].reshape(-1, 3, 3)
-    return {"position": block[:, :3] * 1000.0, "quaternion": quaternion_from_matrix(rotation),
+    return {"position": block[:, :3] * 1000.0, "quaternion": quaternions_from_matrices(rotation),
             "velocity": block[:, 12:15] * 1000.0, "grasper": np.degrees(block[:, 18])}
 
 

@@ -27,7 +27,9 @@ kept per modality in ``Trial.filled``.
 Resampling keeps the first frame of each 1/rate bin (Raven-II 30 -> 10 Hz in the paper, da Vinci
 native 30 Hz). ``exclude_clutch`` drops frames with the clutch pressed (before training AND
 inference, as in the paper's appendix B). Frames without a label are kept inside a trial as class -1
-(ignored by losses and metrics) and trimmed at its ends. Normalisation (:class:`Normaliser`) is
+(ignored by losses and metrics) and trimmed at its ends. A session without the label set, or with no
+labelled frame left, is skipped with a warning and listed in ``GestureDataset.skipped_sessions``; only
+when no session remains is that an error. Normalisation (:class:`Normaliser`) is
 fitted on the training split only.
 """
 
@@ -43,7 +45,7 @@ import numpy as np
 
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session.derived import AlignedTable, read_aligned
-from midas_cli.session.labels import read_frame_labels
+from midas_cli.session.labels import list_label_sets, read_frame_labels
 from midas_cli.session.reader import Session
 
 log = logging.getLogger(__name__)
@@ -108,6 +110,7 @@ class GestureDataset:
     feature_names: dict[str, list[str]]  # modality -> column names, in input order
     config: DatasetConfig
     skipped: list[str] = field(default_factory=list)  # "modality:feature" pairs that do not exist
+    skipped_sessions: dict[str, str] = field(default_factory=dict)  # session path -> why it has no trial
 
     @property
     def modality_dims(self) -> dict[str, int]:
@@ -175,7 +178,16 @@ def build_dataset(sessions: Sequence[Path], config: DatasetConfig, classes: Sequ
     """
     if not sessions:
         raise ConfigError("no sessions given: pass session folders (or folders holding sessions)")
-    raws = [_read_session(Path(p), config) for p in sessions]
+    labelled = [Path(p) for p in sessions if config.label_set in list_label_sets(p)]
+    unlabelled = [str(p) for p in sessions if Path(p) not in labelled]
+    if not labelled:
+        raise SessionError(f"none of the {len(sessions)} sessions has label set {config.label_set!r} "
+                           f"(labels/{config.label_set}.csv): import labels first "
+                           "(`midas labels import-via|import-transcription`)")
+    if unlabelled:
+        log.warning("%d of %d sessions skipped: no label set %r: %s", len(unlabelled), len(sessions),
+                    config.label_set, ", ".join(unlabelled))
+    raws = [_read_session(p, config) for p in labelled]
     seen = sorted({label for raw in raws for label in raw.labels.tolist()} - {""})
     names = seen if classes is None else list(classes)
     unknown = sorted(set(seen) - set(names))
@@ -186,13 +198,20 @@ def build_dataset(sessions: Sequence[Path], config: DatasetConfig, classes: Sequ
             raise SessionError(f"{raw.session.path}: its feature columns differ from {raws[0].session.path}; "
                                "align every session with the same midas version and devices")
     index = {name: i for i, name in enumerate(names)}
-    trials = [t for t in (_to_trial(raw, index) for raw in raws) if len(t.labels)]
+    encoded = [(raw, _to_trial(raw, index)) for raw in raws]
+    trials = [t for _, t in encoded if len(t.labels)]
     if not trials:
         raise SessionError("no session has labelled frames after resampling and clutch exclusion")
+    empty = [str(raw.session.path) for raw, t in encoded if not len(t.labels)]
+    if empty:
+        log.warning("%d sessions skipped: no labelled frame after resampling and clutch exclusion: %s",
+                    len(empty), ", ".join(empty))
     skipped = sorted({s for raw in raws for s in raw.skipped})
     if skipped:
         log.info("feature sets not available and skipped: %s", ", ".join(skipped))
-    return GestureDataset(trials, names, raws[0].names, config, skipped)
+    return GestureDataset(trials, names, raws[0].names, config, skipped,
+                          {**{p: f"no label set {config.label_set!r}" for p in unlabelled},
+                           **{p: "no labelled frame after resampling and clutch exclusion" for p in empty}})
 
 
 def _read_session(path: Path, config: DatasetConfig) -> _RawTrial:

@@ -11,8 +11,11 @@ repository's ``eval.py``):
     hit, else a false positive; unmatched ground-truth segments are false negatives. TP/FP/FN are
     summed over all sequences before computing precision, recall and F1 (x 100).
 Frame metrics (accuracy, macro precision/recall/F1) are computed over all frames of all sequences
-whose ground truth is not ``ignore``; macro averages run over the classes present in the ground truth
-or the prediction.
+whose ground truth is not ``ignore`` (unlabelled frames are left out); a prediction of ``ignore`` on such
+a frame is wrong: it falls in no cell of the confusion matrix but counts in its class's support.
+Macro averages run over the classes present in the ground truth or the prediction.
+``accuracy_with_background`` is the reference MS-TCN ``eval.py`` accuracy: over ALL frames, with
+``ignore`` ("background") as one more class, right only where the prediction is ``ignore`` too.
 """
 
 from __future__ import annotations
@@ -24,6 +27,15 @@ import numpy as np
 
 IGNORE = -1
 OVERLAPS = (0.10, 0.25, 0.50)
+DEFINITIONS = {
+    "accuracy": "frames whose ground truth is labelled; unlabelled (background) frames are left out",
+    "accuracy_with_background": "all frames, unlabelled = class 'background' (reference MS-TCN eval.py); "
+                                "right only where the prediction is background too",
+    "frames": "labelled ground-truth frames (accuracy, precision, recall, F1, confusion, support)",
+    "frames_all": "all evaluated frames (accuracy_with_background)",
+    "precision/recall/f1": "macro over classes in the ground truth or prediction, labelled frames only",
+    "edit/f1@k": "segments of labelled frames; background ends a segment and is never one",
+}
 
 
 @dataclass(frozen=True)
@@ -94,16 +106,24 @@ def f1_from_counts(tp: int, fp: int, fn: int) -> float:
 
 
 def confusion_matrix(pred: np.ndarray, truth: np.ndarray, n_classes: int, ignore: int = IGNORE) -> np.ndarray:
-    """(n_classes, n_classes) int64 counts, rows = ground truth, columns = prediction."""
-    keep = truth != ignore
-    index = truth[keep].astype(np.int64) * n_classes + pred[keep].astype(np.int64)
+    """(n_classes, n_classes) int64 counts, rows = ground truth, columns = prediction, over the frames
+    where neither is ``ignore`` (a frame predicted ``ignore`` is in no cell)."""
+    pred, truth = np.asarray(pred).astype(np.int64), np.asarray(truth).astype(np.int64)
+    keep = (truth != ignore) & (pred != ignore)
+    for name, values in (("truth", truth[keep]), ("prediction", pred[keep])):
+        if values.size and (values.min() < 0 or values.max() >= n_classes):
+            raise ValueError(f"{name} class indices must be in [0, {n_classes}) or {ignore}, "
+                             f"got {values.min()}..{values.max()}")
+    index = truth[keep] * n_classes + pred[keep]
     return np.bincount(index, minlength=n_classes * n_classes).reshape(n_classes, n_classes)
 
 
-def per_class_report(matrix: np.ndarray, class_names: Sequence[str]) -> list[dict]:
-    """Per class: precision, recall, F1 (fractions) and support (ground-truth frames)."""
+def per_class_report(matrix: np.ndarray, class_names: Sequence[str], support: np.ndarray | None = None) -> list[dict]:
+    """Per class: precision, recall, F1 (fractions) and support (ground-truth frames; default the
+    matrix's row sums, pass the true counts when some frames were predicted ``ignore``)."""
     tp = np.diag(matrix).astype(float)
-    predicted, actual = matrix.sum(axis=0), matrix.sum(axis=1)
+    predicted = matrix.sum(axis=0)
+    actual = matrix.sum(axis=1) if support is None else np.asarray(support)
     precision = np.divide(tp, predicted, out=np.zeros_like(tp), where=predicted > 0)
     recall = np.divide(tp, actual, out=np.zeros_like(tp), where=actual > 0)
     denom = precision + recall
@@ -119,14 +139,20 @@ def evaluate(preds: Sequence[np.ndarray], truths: Sequence[np.ndarray], class_na
     if len(preds) != len(truths) or not preds:
         raise ValueError(f"need equal, non-zero numbers of sequences, got {len(preds)} and {len(truths)}")
     pred_all, truth_all = np.concatenate(preds), np.concatenate(truths)
-    matrix = confusion_matrix(pred_all, truth_all, len(class_names), ignore)
-    report = per_class_report(matrix, class_names)
-    present = (matrix.sum(axis=0) + matrix.sum(axis=1)) > 0
+    n_classes = len(class_names)
+    matrix = confusion_matrix(pred_all, truth_all, n_classes, ignore)
+    labelled = truth_all != ignore
+    support = np.bincount(truth_all[labelled].astype(np.int64), minlength=n_classes)
+    report = per_class_report(matrix, class_names, support)
+    present = (matrix.sum(axis=0) + support) > 0
     macro = {key: float(np.mean([r[key] for r, p in zip(report, present) if p])) for key in ("precision", "recall", "f1")}
-    result = {"accuracy": float(np.trace(matrix) / max(matrix.sum(), 1)), **macro,
-              "edit": float(np.mean([edit_score(p, y, ignore) for p, y in zip(preds, truths)]))}
+    background_hits = int(((truth_all == ignore) & (pred_all == ignore)).sum())
+    result = {"accuracy": float(np.trace(matrix) / max(int(labelled.sum()), 1)),
+              "accuracy_with_background": float((np.trace(matrix) + background_hits) / max(len(truth_all), 1)),
+              **macro, "edit": float(np.mean([edit_score(p, y, ignore) for p, y in zip(preds, truths)]))}
     for overlap in OVERLAPS:
         counts = np.sum([overlap_counts(p, y, overlap, ignore) for p, y in zip(preds, truths)], axis=0)
         result[f"f1@{int(overlap * 100)}"] = f1_from_counts(*(int(c) for c in counts))
-    result["frames"] = int(matrix.sum())
-    return {"summary": result, "per_class": report, "confusion": matrix.tolist()}
+    result["frames"] = int(labelled.sum())
+    result["frames_all"] = int(len(truth_all))
+    return {"summary": result, "per_class": report, "confusion": matrix.tolist(), "definitions": DEFINITIONS}

@@ -3,6 +3,7 @@
 ``RUN_DIR/``
   ``run.json``        dataset + training + model configuration, split, data fingerprint, code version,
                       classes, feature names, normaliser, per-epoch history, skipped feature sets
+                      and skipped sessions (no labels)
   ``metrics.json``    test (and validation) metrics: summary, per-class report, confusion matrix
   ``checkpoint.pt``   weights + everything above needed to rebuild and re-evaluate the model, plain
                       types only, so ``torch.load(path, weights_only=True)`` reads it
@@ -133,7 +134,7 @@ def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pat
     model.to(device)
     result = {"test": _evaluate(model, test, dataset.classes, device)}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
-           "data_fingerprint_now": dataset.fingerprint()}
+           "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
     _write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
     return RunResult(out_dir, result, saved.get("history", []))
 
@@ -276,6 +277,7 @@ def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser, c
             "model_options": dict(config.model_options), "train_config": asdict(config),
             "dataset_config": dataset.config.to_json(), "classes": list(dataset.classes),
             "feature_names": dataset.feature_names, "skipped_features": dataset.skipped,
+            "skipped_sessions": dataset.skipped_sessions,
             "trials": [{"name": t.name, "subject": t.subject, "trial": t.trial, "platform": t.platform,
                         "frames": int(len(t.labels)), "rate_hz": t.rate_hz, "filled": t.filled}
                        for t in dataset.trials],

@@ -26,6 +26,7 @@ import numpy as np
 from midas_cli.errors import SessionError
 from midas_cli.session.manifest import check_inside
 from midas_cli.session.schema import StreamSpec
+from midas_cli.session.values import parse_stream_file, structured
 
 log = logging.getLogger(__name__)
 
@@ -38,29 +39,10 @@ def binary_file(spec: StreamSpec) -> str:
 
 
 def parse_csv_columns(path: Path, spec: StreamSpec) -> np.ndarray:
-    """Parse a stream CSV into a structured array (fields = the spec's columns); SessionError if the
-    file cannot be read or its header differs from the spec."""
-    import pandas as pd
-
-    dtypes = {c.name: ("Int64" if c.dtype == "int" else "float64") for c in spec.columns}
-    dtypes.update(seq="int64", t_host_ns="int64")
-    try:
-        frame = pd.read_csv(path, dtype=dtypes, engine="c")
-    except (OSError, ValueError, pd.errors.ParserError) as exc:
-        raise SessionError(f"cannot read stream {spec.name!r} ({path}): {exc}") from exc
-    if list(frame.columns) != spec.column_names:
-        raise SessionError(f"stream {spec.name!r} ({path}): header does not match the manifest columns")
-    fields = {}
-    for column in spec.columns:
-        series = frame[column.name]
-        if column.dtype == "int" and not series.hasnans:
-            fields[column.name] = series.to_numpy(np.int64)
-        else:
-            fields[column.name] = series.to_numpy(np.float64, na_value=np.nan)
-    table = np.empty(len(frame), dtype=[(name, values.dtype) for name, values in fields.items()])
-    for name, values in fields.items():
-        table[name] = values
-    return table
+    """Parse a stream CSV strictly (``values.parse_stream_file``: a torn last line left out) into a
+    structured array (fields = the spec's columns); SessionError naming the file and line if it cannot
+    be read, its header differs from the spec or a value is not of its column's type and range."""
+    return structured(parse_stream_file(path, spec).frame, spec)
 
 
 def write_binary_copy(folder: Path, spec: StreamSpec, csv_sha256: str) -> dict[str, Any]:
@@ -116,17 +98,18 @@ def load_binary_copy(folder: Path, name: str, entry: dict[str, Any]) -> np.ndarr
     return table
 
 
-def copy_differences(folder: Path, name: str, entry: dict[str, Any]) -> list[str]:
-    """What is wrong with a stream's binary copy, checked against its CSV parsed again (for `verify`);
-    empty when the stream has none or it matches exactly."""
+def copy_differences(folder: Path, name: str, entry: dict[str, Any], parsed: np.ndarray | None = None) -> list[str]:
+    """What is wrong with a stream's binary copy, checked against its CSV (``parsed``, or parsed again)
+    (for `verify`); empty when the stream has none or it matches exactly."""
     binary = entry.get(BINARY_KEY)
     if binary is None or not check_inside(Path(folder), binary.get("file", "")).is_file():
         return []  # none, or deleted: readers parse the CSV
     remedy = "delete it and readers parse the CSV"
     try:
         copy = np.load(check_inside(Path(folder), binary["file"]), mmap_mode="r", allow_pickle=False)
-        parsed = parse_csv_columns(check_inside(Path(folder), entry["file"]), StreamSpec.from_manifest(name, entry))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if parsed is None:
+            parsed = parse_csv_columns(check_inside(Path(folder), entry["file"]), StreamSpec.from_manifest(name, entry))
+    except (OSError, ValueError, KeyError, TypeError, SessionError) as exc:
         return [f"binary copy {binary.get('file')!r} unreadable ({exc}); {remedy}"]
     if binary.get("csv_sha256") != entry.get("sha256"):
         return [f"binary copy {binary['file']} was made from another version of the CSV; {remedy}"]

@@ -22,7 +22,8 @@ from midas_cli.session.manifest import (MANIFEST_NAME, MANIFEST_TMP, fsync_dir, 
                                         write_manifest)
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
-from midas_cli.session.streamfile import StreamSummary, complete_line_end, summarize_stream
+from midas_cli.session.streamfile import StreamSummary, complete_line_end, summarize_bytes, summarize_stream
+from midas_cli.session.values import parse_stream_bytes, read_regular_file, structured
 from midas_cli.session.writer import utc_iso
 
 FINISHED = ("complete", "interrupted", "recovered")
@@ -80,8 +81,8 @@ class VerifyReport:
 
 
 def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
-    """Check every stream file against the manifest: presence, header, whole lines, sample count,
-    sha256, strictly increasing host time, sequence gaps, and that its binary copy (if any) holds
+    """Check every stream file against the manifest: presence (a regular file), header, whole lines,
+    every value against its column's type and range, sample count, sha256, strictly increasing host time, sequence gaps, and that its binary copy (if any) holds
     exactly what the CSV holds. Gaps the manifest declares (a device
     outage the recorder saw) are notes, or problems with ``strict``; undeclared gaps are problems.
     Temporary files left by an interrupted write, and a recording that failed to start, are problems
@@ -110,19 +111,30 @@ def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
 def _verify_stream(session: Session, name: str, report: VerifyReport, strict: bool) -> None:
     entry = session.manifest["streams"][name]
     path = session.stream_path(name)
-    if not path.is_file():
+    if not path.exists():
         report.problems.append(f"{name}: file {entry['file']} is missing")
         return
     spec = session.stream_spec(name)
-    found = summarize_stream(path, spec)
+    try:
+        data = read_regular_file(path)
+    except SessionError as exc:
+        report.problems.append(f"{name}: {exc}")
+        return
+    found = summarize_bytes(data, spec)
     report.streams[name] = {"samples": found.samples, "seq_missing": found.seq_missing,
                             "measured_rate_hz": found.measured_rate_hz}
     problems = _file_problems(found)
+    parsed = None
+    if found.header_ok and not found.bad_lines:
+        try:  # every value against its column's type and range
+            parsed = structured(parse_stream_bytes(data, spec, path).frame, spec)
+        except SessionError as exc:
+            problems.append(str(exc))
     if session.status in FINISHED:
         problems += _manifest_mismatches(entry, found)
     problems += _gap_findings(entry, found, strict, report.notes, name)
     if not problems:
-        problems += copy_differences(session.path, name, entry)
+        problems += copy_differences(session.path, name, entry, parsed)
     report.problems.extend(f"{name}: {p}" for p in problems)
 
 
@@ -198,7 +210,7 @@ def repair_session(path: Path | str) -> RepairReport:
     for name, entry in manifest["streams"].items():
         spec = StreamSpec.from_manifest(name, entry)
         stream_path = Session(folder, manifest).stream_path(name)
-        if not stream_path.is_file():
+        if not stream_path.exists():
             stream_path.parent.mkdir(parents=True, exist_ok=True)
             stream_path.write_text(spec.header_line(), encoding="utf-8")
             report.created.append(name)
@@ -254,7 +266,7 @@ def _remove_temporaries(folder: Path) -> list[str]:
 
 
 def _cut_torn_tail(folder: Path, name: str, path: Path, spec: StreamSpec, report: RepairReport) -> None:
-    data = path.read_bytes()
+    data = read_regular_file(path)
     keep = complete_line_end(data, len(spec.columns))
     if keep == 0:
         keep_header = spec.header_line().encode()

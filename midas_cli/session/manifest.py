@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -58,10 +59,12 @@ def read_manifest_file(path: Path, folder: Path) -> dict[str, Any]:
 
 
 def validate_manifest(manifest: Any, folder: Path) -> None:
+    """Refuse a manifest this midas cannot read: unknown schema, a missing required key, or a field of
+    the wrong JSON type (SessionError naming the field, what it holds and what it should)."""
     if not isinstance(manifest, dict):
         raise SessionError(f"manifest in {folder} is not a JSON object")
     version = manifest.get("schema_version")
-    if version != SCHEMA_VERSION:
+    if type(version) is not int or version != SCHEMA_VERSION:
         raise SessionError(
             f"manifest in {folder} has schema_version {version!r}; this midas reads version "
             f"{SCHEMA_VERSION} only (upgrade midas to read newer sessions)"
@@ -69,14 +72,70 @@ def validate_manifest(manifest: Any, folder: Path) -> None:
     missing = [k for k in REQUIRED_KEYS if k not in manifest]
     if missing:
         raise SessionError(f"manifest in {folder} lacks {', '.join(missing)}")
+    _check_fields(manifest, TOP_FIELDS, "", folder)
     if manifest["status"] not in STATUSES:
         raise SessionError(f"manifest in {folder} has unknown status {manifest['status']!r}")
+    for section, fields in (("metadata", METADATA_FIELDS), ("start", TIME_FIELDS)):
+        _check_fields(manifest[section], fields, f"{section}.", folder)
+    if manifest.get("stop") is not None:
+        _check_fields(manifest["stop"], TIME_FIELDS, "stop.", folder)
+    for name, device in manifest["devices"].items():
+        _check_type(device, (dict,), f"devices.{name}", folder)
     for name, stream in manifest["streams"].items():
-        if not isinstance(stream, dict) or "file" not in stream:
-            raise SessionError(f"stream {name!r} in {folder} names no file")
-        check_inside(folder, stream["file"])
-    for rel in manifest.get("files", {}).values():
+        _check_stream(name, stream, folder)
+    for key, rel in (manifest.get("files") or {}).items():
+        _check_type(rel, (str,), f"files.{key}", folder)
         check_inside(folder, rel)
+
+
+def _check_stream(name: str, stream: Any, folder: Path) -> None:
+    if not isinstance(stream, dict) or "file" not in stream:
+        raise SessionError(f"stream {name!r} in {folder} names no file")
+    where = f"streams.{name}."
+    _check_fields(stream, STREAM_FIELDS, where, folder)
+    check_inside(folder, stream["file"])
+    for k, column in enumerate(stream.get("columns") or []):
+        _check_type(column, (dict,), f"{where}columns[{k}]", folder)
+        _check_fields(column, COLUMN_FIELDS, f"{where}columns[{k}].", folder)
+    for key, fields in (("seq_gaps", GAP_FIELDS), ("binary", BINARY_FIELDS)):
+        if isinstance(stream.get(key), dict):
+            _check_fields(stream[key], fields, f"{where}{key}.", folder)
+
+
+INT, FLOAT, STR, NONE = (int,), (int, float), (str,), (type(None),)
+TOP_FIELDS = {"session_id": STR, "status": STR, "stop_reason": STR + NONE, "metadata": (dict,), "rig": (dict,),
+              "clock": (dict,), "start": (dict,), "stop": (dict,) + NONE, "software": (dict,), "devices": (dict,),
+              "streams": (dict,), "files": (dict,)}
+METADATA_FIELDS = {"subject": STR + INT, "task": STR, "trial": INT, "platform": STR, "operator_note": STR,
+                   "master_rate_hz": FLOAT}
+TIME_FIELDS = {"utc": STR, "host_ns": INT}
+STREAM_FIELDS = {"file": STR, "device": STR, "nominal_rate_hz": FLOAT + NONE, "timing": STR, "description": STR,
+                 "columns": (list,), "samples": INT, "bytes": INT, "sha256": STR, "first_t_host_ns": INT + NONE,
+                 "last_t_host_ns": INT + NONE, "measured_rate_hz": FLOAT + NONE, "seq_gaps": (dict,),
+                 "binary": (dict,), "dropped": INT, "corrupt": INT, "latency_ms": (dict,) + NONE}
+COLUMN_FIELDS = {"name": STR, "dtype": STR, "unit": STR, "decimals": INT, "clock": STR + NONE, "frame": STR + NONE,
+                 "description": STR}
+GAP_FIELDS = {"count": INT, "missing": INT, "resets": INT, "listed": (list,)}
+BINARY_FIELDS = {"file": STR, "rows": INT, "csv_sha256": STR}
+_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", dict: "an object", list: "a list",
+               type(None): "null"}
+
+
+def _check_fields(entry: dict[str, Any], fields: dict[str, tuple[type, ...]], where: str, folder: Path) -> None:
+    for key, types in fields.items():
+        if key in entry:
+            _check_type(entry[key], types, where + key, folder)
+
+
+def _check_type(value: Any, types: tuple[type, ...], where: str, folder: Path) -> None:
+    """``value`` must be one of ``types`` (JSON's true/false are not numbers here; numbers are finite)."""
+    ok = isinstance(value, types) and not (isinstance(value, bool) and bool not in types)
+    if ok and isinstance(value, float) and not math.isfinite(value):
+        ok = False
+    if not ok:
+        wanted = " or ".join(dict.fromkeys(_TYPE_NAMES[t] for t in types))
+        raise SessionError(f"manifest in {folder}: {where} is {json.dumps(value)[:60]}, expected {wanted}; "
+                           f"restore manifest.json from a copy or correct that field")
 
 
 def check_inside(folder: Path, rel: Any) -> Path:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
@@ -9,9 +10,13 @@ from typing import TYPE_CHECKING, Any, Iterator
 import numpy as np
 
 from midas_cli.errors import SessionError
-from midas_cli.session.columnar import load_binary_copy, parse_csv_columns
+from midas_cli.session.columnar import load_binary_copy
 from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
 from midas_cli.session.schema import StreamSpec
+from midas_cli.session.values import ParsedStream, parse_stream_file, structured
+
+log = logging.getLogger(__name__)
+_TORN_WARNED: set[tuple[Path, int]] = set()  # (file, size): each torn file is reported once per process
 
 if TYPE_CHECKING:  # pandas is imported where it is used: `midas align` reads binary copies without it
     import pandas as pd
@@ -62,27 +67,26 @@ class Session:
         return (stop["host_ns"] - self.manifest["start"]["host_ns"]) / 1e9
 
     def read_stream(self, name: str, allow_incomplete: bool = False) -> pd.DataFrame:
-        """One stream as a DataFrame: int columns as int64 (exact ns times), floats with NaN = missing."""
-        import pandas as pd
-
+        """One stream as a DataFrame: int columns as int64 (exact ns times), floats with NaN = missing.
+        Every value is checked against its column (SessionError naming file and line); a torn last
+        line is left out, with a warning."""
         self._refuse_unfinished(allow_incomplete)
-        spec = self.stream_spec(name)
-        dtypes = {c.name: ("Int64" if c.dtype == "int" else "float64") for c in spec.columns}
-        dtypes.update(seq="int64", t_host_ns="int64")
-        try:
-            frame = pd.read_csv(self.stream_path(name), dtype=dtypes, engine="c")
-        except (OSError, ValueError, pd.errors.ParserError) as exc:
-            raise SessionError(f"cannot read stream {name!r} of {self.path}: {exc}") from exc
-        if list(frame.columns) != spec.column_names:
-            raise SessionError(f"stream {name!r} of {self.path}: header does not match the manifest columns")
-        return frame
+        return self._parse_csv(name).frame
 
     def read_columns(self, name: str, allow_incomplete: bool = False) -> np.ndarray:
         """One stream as a structured array (one field per column, ints int64, floats float64 with NaN =
-        missing): its binary copy memory-mapped when that still matches the CSV, else the CSV parsed."""
+        missing): its binary copy memory-mapped when that still matches the CSV, else the CSV parsed
+        (as ``read_stream`` does)."""
         self._refuse_unfinished(allow_incomplete)
         table = load_binary_copy(self.path, name, self._stream_entry(name))
-        return parse_csv_columns(self.stream_path(name), self.stream_spec(name)) if table is None else table
+        return structured(self._parse_csv(name).frame, self.stream_spec(name)) if table is None else table
+
+    def _parse_csv(self, name: str) -> ParsedStream:
+        path = self.stream_path(name)
+        parsed = parse_stream_file(path, self.stream_spec(name))
+        if parsed.torn_tail_bytes:
+            _warn_torn_tail(path, parsed)
+        return parsed
 
     def _refuse_unfinished(self, allow_incomplete: bool) -> None:
         if self.status == "recording" and not allow_incomplete:
@@ -96,6 +100,15 @@ class Session:
         except KeyError:
             known = ", ".join(self.stream_names) or "none"
             raise SessionError(f"session {self.path} has no stream {name!r} (streams: {known})") from None
+
+
+def _warn_torn_tail(path: Path, parsed: ParsedStream) -> None:
+    key = (path, parsed.torn_tail_bytes)
+    if key in _TORN_WARNED:
+        return
+    _TORN_WARNED.add(key)
+    log.warning("%s ends in a torn line (%d bytes without a newline: the recorder stopped mid-write); using "
+                "its %d whole lines", path, parsed.torn_tail_bytes, len(parsed.frame))
 
 
 def find_sessions(root: Path | str, max_depth: int = 3) -> Iterator[Path]:

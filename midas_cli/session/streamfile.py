@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from midas_cli.session.schema import StreamSpec
+from midas_cli.session.values import read_regular_file
 
 MAX_LISTED_GAPS = 200
 
@@ -54,7 +55,12 @@ class StreamSummary:
 
 def summarize_stream(path: Path, spec: StreamSpec) -> StreamSummary:
     """Hash and parse ``path``: sample count, field-count errors, torn tail, sequence gaps, time order."""
-    data = Path(path).read_bytes()
+    return summarize_bytes(read_regular_file(path), spec)
+
+
+def summarize_bytes(data: bytes, spec: StreamSpec) -> StreamSummary:
+    """``summarize_stream`` of a stream file's bytes. Values that do not parse leave the times and
+    sequence facts unset; ``values.parse_stream_bytes`` says which value and where."""
     summary = StreamSummary(bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
     header_end = data.find(b"\n")
     if header_end < 0:
@@ -69,7 +75,11 @@ def summarize_stream(path: Path, spec: StreamSpec) -> StreamSummary:
     if not body or summary.bad_lines:
         summary.samples = body.count(b"\n")
         return summary
-    seq, t_host = read_seq_and_time(body)
+    try:
+        seq, t_host = read_seq_and_time(body)
+    except (ValueError, TypeError, OverflowError):  # text, overflow, missing values: not a time or a count
+        summary.samples = body.count(b"\n")
+        return summary
     _fill_time_and_sequence(summary, seq, t_host)
     return summary
 

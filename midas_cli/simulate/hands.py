@@ -26,9 +26,9 @@ from midas_cli.devices.sim.motion import (
     _HandState,
     _minimum_jerk,
     _pad_rotation,
-    _rotation_from_angles,
     _SinusoidBank,
 )
+from midas_cli.geometry import matrices_from_angles
 
 MOVE_BASE_S = 0.35
 MOVE_SPEED_MM_S = 140.0
@@ -181,7 +181,7 @@ class GestureHands:
                 [np.sin(phase), np.cos(phase) - 1.0, 0.3 * np.sin(2 * phase)])
             fine = np.interp(t, mid, self._fine[:, hand])[:, None] * self._slow[hand](t)
             grip = self.home[hand] + pose[:, :3] + circle + fine + self._tremor[hand](t)
-            rotation = _rotation_from_angles(self.wrist_base[hand] + pose[:, 3:])
+            rotation = matrices_from_angles(self.wrist_base[hand] + pose[:, 3:])
             aperture = knot_curve(np.array(knots.grip_t), np.array(knots.grip_v)[:, None], t)[:, 0]
             states.append(_HandState(grip, rotation, np.arcsin(aperture / (2.0 * self.lever_mm))))
         return states

@@ -23,7 +23,7 @@ from scipy.signal import lfilter
 from midas_cli.analysis.kinematics_schema import kinematics_spec
 from midas_cli.clock import HostClock
 from midas_cli.devices.registry import describe_device
-from midas_cli.devices.sim.motion import _angles_from_rotation
+from midas_cli.geometry import angles_from_matrices, quaternions_from_matrices
 from midas_cli.session import artifacts
 from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.pedals_gt import pedals_gt_path, write_pedals_gt
@@ -31,7 +31,7 @@ from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
 from midas_cli.simulate import gestures, pedals
 from midas_cli.simulate.hands import GestureHands
-from midas_cli.simulate.truth import GroundTruth, psm_positions, quaternion_from_matrix
+from midas_cli.simulate.truth import GroundTruth, psm_positions
 
 log = logging.getLogger(__name__)
 
@@ -160,7 +160,7 @@ def _write_emht(writer: SessionWriter, spec: StreamSpec, trial: _Trial, rng: np.
     true_s = np.maximum((host - trial.start_ns) / 1e9 - trial.truth.emht_latency_ms / 1e3, 0.0)
     positions, rotations, _ = trial.hands.sensors(true_s)
     positions = positions + rng.normal(0.0, EMHT_NOISE_MM, positions.shape)
-    angles = _angles_from_rotation(rotations.reshape(-1, 3, 3)).reshape(len(k), 4, 3)
+    angles = angles_from_matrices(rotations.reshape(-1, 3, 3), wrap=True).reshape(len(k), 4, 3)
     angles = angles + rng.normal(0.0, EMHT_NOISE_DEG, angles.shape)
     quality = np.clip((np.linalg.norm(positions, axis=2) - 250.0) / 1000.0, 0.0, 1.0)
     block = np.concatenate([positions, angles, quality[:, :, None]], axis=2).reshape(len(k), 28)
@@ -202,7 +202,7 @@ def _write_kinematics(writer: SessionWriter, mtm_spec: StreamSpec, psm_spec: Str
     arms = {"mtm": [], "psm": []}
     for hand, pair in enumerate(([1, 0], [2, 3])):
         mtm = truth.mtm_position(positions[:, pair].mean(axis=1))
-        quaternion = quaternion_from_matrix(truth.rotation @ states[hand].rotation)
+        quaternion = quaternions_from_matrices(truth.rotation @ states[hand].rotation)
         grasper = np.degrees(2.0 * states[hand].half_angle)
         for name, position in (("mtm", mtm), ("psm", psm_positions(mtm, clutch))):
             velocity = np.gradient(position, 1.0 / KINEMATICS_RATE_HZ, axis=0)

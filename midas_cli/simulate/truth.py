@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from midas_cli.devices.sim.motion import _rotation_from_angles
+from midas_cli.geometry import matrices_from_angles
 
 EMHT_TO_MTM_ANGLES_DEG = (160.0, 8.0, -5.0)  # azimuth, elevation, roll of R (Rz @ Ry @ Rx)
 EMHT_TO_MTM_T_MM = (-250.0, 40.0, 320.0)
@@ -64,7 +64,7 @@ class GroundTruth:
 
     @classmethod
     def build(cls, distortion_mm: float, latency_ms: float) -> "GroundTruth":
-        rotation = _rotation_from_angles(np.array([EMHT_TO_MTM_ANGLES_DEG]))[0]
+        rotation = matrices_from_angles(np.array([EMHT_TO_MTM_ANGLES_DEG]))[0]
         return cls(rotation, np.asarray(EMHT_TO_MTM_T_MM), Distortion.scaled(distortion_mm), latency_ms)
 
     def mtm_position(self, midpoints: np.ndarray) -> np.ndarray:
@@ -97,20 +97,6 @@ class GroundTruth:
             "grasper": {"open_threshold_deg": GRASPER_OPEN_THRESHOLD_DEG,
                         "angle": "grasper_deg = 2 * asin(d / (2 * 70 mm)), d = thumb-middle sensor distance (mm)"},
         }
-
-
-def quaternion_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternions (N, 4) as (x, y, z, w), w >= 0, from rotations (N, 3, 3)."""
-    m = rotation
-    w = np.sqrt(np.maximum(0.0, 1.0 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2])) / 2
-    x = np.sqrt(np.maximum(0.0, 1.0 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2])) / 2
-    y = np.sqrt(np.maximum(0.0, 1.0 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2])) / 2
-    z = np.sqrt(np.maximum(0.0, 1.0 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2])) / 2
-    x = np.copysign(x, m[:, 2, 1] - m[:, 1, 2])
-    y = np.copysign(y, m[:, 0, 2] - m[:, 2, 0])
-    z = np.copysign(z, m[:, 1, 0] - m[:, 0, 1])
-    q = np.column_stack([x, y, z, w])
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def psm_positions(mtm: np.ndarray, clutch: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from midas_cli.devices.raven.protocol import (
 )
 from midas_cli.devices.sim.motion import CLUTCH_PEDAL, MotionConfig, SurgeonMotion
 from midas_cli.errors import ConfigError
+from midas_cli.geometry import quaternions_from_angles
 
 log = logging.getLogger(__name__)
 
@@ -51,16 +52,6 @@ class RavenEmulatorConfig:
             raise ConfigError(f"Raven emulator rate must be in (0, 10000] Hz, got {self.rate_hz}")
 
 
-def quaternion_from_angles(angles_deg: np.ndarray) -> np.ndarray:
-    """(N, 3) azimuth, elevation, roll (Z, Y, X Euler, degrees) -> (N, 4) unit quaternions (x, y, z, w)."""
-    half = np.radians(angles_deg) / 2
-    cz, sz = np.cos(half[:, 0]), np.sin(half[:, 0])
-    cy, sy = np.cos(half[:, 1]), np.sin(half[:, 1])
-    cx, sx = np.cos(half[:, 2]), np.sin(half[:, 2])
-    return np.column_stack([sx * cy * cz - cx * sy * sz, cx * sy * cz + sx * cy * sz,
-                            cx * cy * sz - sx * sy * cz, cx * cy * cz + sx * sy * sz])
-
-
 class PacketSource:
     """Packets k = 0, 1, ... of the simulated console (packet k describes time k / rate)."""
 
@@ -77,7 +68,7 @@ class PacketSource:
         start = grip_um[:1] if self._previous_um is None else self._previous_um
         deltas = np.diff(np.concatenate([start, grip_um]), axis=0)  # (N, 2, 3) um since the previous packet
         self._previous_um = grip_um[-1:]
-        quats = np.stack([quaternion_from_angles(angles[:, thumb]) for thumb, _ in HAND_SENSORS], axis=1)  # (N, 2, 4)
+        quats = np.stack([quaternions_from_angles(angles[:, thumb]) for thumb, _ in HAND_SENSORS], axis=1)  # (N, 2, 4)
         closing = np.clip(1 - self.motion.grasper_aperture(t) / OPEN_APERTURE_MM, -1, 1)  # (N, 2)
         grasp = np.round(closing * 32767).astype(int)
         clutch = self.motion.pedal_pressed(t)[:, CLUTCH_PEDAL]

@@ -38,6 +38,8 @@ from typing import Callable
 
 import numpy as np
 
+from midas_cli.geometry import angles_from_matrices, apply_rigid, matrices_from_angles
+
 log = logging.getLogger(__name__)
 
 SENSOR_NAMES = ("left_middle", "left_thumb", "right_thumb", "right_middle")  # trakSTAR sensors 1..4
@@ -364,45 +366,6 @@ class _SinusoidBank:
         return (self.amplitudes * np.sin(angle)).sum(axis=-1)
 
 
-# ---------------------------------------------------------------------------------------------------
-# rotations (trakSTAR angles: R = Rz(azimuth) @ Ry(elevation) @ Rx(roll))
-
-
-def _rotation_from_angles(angles_deg: np.ndarray) -> np.ndarray:
-    """Rotations (N, 3, 3) = Rz(azimuth) @ Ry(elevation) @ Rx(roll) from (N, 3) angles in degrees."""
-    azimuth, elevation, roll = np.radians(angles_deg).T
-    ca, sa = np.cos(azimuth), np.sin(azimuth)
-    ce, se = np.cos(elevation), np.sin(elevation)
-    cr, sr = np.cos(roll), np.sin(roll)
-    entries = [
-        ca * ce, ca * se * sr - sa * cr, ca * se * cr + sa * sr,
-        sa * ce, sa * se * sr + ca * cr, sa * se * cr - ca * sr,
-        -se, ce * sr, ce * cr,
-    ]
-    return np.stack(entries, axis=-1).reshape(-1, 3, 3)
-
-
-def _apply_rigid(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """rotation (3, 3) @ p + translation (3,) for points (..., 3), summed in a fixed order."""
-    x, y, z = points[..., 0:1], points[..., 1:2], points[..., 2:3]
-    return x * rotation[:, 0] + y * rotation[:, 1] + z * rotation[:, 2] + translation
-
-
-def _wrap_degrees(angle: np.ndarray) -> np.ndarray:
-    """Angles in degrees wrapped into [-180, 180)."""
-    wrapped = np.mod(angle + 180.0, 360.0) - 180.0
-    return np.where(wrapped >= 180.0, wrapped - 360.0, wrapped)
-
-
-def _angles_from_rotation(rotation: np.ndarray) -> np.ndarray:
-    """(N, 3) azimuth, roll in [-180, 180) and elevation in [-90, 90] degrees from rotations (N, 3, 3)."""
-    azimuth = np.arctan2(rotation[:, 1, 0], rotation[:, 0, 0])
-    elevation = np.arcsin(np.clip(-rotation[:, 2, 0], -1.0, 1.0))
-    roll = np.arctan2(rotation[:, 2, 1], rotation[:, 2, 2])
-    degrees = np.degrees(np.column_stack([azimuth, elevation, roll]))
-    return np.column_stack([_wrap_degrees(degrees[:, 0]), degrees[:, 1], _wrap_degrees(degrees[:, 2])])
-
-
 @dataclass(frozen=True)
 class _HandState:
     """One hand at N times: grip point (N, 3) mm, hand rotation (N, 3, 3), grip half-opening (N,) rad."""
@@ -479,7 +442,7 @@ class SurgeonMotion:
         positions, angles = np.empty((t.size, 4, 3)), np.empty((t.size, 4, 3))
         for sensor, state, side in self._grip_pads(t):
             positions[:, sensor] = self._pad_position(state, side)
-            angles[:, sensor] = _angles_from_rotation(_pad_rotation(state, side))
+            angles[:, sensor] = angles_from_matrices(_pad_rotation(state, side), wrap=True)
         return positions, angles
 
     def grasper_aperture(self, t: np.ndarray) -> np.ndarray:
@@ -496,7 +459,7 @@ class SurgeonMotion:
         t = _as_times(t)
         rotation, translation = self.camera_from_transmitter()
         sensors = self._sensor_positions(t)
-        keypoints = _apply_rigid(rotation, translation, sensors[:, np.array(_HAND_SENSORS)])
+        keypoints = apply_rigid(rotation, translation, sensors[:, np.array(_HAND_SENSORS)])
         keypoints += self._keypoint_noise(t)
         for hand in range(2):
             keypoints[self._keypoint_missed(t, hand), hand] = np.nan
@@ -530,8 +493,8 @@ class SurgeonMotion:
         """
         cfg = self.config
         looking_down = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # columns: camera axes
-        yaw = _rotation_from_angles(np.array([[cfg.camera_yaw_deg, 0.0, 0.0]]))[0]
-        tilt = _rotation_from_angles(np.array([[0.0, 0.0, cfg.camera_tilt_deg]]))[0]
+        yaw = matrices_from_angles(np.array([[cfg.camera_yaw_deg, 0.0, 0.0]]))[0]
+        tilt = matrices_from_angles(np.array([[0.0, 0.0, cfg.camera_tilt_deg]]))[0]
         axes = yaw @ looking_down @ tilt
         position = np.asarray(cfg.workspace_centre_mm) - cfg.camera_distance_mm * axes[:, 2]
         return axes.T, -axes.T @ position
@@ -549,7 +512,7 @@ class SurgeonMotion:
             grip_point += self._tremor[hand](t)
             angles = self._wrist_base_deg(hand) + reach[:, 3:] + fine[:, 3:]
             half_angle = np.arcsin(self._aperture(t, hand) / (2.0 * cfg.grip_lever_mm))
-            states.append(_HandState(grip_point, _rotation_from_angles(angles), half_angle))
+            states.append(_HandState(grip_point, matrices_from_angles(angles), half_angle))
         return states
 
     def _neutral_grip_point(self, hand: int) -> np.ndarray:
@@ -559,7 +522,7 @@ class SurgeonMotion:
         lateral = np.array([0.0, _HAND_LATERAL_SIGN[hand] * cfg.hand_separation_mm / 2, 0.0])
         typical_aperture = np.mean([cfg.aperture_open_mm, cfg.aperture_closed_mm])
         lever = cfg.grip_lever_mm * np.cos(np.arcsin(typical_aperture / (2.0 * cfg.grip_lever_mm)))
-        hand_x = _rotation_from_angles(self._wrist_base_deg(hand)[None])[0, :, 0]
+        hand_x = matrices_from_angles(self._wrist_base_deg(hand)[None])[0, :, 0]
         return np.asarray(cfg.workspace_centre_mm) + lateral - lever * hand_x
 
     def _wrist_base_deg(self, hand: int) -> np.ndarray:

@@ -1,4 +1,8 @@
-"""Rigid transforms and rotation conventions (pure numpy).
+"""Geometry: rotations, quaternions and rigid transforms (pure numpy), the one home for this maths.
+
+The ground floor: imports nothing from midas but its error types, and is used by the devices and
+emulators (trakSTAR angles, Raven quaternions), the simulated surgeon and dataset, and the analysis
+(calibration fits, alignment, evaluation).
 
 Angle convention everywhere (trakSTAR's, also used for robot orientations): R = Rz(a) @ Ry(e) @ Rx(r)
 with a = azimuth = yaw, e = elevation = pitch, r = roll, in degrees. Quaternions are (x, y, z, w),
@@ -38,6 +42,13 @@ def apply_similarity(rotation: np.ndarray, translation: np.ndarray, scale: float
     return scale * points @ rotation.T + translation
 
 
+def apply_rigid(rotation: np.ndarray, translation: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``R p + t`` for points (..., 3), summed column by column in a fixed order (no BLAS: the same
+    bits on every machine, which the simulator's byte-identical sessions rely on)."""
+    x, y, z = points[..., 0:1], points[..., 1:2], points[..., 2:3]
+    return x * rotation[:, 0] + y * rotation[:, 1] + z * rotation[:, 2] + translation
+
+
 def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (degrees) of the rotation taking a (3, 3) to b (3, 3)."""
     cos = (np.trace(a.T @ b) - 1.0) / 2.0
@@ -54,12 +65,22 @@ def matrices_from_angles(angles_deg: np.ndarray) -> np.ndarray:
     return np.stack(entries, axis=-1).reshape(-1, 3, 3)
 
 
-def angles_from_matrices(rotations: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) -> (N, 3) yaw, pitch, roll in degrees (inverse of ``matrices_from_angles``)."""
+def angles_from_matrices(rotations: np.ndarray, wrap: bool = False) -> np.ndarray:
+    """(N, 3, 3) -> (N, 3) yaw, pitch, roll in degrees (inverse of ``matrices_from_angles``); yaw and
+    roll in [-180, 180], or [-180, 180) with ``wrap`` (the trakSTAR's own range)."""
     yaw = np.arctan2(rotations[:, 1, 0], rotations[:, 0, 0])
     pitch = np.arcsin(np.clip(-rotations[:, 2, 0], -1.0, 1.0))
     roll = np.arctan2(rotations[:, 2, 1], rotations[:, 2, 2])
-    return np.degrees(np.column_stack([yaw, pitch, roll]))
+    degrees = np.degrees(np.column_stack([yaw, pitch, roll]))
+    if wrap:
+        degrees = np.column_stack([wrap_degrees(degrees[:, 0]), degrees[:, 1], wrap_degrees(degrees[:, 2])])
+    return degrees
+
+
+def wrap_degrees(angle: np.ndarray) -> np.ndarray:
+    """Angles in degrees wrapped into [-180, 180)."""
+    wrapped = np.mod(angle + 180.0, 360.0) - 180.0
+    return np.where(wrapped >= 180.0, wrapped - 360.0, wrapped)
 
 
 def matrices_from_quaternions(quat_xyzw: np.ndarray) -> np.ndarray:
@@ -74,7 +95,8 @@ def matrices_from_quaternions(quat_xyzw: np.ndarray) -> np.ndarray:
 
 
 def quaternions_from_matrices(rotations: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) -> (N, 4) unit quaternions (x, y, z, w) with w >= 0."""
+    """(N, 3, 3) -> (N, 4) unit quaternions (x, y, z, w) with w >= 0 (normalised: a rotation matrix
+    that is a few ulps off orthonormal still gives a unit quaternion)."""
     m = rotations
     w = np.sqrt(np.clip(1 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2], 0, None)) / 2
     x = np.sqrt(np.clip(1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], 0, None)) / 2
@@ -83,7 +105,19 @@ def quaternions_from_matrices(rotations: np.ndarray) -> np.ndarray:
     x = np.copysign(x, m[:, 2, 1] - m[:, 1, 2])
     y = np.copysign(y, m[:, 0, 2] - m[:, 2, 0])
     z = np.copysign(z, m[:, 1, 0] - m[:, 0, 1])
-    return np.column_stack([x, y, z, w])
+    q = np.column_stack([x, y, z, w])
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def quaternions_from_angles(angles_deg: np.ndarray) -> np.ndarray:
+    """(N, 3) azimuth, elevation, roll (Z, Y, X Euler, degrees) -> (N, 4) unit quaternions (x, y, z, w),
+    straight from the half angles (the same rotation as ``matrices_from_angles``)."""
+    half = np.radians(angles_deg) / 2
+    cz, sz = np.cos(half[:, 0]), np.sin(half[:, 0])
+    cy, sy = np.cos(half[:, 1]), np.sin(half[:, 1])
+    cx, sx = np.cos(half[:, 2]), np.sin(half[:, 2])
+    return np.column_stack([sx * cy * cz - cx * sy * sz, cx * sy * cz + sx * cy * sz,
+                            cx * cy * sz - sx * sy * cz, cx * cy * cz + sx * sy * sz])
 
 
 def mean_rotation(rotations: np.ndarray) -> np.ndarray:
