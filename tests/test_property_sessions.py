@@ -203,10 +203,10 @@ def _refused(damage: Damage, command: str, wrong_for_all: bool) -> bool:
         return command in readers.get(damage.target, set())
     if damage.kind in ("derived-symlink-out", "derived-fifo"):
         return command in WRITERS
-    if command == "info":
-        return damage.kind.startswith("manifest") or damage.kind == "stream-field-type"
-    if command == "labels-stats":
-        return damage.kind.startswith("manifest") or damage.kind == "stream-field-type"
+    manifest_damage = damage.kind.startswith("manifest") or damage.kind == "stream-field-type"
+    if command in ("info", "labels-stats", "eval-pedals", "eval-correlation"):
+        # eval reads the aligned table align made before the damage, not the streams themselves
+        return manifest_damage
     return wrong_for_all
 
 
