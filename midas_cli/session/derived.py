@@ -229,6 +229,17 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
     return AlignedTable(frame, t_host_ns, columns, values, meta)
 
 
+def aligned_problems(session_path: Path | str) -> list[str]:
+    """What is wrong with the session's aligned table, for `session verify` (nothing when it has none)."""
+    if not (Path(session_path) / f"{ALIGNED_STEM}.npz").is_file():
+        return []
+    try:
+        read_aligned(session_path)
+    except SessionError as exc:
+        return [str(exc)]
+    return []
+
+
 def calib_path(session_path: Path | str, name: str) -> Path:
     """``calib/<name>`` inside the session (the folder is created if missing; refused if it leads out)."""
     return session_target(session_path, f"{CALIB_DIR}/{name}")

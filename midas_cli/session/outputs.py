@@ -100,18 +100,31 @@ def _owned_reason(session: Path, resolved: Path) -> str | None:
 def session_target(session: Path | str, relative: str) -> Path:
     """The resolved path of ``relative`` inside ``session``, its folder created; SessionError (nothing
     created) when it would leave the session (a linked folder, '..') or names a file the session owns."""
+    resolved = _resolve_inside(session, relative)
+    reason = _owned_reason(Path(session).resolve(), resolved)
+    if reason is not None:
+        raise SessionError(f"refusing to write {relative}: it is {reason} of {session}")
+    _make_parent(resolved, SessionError)
+    return resolved
+
+
+def inside_session(session: Path | str, relative: str) -> Path:
+    """Like ``session_target`` for the writers of the recording itself (import reports in logs/, a
+    stream an offline step adds): confined to the session, but may name a file it owns."""
+    resolved = _resolve_inside(session, relative)
+    _make_parent(resolved, SessionError)
+    return resolved
+
+
+def _resolve_inside(session: Path | str, relative: str) -> Path:
     pure = PurePosixPath(relative)
     root = Path(session).resolve()
-    if pure.is_absolute() or ".." in pure.parts:
+    if pure.is_absolute() or ".." in pure.parts or not pure.parts:
         raise SessionError(f"output {relative!r} is not a path inside the session {session}")
     resolved = (root / pure).resolve()
     if root not in resolved.parents:
         raise SessionError(f"refusing to write {relative} of {session}: it resolves to {resolved}, outside the "
                            f"session (is {pure.parts[0]}/ a link?); replace the link by a folder")
-    reason = _owned_reason(root, resolved)
-    if reason is not None:
-        raise SessionError(f"refusing to write {relative}: it is {reason} of {session}")
-    _make_parent(resolved, SessionError)
     return resolved
 
 
@@ -197,6 +210,13 @@ def write_text(target: Path | str, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``target`` via ``replacing``."""
     with replacing(target) as tmp:
         tmp.write_text(text, encoding="utf-8")
+    return Path(target)
+
+
+def write_bytes(target: Path | str, data: bytes) -> Path:
+    """Write ``data`` to ``target`` via ``replacing``."""
+    with replacing(target) as tmp:
+        tmp.write_bytes(data)
     return Path(target)
 
 
