@@ -17,7 +17,8 @@ a unique temporary name and renamed into place, under the session's lock.
 * ``session_lock(session)``: ``fcntl.flock`` on ``<session>/.midas.lock``. A second midas writing the
   same session waits (saying so on stderr, once) up to ``MIDAS_LOCK_WAIT_S`` seconds (default 600),
   then gives up with SessionError (exit 4). The kernel drops the lock when its holder dies, so a killed
-  run never blocks the next one; the file itself stays (it is not litter). Re-entrant within a process.
+  run never blocks the next one. The file stays, empty and never rewritten (it is not litter, and a
+  session's files do not change by being locked). Re-entrant within a process.
 * ``provenance(command, options, inputs)``: what a derived file records about the run that made it.
 """
 
@@ -130,7 +131,15 @@ def _resolve_inside(session: Path | str, relative: str) -> Path:
 
 def session_folder(session: Path | str, relative: str) -> Path:
     """A folder inside ``session`` (e.g. ``derived/eval``), checked like ``session_target`` and created."""
-    return session_target(session, f"{relative}/.probe").parent
+    resolved = _resolve_inside(session, relative)
+    reason = _owned_reason(Path(session).resolve(), resolved)
+    if reason is not None:
+        raise SessionError(f"refusing to write into {relative}: it is {reason} of {session}")
+    try:
+        resolved.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SessionError(f"cannot create {resolved}: {exc.strerror or exc}") from exc
+    return resolved
 
 
 def out_target(path: Path | str, option: str = "--out") -> Path:
@@ -296,8 +305,6 @@ def _acquire(root: Path) -> int:
     except BaseException:
         os.close(fd)
         raise
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
     return fd
 
 
@@ -312,20 +319,13 @@ def _wait_for(fd: int, root: Path, mode: int) -> None:
             if exc.errno not in (errno.EAGAIN, errno.EACCES):
                 raise SessionError(f"cannot lock {root} for writing: {exc.strerror or exc}") from exc
         if time.monotonic() >= deadline:
-            raise SessionError(f"{root} is being written by another midas ({_holder(root)}); gave up after "
+            raise SessionError(f"{root} is being written by another midas command; gave up waiting after "
                                f"{lock_wait_s():g} s (set {LOCK_WAIT_ENV} to wait longer)")
         if not said:
-            log.warning("%s is being written by another midas (%s); waiting up to %g s for it to finish",
-                        root, _holder(root), lock_wait_s())
+            log.warning("%s is being written by another midas command; waiting up to %g s for it to finish",
+                        root, lock_wait_s())
             said = True
         time.sleep(LOCK_POLL_S)
-
-
-def _holder(root: Path) -> str:
-    try:
-        return (root / LOCK_NAME).read_text(encoding="utf-8").strip() or "pid unknown"
-    except OSError:
-        return "pid unknown"
 
 
 def is_locked(session: Path | str) -> bool:
