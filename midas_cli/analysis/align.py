@@ -20,7 +20,8 @@ from __future__ import annotations
 import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+import hashlib
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -31,6 +32,7 @@ from midas_cli.analysis.calibration import MODEL_CHOICES, SOURCES, TARGETS, Cali
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
 from midas_cli.session.derived import AlignedTable, ValuesFile, find_calibration, write_aligned
+from midas_cli.session.outputs import provenance, session_lock
 from midas_cli.session.reader import Session
 from midas_cli.session.values import FLOAT_LIMIT, REMEDY
 
@@ -586,8 +588,22 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
         "calibrations_applied": [{"file": f"calib/{c.stem}.json", "models": c.models, "lag_ms": c.lag_ms,
                                   "held_out": c.info.get("held_out"), "selected": c.choose_model(options.model),
                                   "asked": options.model, "selection": c.selection} for c in calibrations],
+        "producer": provenance("midas align", asdict(options), _inputs(session, calibrations)),
     }
     return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
+
+
+def _inputs(session: Session, calibrations: list[Calibration]) -> dict[str, dict[str, Any]]:
+    """What the aligned table was made from: each stream file (sha256 and bytes from the manifest) and
+    each calibration file applied (sha256 and bytes measured now)."""
+    inputs = {e["file"]: {"sha256": e.get("sha256"), "bytes": e.get("bytes")}
+              for e in session.manifest["streams"].values()}
+    for c in calibrations:
+        path = find_calibration(session.path, f"{c.stem}.json")
+        if path is not None:
+            data = path.read_bytes()
+            inputs[f"calib/{path.name}"] = {"sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)}
+    return inputs
 
 
 COVERAGE_WARNING = 0.95
@@ -629,8 +645,9 @@ def align_and_write(path: Path | str, options: AlignOptions = AlignOptions(), cs
         values_file[0].write_async(block)
 
     try:
-        table = align_session(path, options, on_raw_columns=start_writing)
-        written = write_aligned(path, table, csv=csv, values_file=values_file[0] if values_file else None)
+        with session_lock(path):  # inputs read and outputs written by one run at a time
+            table = align_session(path, options, on_raw_columns=start_writing)
+            written = write_aligned(path, table, csv=csv, values_file=values_file[0] if values_file else None)
     except BaseException:
         for started in values_file:
             started.abort()

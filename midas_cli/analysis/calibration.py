@@ -15,7 +15,6 @@ trained, ``<source>_to_<target>.pt`` (a state dict, loadable with ``torch.load(w
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 from midas_cli import __version__
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import apply_similarity
+from midas_cli.session.outputs import replacing, write_json
 
 SOURCES = ("emht", "handkp")
 TARGETS = ("mtm", "psm")
@@ -122,19 +122,17 @@ def project_to_rotations(matrices: np.ndarray) -> np.ndarray:
 def save_calibration(calibration: Calibration, json_path: Path) -> list[Path]:
     """Write the JSON description (and the MLP weights beside it); returns the files written."""
     json_path = Path(json_path)
-    json_path.parent.mkdir(parents=True, exist_ok=True)
     written = []
     description = _describe(calibration)
     if calibration.mlp is not None:
         from midas_cli.analysis.residual_mlp import save_mlp
 
         weights = json_path.with_suffix(".pt")
-        save_mlp(calibration.mlp, weights)
+        with replacing(weights) as tmp:
+            save_mlp(calibration.mlp, tmp)
         description["mlp"] = {"weights": weights.name, **calibration.mlp.describe()}
         written.append(weights)
-    tmp = json_path.with_name(json_path.name + ".tmp")
-    tmp.write_text(json.dumps(description, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, json_path)
+    write_json(json_path, description)
     return [json_path, *written]
 
 

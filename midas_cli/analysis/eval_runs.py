@@ -3,7 +3,6 @@ per-session rows, average them into the paper's tables, write files and figures.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -20,6 +19,7 @@ from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session.derived import (AlignedTable, calib_path, find_calibration, output_dir, read_aligned,
                                        read_pedals_ground_truth)
+from midas_cli.session.outputs import out_folder, out_target, write_json
 from midas_cli.session.reader import Session
 
 FPS_RULES_FILE = "fps_optimized.json"
@@ -50,7 +50,7 @@ def _provenance(paths: list[Path], tables: list[AlignedTable]) -> dict[str, Any]
 
 def _default_out(paths: list[Path], out: Path | None) -> Path:
     if out is not None:
-        return out
+        return out_folder(out)
     if len(paths) == 1:
         return output_dir(paths[0], "eval")
     raise SessionError("several sessions given: say where the averaged tables go with --out DIR")
@@ -84,6 +84,7 @@ def run_correlation(paths: list[Path], out: Path | None, plots: bool,
     """CoS/NRMSE, grasper and lag tables averaged over ``paths``; figures per session when ``plots``.
     ``model`` (best|rigid|mlp, see :func:`model_choices`) picks the calibration model of the main
     table; an MLP worse than the rigid fit on held-out trials is marked "mlp*" wherever it is listed."""
+    out = _default_out(paths, out) if out is not None or len(paths) != 1 else None  # a bad --out fails first
     rows: dict[str, list[dict[str, Any]]] = {"correlation": [], "grasper": [], "lag": []}
     tables = []
     files: list[Path] = []
@@ -169,6 +170,7 @@ def load_rules(path: Path) -> dict[str, ev.PedalRule]:
 def run_pedals(paths: list[Path], out: Path | None, plots: bool, use_optimized: bool,
                progress: Callable[[str], None] = lambda _: None) -> EvalResult:
     """Per pedal and overall precision/recall/F1/IoU/lag averaged over ``paths``."""
+    out = _default_out(paths, out) if out is not None or len(paths) != 1 else None  # a bad --out fails first
     rows: list[dict[str, Any]] = []
     tables, files = [], []
     for path in paths:
@@ -211,6 +213,7 @@ def optimise_pedals(paths: list[Path], out: Path | None) -> dict[str, Any]:
     """Per pedal, the threshold (V) and polarity maximising F1 over all frames of ``paths`` against the
     ground truth; reports F1 of the recorded states (before) and of the rule (after). Writes
     ``calib/fps_optimized.json`` into each session (or ``out``). Pedals never pressed are left out."""
+    targets = [out_target(out)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]  # checked first
     volts: dict[str, list[np.ndarray]] = {}
     truths: dict[str, list[np.ndarray]] = {}
     before: dict[str, list[np.ndarray]] = {}
@@ -234,10 +237,8 @@ def optimise_pedals(paths: list[Path], out: Path | None) -> dict[str, Any]:
         raise SessionError("no pedal is ever pressed in the ground truth of these sessions: nothing to optimise")
     document = json_safe({"format": "midas-fps-optimized-v1", "trained_on": [str(p) for p in paths], "pedals": pedals,
                           "rule": "pressed when volts >= threshold (above) or <= threshold (below); no hysteresis"})
-    targets = [Path(out)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]
     for target in targets:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+        write_json(target, document)
     return {**document, "written": [str(t) for t in targets]}
 
 

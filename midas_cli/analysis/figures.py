@@ -10,6 +10,7 @@ import numpy as np
 from midas_cli.analysis.evaluation import AXES
 from midas_cli.errors import ConfigError
 from midas_cli.session.derived import AlignedTable
+from midas_cli.session.outputs import out_target, replacing
 
 
 def _pyplot():
@@ -73,8 +74,10 @@ def grasper_figure(t_s: np.ndarray, states: dict[str, np.ndarray], path: Path, t
 
 
 def _save(plt, fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with replacing(out_target(path)) as tmp:
+            fig.savefig(tmp, dpi=110, format=Path(path).suffix.lstrip(".") or "png")
+    finally:
+        plt.close(fig)
     return path

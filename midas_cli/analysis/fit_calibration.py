@@ -23,6 +23,7 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
                                            mean_rotation, rotation_angle_deg)
 from midas_cli.session.derived import calib_path
+from midas_cli.session.outputs import out_target
 from midas_cli.session.reader import Session
 
 log = logging.getLogger(__name__)
@@ -290,6 +291,9 @@ def calibrate_sessions(paths: list[Path], source: str, target: str, options: Cal
     gets the model that did NOT see it (its leave-one-trial-out fold; with one session, the model fitted
     on it); ``out`` (a .json path) gets the model fitted on all sessions. Returns a JSON-able report."""
     build = emht_pairs if source == "emht" else handkp_pairs
+    if out is not None:  # checked before the fit: never a session's own file (the weights go beside it)
+        out = out_target(out)
+        out_target(out.with_suffix(".pt"))
     pairs = []
     for path in paths:
         progress(f"pairing {Path(path).name}")

@@ -9,6 +9,8 @@ from typing import Any
 
 import pandas as pd
 
+from midas_cli.session.outputs import out_folder, out_target, replacing, write_text
+
 
 def format_cell(value: Any, digits: int = 3) -> str:
     """Numbers rounded to ``digits`` (NaN -> "--"), everything else as text."""
@@ -41,25 +43,27 @@ def write_tables(out_dir: Path, name: str, tables: dict[str, tuple[pd.DataFrame,
                  provenance: dict[str, Any]) -> list[Path]:
     """Write ``tables`` (key -> (table, caption)) as ``<key>.csv``/``<key>.tex``, all of them in
     ``<name>.md``, and ``<name>.json`` with the tables, the per-session ``rows`` and ``provenance``."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = out_folder(out_dir)
     written = []
     label = provenance.get("data_label", "")
     markdown = [f"# {name}\n", f"Data: {label}\n" if label else ""]
     for key, (table, caption) in tables.items():
         csv_path, tex_path = out_dir / f"{key}.csv", out_dir / f"{key}.tex"
-        table.to_csv(csv_path, index=False)
-        tex_path.write_text(to_latex(table, f"{caption} ({label})" if label else caption, f"tab:{key}"), encoding="utf-8")
+        with replacing(out_target(csv_path)) as tmp:
+            table.to_csv(tmp, index=False)
+        write_text(out_target(tex_path), to_latex(table, f"{caption} ({label})" if label else caption, f"tab:{key}"))
         markdown += [f"## {caption}\n", to_markdown(table), ""]
         written += [csv_path, tex_path]
     for key, records in rows.items():
         path = out_dir / f"{key}_per_session.csv"
-        pd.DataFrame(records).to_csv(path, index=False)
+        with replacing(out_target(path)) as tmp:
+            pd.DataFrame(records).to_csv(tmp, index=False)
         written.append(path)
     md_path, json_path = out_dir / f"{name}.md", out_dir / f"{name}.json"
-    md_path.write_text("\n".join(markdown), encoding="utf-8")
+    write_text(out_target(md_path), "\n".join(markdown))
     document = {"provenance": provenance, "tables": {k: t.to_dict("records") for k, (t, _) in tables.items()},
                 "rows": rows}
-    json_path.write_text(json.dumps(json_safe(document), indent=2) + "\n", encoding="utf-8")
+    write_text(out_target(json_path), json.dumps(json_safe(document), indent=2) + "\n")
     return [*written, md_path, json_path]
 
 

@@ -14,6 +14,7 @@ from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResul
 from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
 from midas_cli.labels.stats import GestureStats, gesture_stats, transition_heatmap
+from midas_cli.session.outputs import out_target, write_text
 from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy
 
 app = typer.Typer(help="Gesture taxonomies, annotation import/export (VIA, JIGSAWS/COMPASS) and label statistics.",
@@ -151,7 +152,7 @@ def export(
     if out_file is None:
         sys.stdout.write(text)
         return
-    out_file.write_text(text, encoding="utf-8")
+    write_text(out_target(out_file), text)
     err.print(f"wrote {out_file}", markup=False)
 
 

@@ -18,6 +18,7 @@ import numpy as np
 from midas_cli.errors import ConfigError
 from midas_cli.labels.segments import FrameSegment
 from midas_cli.labels.taxonomy import Taxonomy
+from midas_cli.session.outputs import out_target, write_bytes
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,7 @@ def transition_heatmap(stats: GestureStats, path: Path, cell_px: int = 56) -> Pa
             ink = (0, 0, 0) if scaled[i, j] > 150 else (255, 255, 255)
             cv2.putText(image, str(stats.transitions[i, j]), (x + 6, y + cell_px // 2 + 5), font, scale, ink, 1,
                         cv2.LINE_AA)
-    if not cv2.imwrite(str(path), image):
-        raise ConfigError(f"cannot write the heatmap to {path} (is the folder there and the name .png?)")
-    return path
+    ok, encoded = cv2.imencode(Path(path).suffix or ".png", image)
+    if not ok:
+        raise ConfigError(f"cannot write the heatmap to {path}: name it .png")
+    return write_bytes(out_target(path, "--plot"), encoded.tobytes())

@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.models.data import DatasetConfig
 from midas_cli.models.train import TrainConfig, train_run
+from midas_cli.session.outputs import out_folder, out_target, write_text
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +80,8 @@ def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequ
                  out_dir: Path, on_run: Callable[[str, int, int], None] | None = None,
                  progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Train every (model, row); write ``table.{md,tex,csv}`` and ``ablation.json``; return the results."""
-    out_dir = Path(out_dir)
-    (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    out_dir = out_folder(out_dir)
+    out_folder(out_dir / "runs")
     results, skipped = [], []
     jobs = [(model, row) for model in models for row in rows]
     for k, (model, row) in enumerate(jobs, start=1):
@@ -99,7 +100,7 @@ def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequ
                           f"{skipped[0]['reason'] if skipped else 'empty grid'})")
     report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__}}
     write_tables(out_dir, results, skipped)
-    (out_dir / "ablation.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_text(out_target(out_dir / "ablation.json"), json.dumps(report, indent=2) + "\n")
     return report
 
 
@@ -123,13 +124,13 @@ def write_tables(out_dir: Path, results: list[dict], skipped: list[dict]) -> dic
     rows = [[r["dataset"], r["model"], r["modality"], r["features"],
              *(f"{r[k]:.2f}" for k in ("accuracy", "f1", "precision", "recall"))] for r in results]
     paths = {"md": out_dir / "table.md", "tex": out_dir / "table.tex", "csv": out_dir / "table.csv"}
-    paths["md"].write_text(markdown_table(rows, skipped), encoding="utf-8")
-    paths["tex"].write_text(latex_table(rows), encoding="utf-8")
+    write_text(out_target(paths["md"]), markdown_table(rows, skipped))
+    write_text(out_target(paths["tex"]), latex_table(rows))
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
     writer.writerows(rows)
-    paths["csv"].write_text(buffer.getvalue(), encoding="utf-8")
+    write_text(out_target(paths["csv"]), buffer.getvalue())
     return paths
 
 

@@ -23,6 +23,7 @@ import torch
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models.dinov2 import DinoV2
 from midas_cli.models.resnet import ResNet
+from midas_cli.session.outputs import out_target, replacing
 
 BACKBONES = ("resnet50", "dinov2")
 MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
@@ -68,6 +69,7 @@ def extract_features(video: Path, weights: Path, options: ExtractOptions, out: P
     """Encode every ``options.every``-th frame of ``video``; write the NPZ ``out``; return a summary."""
     if options.device == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--device cuda asked for, but torch sees no CUDA GPU (use --device cpu)")
+    out = out_target(out)  # checked before the (long) encoding: never a session's own file
     model = load_backbone(options.backbone, weights).to(options.device)
     frames, chunks = [], []
     total = _frame_count(video)
@@ -81,10 +83,9 @@ def extract_features(video: Path, weights: Path, options: ExtractOptions, out: P
     if not frames:
         raise SessionError(f"{video}: no frame could be decoded")
     features = np.concatenate(chunks).astype(np.float32)
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(out, frame=np.asarray(frames, dtype=np.int64), features=features, backbone=options.backbone,
-             weights_sha256=_sha256(weights), note=f"{options.backbone} features of {Path(video).name}")
+    with replacing(out) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, frame=np.asarray(frames, dtype=np.int64), features=features, backbone=options.backbone,
+                 weights_sha256=_sha256(weights), note=f"{options.backbone} features of {Path(video).name}")
     return {"out": str(out), "frames": len(frames), "dim": int(features.shape[1]), "backbone": options.backbone}
 
 

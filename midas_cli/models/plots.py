@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from midas_cli.errors import SessionError
+from midas_cli.session.outputs import out_target, replacing
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 WHITE, BLACK, GREY = (255, 255, 255), (0, 0, 0), (200, 200, 200)
@@ -65,7 +66,9 @@ def write_timeline_png(path: Path, truth: np.ndarray, prediction: np.ndarray, cl
 
 def _save(path: Path, image: np.ndarray) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image):
-        raise SessionError(f"cannot write {path}")
+    ok, encoded = cv2.imencode(path.suffix or ".png", image)
+    if not ok:
+        raise SessionError(f"cannot write {path}: no image format for {path.suffix!r}")
+    with replacing(out_target(path)) as tmp:
+        tmp.write_bytes(encoded.tobytes())
     return path

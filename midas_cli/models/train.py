@@ -39,6 +39,7 @@ from midas_cli.models.mstcn import MSTCN, MSTCNConfig
 from midas_cli.models.plots import write_confusion_png, write_timeline_png
 from midas_cli.models.splits import PARTS, Split, instances, make_split
 from midas_cli.models.transformer import GestureTransformer, TransformerConfig
+from midas_cli.session.outputs import out_folder, out_target, replacing, write_text
 
 log = logging.getLogger(__name__)
 
@@ -290,18 +291,18 @@ def _write_run(out_dir: Path, run: dict, result: dict, model: torch.nn.Module, d
     preds = result["test"].pop("predictions")
     if "val" in result:
         result["val"].pop("predictions")
-    (out_dir / "run.json").write_text(json.dumps(run, indent=2) + "\n", encoding="utf-8")
-    (out_dir / "metrics.json").write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    write_text(out_target(out_dir / "run.json"), json.dumps(run, indent=2) + "\n")
+    write_text(out_target(out_dir / "metrics.json"), json.dumps(result, indent=2) + "\n")
     if save_checkpoint:
         state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-        torch.save({**run, "state_dict": state}, out_dir / "checkpoint.pt")
+        with replacing(out_target(out_dir / "checkpoint.pt")) as tmp:
+            torch.save({**run, "state_dict": state}, tmp)
     _write_predictions(out_dir, dataset, test, preds)
     write_confusion_png(out_dir / "plots" / "confusion.png", np.asarray(result["test"]["confusion"]), dataset.classes)
 
 
 def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, preds: list[np.ndarray]) -> None:
     """predictions/<trial>.csv and plots/<trial>.png: test frames of each trial on its own timeline."""
-    (out_dir / "predictions").mkdir(exist_ok=True)
     per_trial: dict[str, np.ndarray] = {}
     for (name, start, stop), pred in zip(test.units, preds):
         trial = dataset.trials[dataset.trial_index(name)]
@@ -313,7 +314,7 @@ def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, 
         rows = ["frame,truth,prediction"] + [
             f"{f},{dataset.classes[t] if t >= 0 else ''},{dataset.classes[p]}"
             for f, t, p in zip(trial.frames[tested], trial.labels[tested], timeline[tested])]
-        (out_dir / "predictions" / f"{name}.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+        write_text(out_target(out_dir / "predictions" / f"{name}.csv"), "\n".join(rows) + "\n")
         write_timeline_png(out_dir / "plots" / f"{name}.png", trial.labels, timeline, dataset.classes, name)
 
 
@@ -321,11 +322,7 @@ def _new_run_dir(out_dir: Path) -> Path:
     out_dir = Path(out_dir)
     if (out_dir / "run.json").exists():
         raise ConfigError(f"{out_dir} already holds a run (run.json): choose a new --out folder")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"cannot create run folder {out_dir}: {exc.strerror}") from exc
-    return out_dir
+    return out_folder(out_dir)
 
 
 def _device(name: str) -> torch.device:

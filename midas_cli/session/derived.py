@@ -10,11 +10,19 @@ Aligned table (written by ``midas align``):
   * ``derived/aligned.csv`` (only with ``midas align --csv``): ``frame,t_host_ns,<columns>``; a masked
     value is an empty field.
   * ``derived/aligned.json``: column metadata (unit, frame, source, description), method, rate, source
-    stream sha256s, calibrations applied.
+    stream sha256s, calibrations applied, and ``producer`` (outputs.provenance: run_id, command,
+    options, inputs, midas version, time).
+
+The three files of one run share its ``run_id``: ``aligned.npz`` holds it as ``run_id``, the JSON as
+``producer.run_id``, and ``aligned.values.npy`` in a trailer after the array data (``RUN_TRAILER`` + 32
+hex digits + newline; NumPy reads the array and ignores what follows it). ``read_aligned`` and
+``session verify`` refuse files of different runs. Written under the session lock, each via a unique
+temporary renamed into place, so two ``midas align`` runs on one session leave one run's files.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -26,12 +34,16 @@ from typing import Any
 import numpy as np
 
 from midas_cli.errors import SessionError
+from midas_cli.session.outputs import (provenance, replacing, session_folder, session_lock, session_read_lock,
+                                       session_target, temporary_beside)
 
 ALIGNED_STEM = "derived/aligned"
 CALIB_DIR = "calib"
 EVAL_DIR = "derived/eval"
 PLOTS_DIR = "derived/plots"
 PEDALS_GT = "derived/pedals_gt.csv"
+RUN_TRAILER = b"MIDAS-RUN:"
+_TRAILER_LEN = len(RUN_TRAILER) + 32 + 1
 
 
 @dataclass
@@ -69,12 +81,12 @@ class ValuesFile:
     """``derived/aligned.values.npy`` written while the table is still being built: columns that are
     final are appended on a background thread while later ones are computed (the kernel's copy of the
     file overlaps the computation on a second core), and the header gets the final column count last.
-    Until ``write_aligned`` renames it into place the file is ``aligned.values.npy.tmp``."""
+    Until ``write_aligned`` renames it into place the file is a unique ``.aligned.values.npy.*.tmp``
+    (the caller holds the session lock while it exists)."""
 
     def __init__(self, session_path: Path | str, n_rows: int) -> None:
-        base = Path(session_path) / ALIGNED_STEM
-        base.parent.mkdir(exist_ok=True)
-        self.path = _tmp(base.with_suffix(".values.npy"))
+        target = session_target(session_path, f"{ALIGNED_STEM}.values.npy")
+        self.path = temporary_beside(target)
         self.n_rows, self.columns_written = n_rows, 0
         self._fh = open(self.path, "wb")
         self._fh.write(_npy_header(n_rows, 0))
@@ -88,12 +100,14 @@ class ValuesFile:
         self._thread.start()
         self.columns_written += block.shape[1]
 
-    def finish(self, values: np.ndarray) -> None:
-        """Append the columns of ``values`` (N, C) not written yet and write the final header."""
+    def finish(self, values: np.ndarray, run_id: str) -> None:
+        """Append the columns of ``values`` (N, C) not written yet and the run trailer, and write the
+        final header."""
         self._join()
         self._write(values[:, self.columns_written :])
         if self._error is not None:
             raise self._error
+        self._fh.write(_trailer(run_id))
         self._fh.seek(0)
         self._fh.write(_npy_header(self.n_rows, values.shape[1]))
         self._fh.close()
@@ -127,27 +141,52 @@ def _npy_header(n_rows: int, n_columns: int) -> bytes:
 def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = False,
                   values_file: ValuesFile | None = None) -> dict[str, Path]:
     """Write ``derived/aligned.npz``, ``aligned.values.npy``, ``aligned.json`` (and ``aligned.csv`` when
-    ``csv``), each via a temporary file and rename. The values go to their own column-major ``.npy`` in
-    one write (no zip CRC, no copy), which a reader can memory-map and read column by column. A CSV from
-    an earlier run is removed when ``csv`` is off, so no stale table is left beside the new one."""
-    base = Path(session_path) / ALIGNED_STEM
-    base.parent.mkdir(exist_ok=True)
-    paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "values.npy", "json", *(("csv",) if csv else ()))}
-    if values_file is not None:
-        values_file.finish(table.values)
-    else:
-        with open(_tmp(paths["values.npy"]), "wb") as fh:
-            np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
-    with open(_tmp(paths["npz"]), "wb") as fh:
-        np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, columns=np.asarray(table.columns, dtype=str))
-    if csv:
-        write_aligned_csv(_tmp(paths["csv"]), table)
-    _tmp(paths["json"]).write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
-    for path in paths.values():
-        os.replace(_tmp(path), path)
+    ``csv``), under the session lock, each via a unique temporary and rename, all stamped with the run
+    id of ``table.meta["producer"]`` (made here if missing). The values go to their own column-major
+    ``.npy`` in one write (no zip CRC, no copy), which a reader can memory-map and read column by
+    column. A CSV from an earlier run is removed when ``csv`` is off, so no stale table is left beside
+    the new one."""
+    producer = table.meta.setdefault("producer", provenance("midas align", {}, {}))
+    run_id = producer["run_id"]
+    with session_lock(session_path), contextlib.ExitStack() as stack:
+        paths = {ext: session_target(session_path, f"{ALIGNED_STEM}.{ext}")
+                 for ext in ("values.npy", "npz", "json", *(("csv",) if csv else ()))}
+        tmps = {ext: stack.enter_context(replacing(path)) for ext, path in paths.items()}
+        if values_file is not None:
+            values_file.finish(table.values, run_id)
+            os.replace(values_file.path, tmps["values.npy"])
+        else:
+            with open(tmps["values.npy"], "wb") as fh:
+                np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
+                fh.write(_trailer(run_id))
+        with open(tmps["npz"], "wb") as fh:
+            np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns,
+                     columns=np.asarray(table.columns, dtype=str), run_id=np.asarray(run_id))
+        if csv:
+            write_aligned_csv(tmps["csv"], table)
+        tmps["json"].write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
+        # leaving the stack renames the temporaries into place (json first, values last: reversed order)
     if not csv:
-        base.with_suffix(".csv").unlink(missing_ok=True)
+        with session_lock(session_path):
+            paths["values.npy"].with_name("aligned.csv").unlink(missing_ok=True)
     return paths
+
+
+def _trailer(run_id: str) -> bytes:
+    return RUN_TRAILER + run_id.encode("ascii") + b"\n"
+
+
+def values_run_id(path: Path) -> str | None:
+    """The run id in the trailer of an ``aligned.values.npy``; None when it has none (older midas)."""
+    with open(path, "rb") as fh:
+        fh.seek(0, os.SEEK_END)
+        if fh.tell() < _TRAILER_LEN:
+            return None
+        fh.seek(-_TRAILER_LEN, os.SEEK_END)
+        tail = fh.read()
+    if not tail.startswith(RUN_TRAILER) or not tail.endswith(b"\n"):
+        return None
+    return tail[len(RUN_TRAILER):-1].decode("ascii", "replace")
 
 
 def write_aligned_csv(path: Path, table: AlignedTable) -> None:
@@ -168,23 +207,42 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
     if not npz_path.is_file():
         raise SessionError(f"{session_path} has no {npz_path.name}: run `midas align {session_path}` first")
     try:
-        with np.load(npz_path, allow_pickle=False) as data:
+        with session_read_lock(session_path), np.load(npz_path, allow_pickle=False) as data:
             frame, t_host_ns, columns = data["frame"], data["t_host_ns"], data["columns"].tolist()
-            values = data["values"] if "values" in data.files else np.load(values_path, mmap_mode="r")
-        meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
+            run_id = str(data["run_id"]) if "run_id" in data.files else None
+            if "values" in data.files:
+                values, values_run = data["values"], run_id
+            else:
+                values, values_run = np.load(values_path, mmap_mode="r"), values_run_id(values_path)
+            meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
     except (OSError, KeyError, ValueError) as exc:
         raise SessionError(f"cannot read {npz_path}: {exc}") from exc
+    json_run = (meta.get("producer") or {}).get("run_id") if isinstance(meta, dict) else None
+    if run_id is not None or values_run is not None or json_run is not None:
+        if not run_id == values_run == json_run:
+            raise SessionError(f"{base.parent}: aligned.npz, aligned.values.npy and aligned.json come from different "
+                               f"`midas align` runs (run ids {run_id}, {values_run}, {json_run}): "
+                               f"re-run `midas align {session_path}`")
     if values.shape != (len(frame), len(columns)):
         raise SessionError(f"{values_path} holds {values.shape} values for {len(frame)} frames x {len(columns)} "
                            f"columns: re-run `midas align {session_path}`")
     return AlignedTable(frame, t_host_ns, columns, values, meta)
 
 
+def aligned_problems(session_path: Path | str) -> list[str]:
+    """What is wrong with the session's aligned table, for `session verify` (nothing when it has none)."""
+    if not (Path(session_path) / f"{ALIGNED_STEM}.npz").is_file():
+        return []
+    try:
+        read_aligned(session_path)
+    except SessionError as exc:
+        return [str(exc)]
+    return []
+
+
 def calib_path(session_path: Path | str, name: str) -> Path:
-    """``calib/<name>`` inside the session (the folder is created if missing)."""
-    folder = Path(session_path) / CALIB_DIR
-    folder.mkdir(exist_ok=True)
-    return folder / name
+    """``calib/<name>`` inside the session (the folder is created if missing; refused if it leads out)."""
+    return session_target(session_path, f"{CALIB_DIR}/{name}")
 
 
 def find_calibration(session_path: Path | str, name: str) -> Path | None:
@@ -195,9 +253,7 @@ def find_calibration(session_path: Path | str, name: str) -> Path | None:
 
 def output_dir(session_path: Path | str, kind: str) -> Path:
     """``derived/eval`` (kind "eval") or ``derived/plots`` (kind "plots"), created if missing."""
-    folder = Path(session_path) / {"eval": EVAL_DIR, "plots": PLOTS_DIR}[kind]
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
+    return session_folder(session_path, {"eval": EVAL_DIR, "plots": PLOTS_DIR}[kind])
 
 
 def read_pedals_ground_truth(session_path: Path | str) -> pd.DataFrame | None:
@@ -215,6 +271,3 @@ def read_pedals_ground_truth(session_path: Path | str) -> pd.DataFrame | None:
         raise SessionError(f"{path} has no 'frame' column (columns: {', '.join(frame.columns)})")
     return frame
 
-
-def _tmp(path: Path) -> Path:
-    return path.with_name(path.name + ".tmp")

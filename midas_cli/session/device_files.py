@@ -22,6 +22,7 @@ from typing import Any, Iterator, Sequence
 from midas_cli.errors import SessionError
 from midas_cli.session.columnar import BINARY_KEY, binary_file, write_binary_copy
 from midas_cli.session.manifest import check_inside, load_manifest, write_manifest
+from midas_cli.session.outputs import inside_session, replacing, session_lock
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
 
@@ -97,6 +98,12 @@ def add_stream(session_path: Path | str, spec: StreamSpec, rows: Sequence[Sequen
     Refuses to replace an existing stream unless ``replace`` (a recorded stream never: only one that an
     earlier offline step added, marked ``derived_by``)."""
     folder = Path(session_path)
+    with session_lock(folder):  # the manifest is read, changed and replaced: one writer at a time
+        return _add_stream_locked(folder, spec, rows, derived_by, replace)
+
+
+def _add_stream_locked(folder: Path, spec: StreamSpec, rows: Sequence[Sequence[Any]], derived_by: dict[str, Any],
+                       replace: bool) -> Path:
     manifest = load_manifest(folder)
     if manifest["status"] == "recording":
         raise SessionError(f"{folder} is still recording (or crashed): run `midas session repair {folder}` first")
@@ -104,11 +111,10 @@ def add_stream(session_path: Path | str, spec: StreamSpec, rows: Sequence[Sequen
     if existing is not None and not (replace and "derived_by" in existing):
         what = "was recorded" if "derived_by" not in existing else "exists (use --force to replace it)"
         raise SessionError(f"{folder}: stream {spec.name!r} {what}; choose another name")
-    path = check_inside(folder, spec.file)
-    check_inside(folder, binary_file(spec)).unlink(missing_ok=True)  # a copy of what is being replaced
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(spec.header_line() + spec.format_rows(rows), encoding="utf-8")
-    os.replace(tmp, path)
+    path = inside_session(folder, spec.file)
+    inside_session(folder, binary_file(spec)).unlink(missing_ok=True)  # a copy of what is being replaced
+    with replacing(path) as tmp:
+        tmp.write_text(spec.header_line() + spec.format_rows(rows), encoding="utf-8")
     entry = {**spec.to_manifest(), **summarize_stream(path, spec).manifest_fields(), "derived_by": derived_by}
     try:
         entry[BINARY_KEY] = write_binary_copy(folder, spec, entry["sha256"])

@@ -9,6 +9,7 @@ in place if it is complete and valid, or refuses and leaves the folder as it is.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass, field
@@ -18,8 +19,10 @@ from typing import Any
 from midas_cli import __version__
 from midas_cli.errors import SessionError
 from midas_cli.session.columnar import add_binary_copies, copy_differences
+from midas_cli.session.derived import aligned_problems
 from midas_cli.session.manifest import (MANIFEST_NAME, MANIFEST_TMP, fsync_dir, load_manifest, read_manifest_file,
                                         write_manifest)
+from midas_cli.session.outputs import is_locked, session_lock
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import StreamSummary, complete_line_end, summarize_bytes, summarize_stream
@@ -39,7 +42,8 @@ def find_temporaries(folder: Path | str) -> list[str]:
     ``streams/<name>.csv.tmp`` (device_files.add_stream), ``derived/aligned.*.tmp`` (align),
     ``derived/pedals_gt.{csv,json}.tmp``, ``labels/<name>.csv.tmp``, ``calib/*.json.tmp``
     (calibrations), and any ``*.tmp`` / ``*.tmp.npz`` of artifacts.write_json / write_npz (calib/,
-    derived/ or elsewhere in the folder). The whole folder is searched but ``video/``; links to
+    derived/ or elsewhere in the folder), and the unique ``.<file>.<random>.tmp`` of
+    ``outputs.replacing`` (every derived output). The whole folder is searched but ``video/``; links to
     folders are not followed."""
     root = Path(folder)
     found = []
@@ -93,8 +97,12 @@ def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
         return VerifyReport(folder, problems=[orphan])
     session = Session.open(folder, allow_failed=True)
     report = VerifyReport(session.path)
-    report.problems += [f"temporary file {rel} left by an interrupted write: run `midas session repair "
-                        f"{session.path}` to remove it" for rel in find_temporaries(session.path)]
+    if is_locked(session.path):  # a running midas command's temporaries are work in progress, not litter
+        report.notes += [f"temporary file {rel}: another midas command is writing this session now"
+                         for rel in find_temporaries(session.path)]
+    else:
+        report.problems += [f"temporary file {rel} left by an interrupted write: run `midas session repair "
+                            f"{session.path}` to remove it" for rel in find_temporaries(session.path)]
     if session.status == "failed":
         reason = " ".join(str(session.manifest.get("stop_reason") or "no reason recorded").split())
         report.problems.append(f"the recording failed to start ({reason}): the session holds no data")
@@ -105,6 +113,7 @@ def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
         )
     for name in session.stream_names:
         _verify_stream(session, name, report, strict)
+    report.problems += aligned_problems(session.path)
     return report
 
 
@@ -196,9 +205,14 @@ def repair_session(path: Path | str) -> RepairReport:
     mark the session 'recovered'. In any session, first put a complete ``manifest.json.tmp`` in place
     when ``manifest.json`` is missing (refusing, with nothing changed, when it is not complete), then
     remove the temporary files interrupted writes left (``find_temporaries``). Nothing else of a
-    finished session is touched. Run it while nothing else writes the session (a running `midas
-    align` has its output in temporaries)."""
+    finished session is touched. Holds the session lock, so it waits for a running midas command
+    (whose output is still in temporaries) to finish first."""
     folder = Path(path)
+    with session_lock(folder) if folder.is_dir() else contextlib.nullcontext():
+        return _repair_locked(folder)
+
+
+def _repair_locked(folder: Path) -> RepairReport:
     restored = _restore_manifest(folder)
     manifest = load_manifest(folder)
     removed = _remove_temporaries(folder)

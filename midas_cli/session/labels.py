@@ -9,7 +9,6 @@ acquisition and is not rewritten; label sets live beside it and say where they c
 from __future__ import annotations
 
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +19,7 @@ import pandas as pd
 
 from midas_cli import __version__
 from midas_cli.errors import SessionError
+from midas_cli.session.outputs import replacing, session_lock, session_target
 
 LABELS_DIR = "labels"
 FRAME_CONVENTION = "0-based video frame index = seq of the session's video stream"
@@ -49,15 +49,13 @@ def write_frame_labels(session_path: Path | str, frames: Sequence[int], labels: 
         raise SessionError(f"frames {frames.shape} and labels {labels.shape} must be equal-length 1-D")
     if len(frames) > 1 and not (np.diff(frames) > 0).all():
         raise SessionError("label frames must be strictly increasing")
-    folder = Path(session_path) / LABELS_DIR
-    folder.mkdir(exist_ok=True)
-    csv_path = folder / f"{name}.csv"
-    tmp = csv_path.with_suffix(".csv.tmp")
-    pd.DataFrame({"frame": frames, "label": labels}).to_csv(tmp, index=False)
-    os.replace(tmp, csv_path)
+    csv_path = session_target(session_path, f"{LABELS_DIR}/{name}.csv")
+    json_path = session_target(session_path, f"{LABELS_DIR}/{name}.json")
     full_meta = {"frame_convention": FRAME_CONVENTION, "midas_version": __version__, **meta,
                  "frames": int(len(frames))}
-    (folder / f"{name}.json").write_text(json.dumps(full_meta, indent=2) + "\n", encoding="utf-8")
+    with session_lock(session_path), replacing(json_path) as tmp_json, replacing(csv_path) as tmp_csv:
+        pd.DataFrame({"frame": frames, "label": labels}).to_csv(tmp_csv, index=False)
+        tmp_json.write_text(json.dumps(full_meta, indent=2) + "\n", encoding="utf-8")
     return csv_path
 
 

@@ -10,8 +10,8 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +21,7 @@ from midas_cli.errors import SessionError
 from midas_cli.session.derived import PEDALS_GT
 from midas_cli.session.labels import FRAME_CONVENTION
 from midas_cli.session.manifest import MANIFEST_NAME
+from midas_cli.session.outputs import replacing, session_lock, session_of, session_target
 from midas_cli.session.reader import Session
 
 VIDEO_DIR = "video"
@@ -59,8 +60,8 @@ def video_frame_times(session: Session) -> tuple[str | None, pd.Series]:
 
 
 def pedals_gt_path(session_path: Path | str) -> Path:
-    """``derived/pedals_gt.csv`` of a session."""
-    return Path(session_path) / PEDALS_GT
+    """``derived/pedals_gt.csv`` of a session (its folder created; refused if it leads out)."""
+    return session_target(session_path, PEDALS_GT)
 
 
 def write_pedals_gt(csv_path: Path | str, table: pd.DataFrame, meta: dict[str, Any]) -> tuple[Path, Path]:
@@ -69,14 +70,10 @@ def write_pedals_gt(csv_path: Path | str, table: pd.DataFrame, meta: dict[str, A
     if "frame" not in table.columns:
         raise SessionError("a pedal ground-truth table needs a 'frame' column")
     json_path = csv_path.with_suffix(".json")
-    tmp_csv, tmp_json = (p.with_name(p.name + ".tmp") for p in (csv_path, json_path))
-    try:
-        csv_path.parent.mkdir(parents=True, exist_ok=True)
+    session = session_of(csv_path.parent)
+    with session_lock(session) if session else contextlib.nullcontext(), replacing(json_path) as tmp_json, \
+            replacing(csv_path) as tmp_csv:
         table.to_csv(tmp_csv, index=False)
         full = {"frame_convention": FRAME_CONVENTION, **meta}
         tmp_json.write_text(json.dumps(full, indent=2, default=str) + "\n", encoding="utf-8")
-        os.replace(tmp_csv, csv_path)
-        os.replace(tmp_json, json_path)
-    except OSError as exc:
-        raise SessionError(f"cannot write {csv_path}: {exc}") from exc
     return csv_path, json_path

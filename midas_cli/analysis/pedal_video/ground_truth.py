@@ -25,6 +25,7 @@ from midas_cli.analysis.pedal_video.extract import PedalStates, debounce, extrac
 from midas_cli.analysis.pedal_video.layout import load_layout
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.session.manifest import MANIFEST_NAME
+from midas_cli.session.outputs import out_target
 from midas_cli.session.pedals_gt import (pedals_gt_path, session_of_video, session_videos, video_frame_times,
                                          write_pedals_gt)
 from midas_cli.session.reader import Session
@@ -90,7 +91,7 @@ def resolve_input(path: Path, out: Path | None) -> tuple[Path, Path | None, Path
     session = session_of_video(path)
     if session is not None:
         return path, session, pedals_gt_path(session)
-    return path, None, out if out is not None else path.with_name(path.stem + ".pedals_gt.csv")
+    return path, None, out_target(out if out is not None else path.with_name(path.stem + ".pedals_gt.csv"))
 
 
 def run_ground_truth(request: GroundTruthRequest,

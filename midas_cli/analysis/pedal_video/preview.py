@@ -15,6 +15,7 @@ from midas_cli.analysis.pedal_video.layout import Layout
 from midas_cli.analysis.pedal_video.reader import FrameReader, FrameReading
 from midas_cli.analysis.pedal_video.video import cut_view, iter_frames, open_video, resolve_view, view_size
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session.outputs import out_target, write_bytes
 
 ON, OFF, TEXT = (60, 220, 60), (40, 40, 230), (255, 255, 255)
 MIN_OUTLINE_PX = 8
@@ -82,6 +83,7 @@ def write_png(path: Path | str, picture: np.ndarray) -> Path:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ConfigError(f"preview output {path} must end in .png")
-    if not path.parent.is_dir() or not cv2.imwrite(str(path), picture):
-        raise ConfigError(f"cannot write {path} (does its folder exist?)")
-    return path
+    ok, encoded = cv2.imencode(".png", picture)
+    if not ok:
+        raise ConfigError(f"cannot encode the preview {path} as PNG")
+    return write_bytes(out_target(path), encoded.tobytes())
