@@ -55,6 +55,7 @@ COMMANDS = {
     "eval-correlation": ["eval", "correlation", "{s}"],
 }
 WRITERS = {"align", "eval-pedals", "eval-correlation"}  # write outputs under the session's derived/
+DOUBTFUL = {"torn-tail", "time-backwards"}  # damage a reader may live with if it says so
 # manifest fields every reader relies on: any value of the wrong JSON type must be refused
 STRUCTURAL = [("schema_version",), ("session_id",), ("status",), ("metadata",), ("metadata", "trial"),
               ("start",), ("start", "host_ns"), ("devices",), ("streams",)]
@@ -189,7 +190,9 @@ def apply(damage: Damage, session: Path, outside: Path) -> bool:
         npy.write_bytes(b"\x93NUMPY junk" + bytes(int(detail) % 97))
         return False  # the CSV is intact: falling back to it (with a warning) is a right answer
     csv.write_bytes(b"".join(lines))
-    return kind != "torn-tail"  # a torn last line is what a crash leaves: use the whole lines, warn
+    # a torn last line is what a crash leaves (use the whole lines, warn); host time stepping back is
+    # what the original system's importer keeps (flag it): both may be read, never quietly
+    return kind not in DOUBTFUL
 
 
 def _refused(damage: Damage, command: str, wrong_for_all: bool) -> bool:
@@ -320,3 +323,6 @@ def test_damaged_sessions_are_refused_or_read_honestly_never_crash_or_escape(
         assert _recorded(snapshot(session), session) == before_inside, f"{what} changed the recorded session"
     if _refused(damage, command, wrong):
         assert code != 0, f"{what} exited 0 on input it must refuse: {text[-2000:]}"
+    if code == 0 and damage.kind in DOUBTFUL and command == "align":
+        said = [line for line in text.splitlines() if "warning" in line.lower()]
+        assert any(f"{damage.target}.csv" in line for line in said), f"{what} used it without a word: {text[-2000:]}"
