@@ -11,7 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write, parse_clock
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
 from midas_cli.errors import ConfigError
 
 
@@ -19,7 +19,7 @@ def align(
     sessions: list[Path] = typer.Argument(..., help="Session folder(s).", file_okay=False),
     method: str = typer.Option("causal", "--method", help=f"Sample chosen per frame: {' or '.join(METHODS)} "
                                "(latest at or before the frame / nearest in time)."),
-    rate: Optional[float] = typer.Option(None, "--rate", help="Downsample the frame clock to this rate (Hz), "
+    rate: Optional[float] = typer.Option(None, "--rate", callback=positive, help="Downsample the frame clock to this rate (Hz), "
                                          "e.g. 10; default: every video frame."),
     clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
                               "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "

@@ -9,7 +9,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
 from midas_cli.errors import ConfigError
 from midas_cli.session.reader import find_sessions
 
@@ -25,7 +25,7 @@ SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/2
 EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
-RATE_OPT = typer.Option(None, "--rate", help="Model rate in Hz (default: Raven-II 10, otherwise 30).")
+RATE_OPT = typer.Option(None, "--rate", callback=positive, help="Model rate in Hz (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
 
 
