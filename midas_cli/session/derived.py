@@ -19,6 +19,7 @@ import functools
 import json
 import os
 import threading
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -172,8 +173,8 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
             frame, t_host_ns, columns = data["frame"], data["t_host_ns"], data["columns"].tolist()
             values = data["values"] if "values" in data.files else np.load(values_path, mmap_mode="r")
         meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
-    except (OSError, KeyError, ValueError) as exc:
-        raise SessionError(f"cannot read {npz_path}: {exc}") from exc
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged or not an npz at all
+        raise SessionError(f"cannot read {npz_path}: {exc} (re-run `midas align {session_path}`)") from exc
     if values.shape != (len(frame), len(columns)):
         raise SessionError(f"{values_path} holds {values.shape} values for {len(frame)} frames x {len(columns)} "
                            f"columns: re-run `midas align {session_path}`")
