@@ -134,16 +134,21 @@ def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = Fal
     base = Path(session_path) / ALIGNED_STEM
     base.parent.mkdir(exist_ok=True)
     paths = {ext: base.with_suffix(f".{ext}") for ext in ("npz", "values.npy", "json", *(("csv",) if csv else ()))}
-    if values_file is not None:
-        values_file.finish(table.values)
-    else:
-        with open(_tmp(paths["values.npy"]), "wb") as fh:
-            np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
-    with open(_tmp(paths["npz"]), "wb") as fh:
-        np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, columns=np.asarray(table.columns, dtype=str))
-    if csv:
-        write_aligned_csv(_tmp(paths["csv"]), table)
-    _tmp(paths["json"]).write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
+    try:
+        if values_file is not None:
+            values_file.finish(table.values)
+        else:
+            with open(_tmp(paths["values.npy"]), "wb") as fh:
+                np.save(fh, np.asfortranarray(table.values), allow_pickle=False)
+        with open(_tmp(paths["npz"]), "wb") as fh:
+            np.savez(fh, frame=table.frame, t_host_ns=table.t_host_ns, columns=np.asarray(table.columns, dtype=str))
+        if csv:
+            write_aligned_csv(_tmp(paths["csv"]), table)
+        _tmp(paths["json"]).write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
+    except BaseException:  # e.g. disk full: the previous table stays, no temporaries are left to fill the disk
+        for path in paths.values():
+            _tmp(path).unlink(missing_ok=True)
+        raise
     for path in paths.values():
         os.replace(_tmp(path), path)
     if not csv:
