@@ -6,12 +6,11 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
 from midas_cli.simulate.dataset import generate_dataset, trial_configs
 from midas_cli.commands.common import JSON_OPTION, err, non_negative, out, positive, print_json
-from midas_cli.console import is_interactive
+from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 
 app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
@@ -66,13 +65,9 @@ def console_video(
     Example: midas simulate console-video --out console.mkv --duration 20 --seed 1
     """
     spec = ConsoleVideoSpec(duration, seed, fps, _parse_size(size), stereo, noise, max_shift, layout)
-    if is_interactive():
-        with Progress(TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                      console=err) as progress:
-            task = progress.add_task("render", total=spec.frames)
-            video = render_console_video(out_path, spec, lambda done, total: progress.update(task, completed=done))
-    else:
-        video = render_console_video(out_path, spec)
+    with progress_display() as progress:
+        task = progress.add_task("rendering frames", total=spec.frames)
+        video = render_console_video(out_path, spec, lambda done, total: progress.update(task, completed=done))
     if as_json:
         print_json({"video": str(video.video), "schedule": str(video.schedule_csv), "frames": video.frames,
                     "pedals": video.pedals})
