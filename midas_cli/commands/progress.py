@@ -79,7 +79,7 @@ class PlainProgress:
 
 
 def progress_line(what: str, done: float, total: float | None, elapsed_s: float, info: str = "") -> str:
-    """``midas: progress: what: done/total (pct%), elapsed H:MM:SS, ETA H:MM:SS[, info]``; the ETA
+    """``midas: progress: what: done/total (pct%), elapsed HH:MM:SS, ETA HH:MM:SS[, info]``; the ETA
     extrapolates the rate so far and is 'unknown' before the first step or without a total."""
     if total:
         how_far = f"{done:g}/{total:g} ({100 * done / total:.0f}%)"
