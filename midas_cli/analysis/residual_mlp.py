@@ -18,6 +18,7 @@ from torch import nn
 
 from midas_cli.analysis.calibration import MLPConfig
 from midas_cli.errors import SessionError
+from midas_cli.models.torch_io import load_weights_only
 
 
 class MLP(nn.Module):
@@ -120,9 +121,10 @@ def load_mlp(path: Path, description: dict[str, Any]) -> FittedMLP:
     y_mean = np.asarray(description["y_mean"])
     x_mean = np.asarray(description["x_mean"])
     model = MLP(len(x_mean), len(y_mean), config.hidden, config.dropout)
+    state = load_weights_only(path, "MLP weights")
     try:
-        model.load_state_dict(torch.load(path, weights_only=True))
-    except (OSError, RuntimeError, KeyError) as exc:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as exc:  # not this MLP's state dict
         raise SessionError(f"cannot load MLP weights {path}: {exc}") from exc
     return FittedMLP(model, config, x_mean, np.asarray(description["x_std"]), y_mean,
                      np.asarray(description["y_std"]), float(description.get("final_train_rmse_std_units", np.nan)))

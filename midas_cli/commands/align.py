@@ -7,11 +7,12 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write, parse_clock
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
+from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 
 
@@ -19,7 +20,7 @@ def align(
     sessions: list[Path] = typer.Argument(..., help="Session folder(s).", file_okay=False),
     method: str = typer.Option("causal", "--method", help=f"Sample chosen per frame: {' or '.join(METHODS)} "
                                "(latest at or before the frame / nearest in time)."),
-    rate: Optional[float] = typer.Option(None, "--rate", help="Downsample the frame clock to this rate (Hz), "
+    rate: Optional[float] = typer.Option(None, "--rate", callback=positive, help="Downsample the frame clock to this rate (Hz), "
                                          "e.g. 10; default: every video frame."),
     clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
                               "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "
@@ -65,10 +66,11 @@ def align(
 
 def _run(sessions: list[Path], options: AlignOptions, jobs: int, csv: bool) -> list[dict[str, Any]]:
     """Align each session (in ``jobs`` processes), with a progress bar on stderr; input order kept."""
-    columns = (TextColumn("aligning"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TimeRemainingColumn())
     results: dict[Path, dict[str, Any]] = {}
-    with Progress(*columns, console=err, transient=True) as progress:
-        task = progress.add_task("align", total=len(sessions))
+    with progress_display(*columns, transient=True) as progress:
+        task = progress.add_task("aligning sessions", total=len(sessions))
         if jobs == 1:
             for path in sessions:
                 results[path] = align_and_write(path, options, csv)

@@ -13,7 +13,7 @@ from rich.table import Table
 from rich.text import Text
 
 from midas_cli.commands import calibrate_analysis
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
 from midas_cli.devices.fps.calibration import (
     FpsCalibration, LiveCalibration, calibrate_from_session, calibrate_live,
 )
@@ -35,8 +35,8 @@ def fps(
     url: Optional[str] = typer.Option(None, "--url", help="Use this fps:// URL instead of the rig file's."),
     session: Optional[Path] = typer.Option(None, "--session", help="Compute the thresholds from this recorded "
                                            "session instead of live prompts (non-interactive).", file_okay=False),
-    rest_s: float = typer.Option(3.0, "--rest-s", help="Seconds measured with the feet off all pedals."),
-    press_s: float = typer.Option(3.0, "--press-s", help="Seconds measured while each pedal is held."),
+    rest_s: float = typer.Option(3.0, "--rest-s", callback=positive, help="Seconds measured with the feet off all pedals."),
+    press_s: float = typer.Option(3.0, "--press-s", callback=positive, help="Seconds measured while each pedal is held."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Show the thresholds; do not change the rig file."),
     as_json: bool = JSON_OPTION,
 ) -> None:

@@ -12,7 +12,7 @@ from rich.table import Table
 from midas_cli.analysis.calibration import TARGETS, MLPConfig
 from midas_cli.analysis.eval_runs import optimise_pedals
 from midas_cli.analysis.fit_calibration import CalibrationOptions, calibrate_sessions
-from midas_cli.commands.common import JSON_OPTION, err, error_line, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, error_line, non_negative, out, print_json
 from midas_cli.errors import ConfigError
 
 SESSIONS_ARG = typer.Argument(..., help="Session folder(s) with robot kinematics (each is one trial).", file_okay=False)
@@ -20,14 +20,14 @@ TARGET_OPTION = typer.Option("mtm", "--target", help=f"Robot frame to map into: 
 OUT_OPTION = typer.Option(None, "--out", help="Also write the model fitted on ALL sessions to this .json "
                           "(weights beside it as .pt).", dir_okay=False)
 EPOCHS_OPTION = typer.Option(50, "--epochs", help="MLP training epochs (paper: 50).")
-DECAY_OPTION = typer.Option(1.5, "--weight-decay", help="MLP L2 weight decay (paper: 1.5).")
+DECAY_OPTION = typer.Option(1.5, "--weight-decay", callback=non_negative, help="MLP L2 weight decay (paper: 1.5).")
 
 
 def _options(target: str, rigid_only: bool, epochs: int, weight_decay: float) -> CalibrationOptions:
     if target not in TARGETS:
         raise ConfigError(f"--target {target!r} is unknown (expected one of {', '.join(TARGETS)})")
-    if epochs < 1 or weight_decay < 0:
-        raise ConfigError(f"--epochs must be >= 1 and --weight-decay >= 0, got {epochs} and {weight_decay}")
+    if epochs < 1:
+        raise ConfigError(f"--epochs must be >= 1, got {epochs}")
     return CalibrationOptions(rigid_only=rigid_only, mlp=MLPConfig(epochs=epochs, weight_decay=weight_decay))
 
 

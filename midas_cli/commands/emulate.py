@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from midas_cli.commands.common import JSON_OPTION, err, print_json
+from midas_cli.commands.common import JSON_OPTION, err, finite, non_negative, positive, print_json, probability
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.devices.raven.device import parse_address
 from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
@@ -26,15 +26,15 @@ def trakstar(
     sensors: int = typer.Option(4, "--sensors", help="Sensors on the tracker (1..4)."),
     baud: int = typer.Option(115200, "--baud", help="Line speed the output is paced to (8N1)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's motion and of the faults."),
-    corrupt: float = typer.Option(0.0, "--corrupt", help="Probability per byte of framing-breaking line noise."),
-    drop: float = typer.Option(0.0, "--drop", help="Probability per byte of losing it."),
-    stall_at: float = typer.Option(-1.0, "--stall-at", help="Seconds after start: stop sending (see --stall-for)."),
-    stall_for: float = typer.Option(0.0, "--stall-for", help="Length of the stall in seconds."),
-    unplug_at: float = typer.Option(-1.0, "--unplug-at", help="Seconds after start: close the pty (needs --link)."),
-    unplug_for: float = typer.Option(0.0, "--unplug-for", help="Seconds until the pty is reopened at --link."),
+    corrupt: float = typer.Option(0.0, "--corrupt", callback=probability, help="Probability per byte of framing-breaking line noise."),
+    drop: float = typer.Option(0.0, "--drop", callback=probability, help="Probability per byte of losing it."),
+    stall_at: float = typer.Option(-1.0, "--stall-at", callback=finite, help="Seconds after start: stop sending (see --stall-for)."),
+    stall_for: float = typer.Option(0.0, "--stall-for", callback=non_negative, help="Length of the stall in seconds."),
+    unplug_at: float = typer.Option(-1.0, "--unplug-at", callback=finite, help="Seconds after start: close the pty (needs --link)."),
+    unplug_for: float = typer.Option(0.0, "--unplug-for", callback=non_negative, help="Seconds until the pty is reopened at --link."),
     link: Optional[Path] = typer.Option(None, "--link", help="Symlink that always points at the current pty."),
     summary: Optional[Path] = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit."),
-    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Serve the trakSTAR's Flock-of-Birds RS-232 protocol on a pty, paced to the baud rate, with the
@@ -43,8 +43,6 @@ def trakstar(
 
     Example: midas emulate trakstar --link /tmp/trakstar --summary /tmp/trakstar.json --corrupt 0.01
     """
-    if duration is not None and duration <= 0:
-        raise ConfigError(f"--duration must be positive, got {duration}")
     config = EmulatorConfig(sensors, baud, seed, corrupt, drop, stall_at, stall_for, unplug_at, unplug_for,
                             str(link) if link else None)
     emulator = TrakstarEmulator(config)
@@ -79,19 +77,19 @@ def _stop_on_signals() -> dict:
 @app.command()
 def fps(
     channels: int = typer.Option(9, "--channels", help="FSR channels on the board (1..9)."),
-    rate: int = typer.Option(250, "--rate", help="Sample rate at boot in Hz (the host sets its own with RATE)."),
+    rate: int = typer.Option(250, "--rate", callback=positive, help="Sample rate at boot in Hz (the host sets its own with RATE)."),
     baud: int = typer.Option(500000, "--baud", help="The firmware's line speed (limits the rate it accepts)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's feet and of the faults."),
     pedals: str = typer.Option("model", "--pedals", help="model: the surgeon presses pedals; idle: feet at rest."),
-    corrupt: float = typer.Option(0.0, "--corrupt", help="Probability per byte of corrupting it."),
-    drop: float = typer.Option(0.0, "--drop", help="Probability per byte of losing it."),
-    stall_at: float = typer.Option(-1.0, "--stall-at", help="Seconds after start: the board hangs (see --stall-for)."),
-    stall_for: float = typer.Option(0.0, "--stall-for", help="Length of the stall in seconds."),
-    unplug_at: float = typer.Option(-1.0, "--unplug-at", help="Seconds after start: pull the cable (use --link)."),
-    unplug_for: float = typer.Option(0.0, "--unplug-for", help="Seconds until it is plugged back in (a reboot)."),
+    corrupt: float = typer.Option(0.0, "--corrupt", callback=probability, help="Probability per byte of corrupting it."),
+    drop: float = typer.Option(0.0, "--drop", callback=probability, help="Probability per byte of losing it."),
+    stall_at: float = typer.Option(-1.0, "--stall-at", callback=finite, help="Seconds after start: the board hangs (see --stall-for)."),
+    stall_for: float = typer.Option(0.0, "--stall-for", callback=non_negative, help="Length of the stall in seconds."),
+    unplug_at: float = typer.Option(-1.0, "--unplug-at", callback=finite, help="Seconds after start: pull the cable (use --link)."),
+    unplug_for: float = typer.Option(0.0, "--unplug-for", callback=non_negative, help="Seconds until it is plugged back in (a reboot)."),
     link: Optional[Path] = typer.Option(None, "--link", help="Symlink that always points at the current pty."),
     summary: Optional[Path] = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit."),
-    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Serve the FPS pedal board's MIDAS-FPS line protocol (firmware/fps/PROTOCOL.md) on a pty, paced
@@ -101,8 +99,6 @@ def fps(
 
     Example: midas emulate fps --link /tmp/fps --summary /tmp/fps.json --corrupt 0.01
     """
-    if duration is not None and duration <= 0:
-        raise ConfigError(f"--duration must be positive, got {duration}")
     windows = {name: ((at, length),) if at >= 0 and length > 0 else ()
                for name, at, length in (("stalls", stall_at, stall_for), ("unplugs", unplug_at, unplug_for))}
     config = FpsEmulatorConfig(channels, rate, baud, seed, pedals, corrupt_p=corrupt, drop_p=drop,
@@ -144,10 +140,10 @@ def raven(
     to: str = typer.Option("127.0.0.1:36000", "--to", help="HOST:PORT the console's UDP packets go to."),
     source: str = typer.Option("", "--from", help="HOST or HOST:PORT to send from (e.g. 127.0.0.2 to play a "
                                                   "stranger on loopback); default: what the route picks."),
-    rate: float = typer.Option(1000.0, "--rate", help="Packets per second."),
+    rate: float = typer.Option(1000.0, "--rate", callback=positive, help="Packets per second."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's hands and clutch pedal."),
     corrupt_every: int = typer.Option(0, "--corrupt-every", help="After every N packets send a wrong-size one."),
-    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Send Raven-II surgeon-console telemetry (124-byte u_struct UDP packets) following the simulated
@@ -156,8 +152,6 @@ def raven(
 
     Example: midas emulate raven --to 127.0.0.1:36000 --rate 1000 --duration 10
     """
-    if duration is not None and duration <= 0:
-        raise ConfigError(f"--duration must be positive, got {duration}")
     host, port = parse_address(to, "--to")
     emulator = RavenEmulator(RavenEmulatorConfig(host, port, rate, seed, corrupt_every, source),
                              keep_sent=False).start()

@@ -7,7 +7,8 @@ from typing import Optional
 
 import typer
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, out, print_json
+from midas_cli.commands.progress import progress_display
 
 app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)
 
@@ -28,11 +29,9 @@ def handkp(
 
     Example: midas extract handkp sessions/suturing_S1_T1_20250101T120000Z --detector mediapipe
     """
-    from rich.progress import Progress
-
     from midas_cli.devices.rgbd.handkp import extract_handkp
 
-    with Progress(console=err, transient=True) as bar:
+    with progress_display(transient=True) as bar:
         task = bar.add_task("extracting hand keypoints", total=None)
         result = extract_handkp(session, detector, device, stream, force, mirrored,
                                 progress=lambda done, total: bar.update(task, completed=done, total=total))

@@ -5,9 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, out, print_json
+from midas_cli.commands.progress import progress_display
 
 app = typer.Typer(help="Extract learned features from recordings.", no_args_is_help=True)
 
@@ -32,8 +33,8 @@ def image(
 
     options = ExtractOptions(backbone=backbone, batch_size=batch_size, every=every, resize=max(256, crop),
                              crop=crop, device=device)
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=err) as progress:
+    with progress_display(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                          TimeElapsedColumn()) as progress:
         task = progress.add_task(f"{backbone} frames", total=None)
         summary = extract_features(video, weights, options, out_path,
                                    lambda done, total: progress.update(task, completed=done, total=total or None))

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from midas_cli.analysis.pedal_video.ground_truth import (GroundTruthRequest, GroundTruthResult, JobFailure,
@@ -14,7 +14,7 @@ from midas_cli.analysis.pedal_video.ground_truth import (GroundTruthRequest, Gro
 from midas_cli.analysis.pedal_video.layout import load_layout
 from midas_cli.analysis.pedal_video.preview import preview_frame, write_png
 from midas_cli.commands.common import JSON_OPTION, err, out, print_json
-from midas_cli.console import is_interactive
+from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 
 app = typer.Typer(help="Ground truth read from recordings (pedal states from the console video).",
@@ -76,19 +76,17 @@ def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: O
 
 
 def _run_with_progress(requests: list[GroundTruthRequest], jobs: int) -> list[GroundTruthResult | JobFailure]:
-    if not is_interactive():
-        outcomes = run_many(requests, jobs)
-        for outcome in outcomes:
-            if isinstance(outcome, GroundTruthResult):
-                err.print(f"midas: {outcome.input}: {outcome.frames} frames -> {outcome.csv}", markup=False)
-        return outcomes
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=err, transient=False) as progress:
+    with progress_display(*columns) as progress:
         tasks = [progress.add_task(r.input.name, total=None) for r in requests]
 
         def update(index: int, done: int, total: int) -> None:
             progress.update(tasks[index], completed=done, total=total or None)
-        return run_many(requests, jobs, update)
+        outcomes = run_many(requests, jobs, update)
+    for outcome in outcomes:
+        if isinstance(outcome, GroundTruthResult):
+            err.print(f"midas: {outcome.input}: {outcome.frames} frames -> {outcome.csv}", markup=False)
+    return outcomes
 
 
 def _render(results: list[GroundTruthResult]) -> None:

@@ -9,7 +9,7 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
 from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResult, export_labels, import_transcription
 from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
@@ -162,7 +162,7 @@ def stats(
     name: str = NAME_OPTION,
     taxonomy_name: Optional[str] = typer.Option(None, "--taxonomy", help="Taxonomy for names and class order "
                                                 "(default: the one the sessions' labels name)."),
-    fps: float = typer.Option(30.0, "--fps", help="Frame rate of transcription files, Hz."),
+    fps: float = typer.Option(30.0, "--fps", callback=positive, help="Frame rate of transcription files, Hz."),
     exclude: list[str] = typer.Option([], "--exclude", help="Leave out this label (repeatable), e.g. Idle."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Also write the transition matrix as a PNG heatmap."),
     as_json: bool = JSON_OPTION,

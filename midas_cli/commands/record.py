@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import signal
 import sys
 import time
@@ -16,7 +15,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from midas_cli.commands.common import STDERR_LOG, err, error_line, fail
+from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
 from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.record.outcome import recording_problems, stream_outcomes
@@ -46,8 +45,8 @@ def record(
     trial: Optional[int] = typer.Option(None, help="Trial number."),
     platform: Optional[str] = typer.Option(None, help="Robot platform (default: the rig's)."),
     note: str = typer.Option("", "--note", help="Operator note stored in the manifest."),
-    master_rate: Optional[float] = typer.Option(None, "--master-rate", help="Master rate in Hz (default: rig's)."),
-    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    master_rate: Optional[float] = typer.Option(None, "--master-rate", callback=positive, help="Master rate in Hz (default: rig's)."),
+    duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     seed: int = typer.Option(0, "--seed", help="Seed for simulated devices."),
     no_tui: bool = typer.Option(False, "--no-tui", help="Plain status lines instead of the live screen."),
     status_json: bool = typer.Option(False, "--status-json", help="JSON lines on stdout: a status object a second, "
@@ -64,7 +63,7 @@ def record(
     stop = _StopFlag()
     stop.install()  # first: from here on a stop signal ends the recording as documented, never a traceback
     try:
-        _check_options(duration, seed, master_rate, queue_size)
+        _check_options(seed, master_rate, queue_size)
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest())
@@ -101,13 +100,11 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
         raise SessionError(f"{recorder.fatal_error} (session kept: {recorder.path})")
 
 
-def _check_options(duration: Optional[float], seed: int, master_rate: Optional[float], queue_size: int) -> None:
+def _check_options(seed: int, master_rate: Optional[float], queue_size: int) -> None:
     """Refuse impossible values before anything is created (exit 2, one line)."""
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        raise ConfigError(f"--duration must be a positive number of seconds, got {duration}")
     if not 0 <= seed <= MAX_SEED:
         raise ConfigError(f"--seed must be in 0..{MAX_SEED}, got {seed}")
-    if master_rate is not None and not (math.isfinite(master_rate) and 0 < master_rate <= 1000):
+    if master_rate is not None and master_rate > 1000:  # finite and > 0: checked by its option's callback
         raise ConfigError(f"--master-rate must be in (0, 1000] Hz, got {master_rate}")
     if queue_size < 16:
         raise ConfigError(f"--queue-size must be at least 16, got {queue_size}")

@@ -6,12 +6,11 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
 from midas_cli.simulate.dataset import generate_dataset, trial_configs
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
-from midas_cli.console import is_interactive
+from midas_cli.commands.common import JSON_OPTION, err, non_negative, out, positive, print_json
+from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 
 app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
@@ -24,9 +23,9 @@ def dataset(
     trials: int = typer.Option(3, "--trials", help="Number of trials (one session folder each)."),
     seed: int = typer.Option(0, "--seed", help="Seed: the same seed gives byte-identical sessions."),
     subjects: int = typer.Option(1, "--subjects", help="Subjects the trials are spread over."),
-    latency_ms: float = typer.Option(40.0, "--latency-ms", help="True EmHT latency in ms."),
-    distortion_mm: float = typer.Option(1.0, "--distortion-mm", help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
-    max_seconds: Optional[float] = typer.Option(None, "--max-seconds", help="Cut each trial to this length (s)."),
+    latency_ms: float = typer.Option(40.0, "--latency-ms", callback=non_negative, help="True EmHT latency in ms."),
+    distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative, help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
+    max_seconds: Optional[float] = typer.Option(None, "--max-seconds", callback=positive, help="Cut each trial to this length (s)."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Trials generated in parallel (worker processes)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
@@ -50,12 +49,12 @@ def dataset(
 @app.command("console-video")
 def console_video(
     out_path: Path = typer.Option(..., "--out", help="Video file to write (.mkv/.mp4: mp4v, .avi: MJPG)."),
-    duration: float = typer.Option(20.0, "--duration", help="Length in seconds."),
+    duration: float = typer.Option(20.0, "--duration", callback=positive, help="Length in seconds."),
     seed: int = typer.Option(0, "--seed", help="Seed of the pedal schedule, picture and noise."),
-    fps: float = typer.Option(30.0, "--fps", help="Frame rate in Hz."),
+    fps: float = typer.Option(30.0, "--fps", callback=positive, help="Frame rate in Hz."),
     size: str = typer.Option("1920x1080", "--size", help="One view's WIDTHxHEIGHT in pixels."),
     stereo: bool = typer.Option(False, "--stereo", help="Side-by-side stereo (two views in one frame)."),
-    noise: float = typer.Option(3.0, "--noise", help="Sensor noise, standard deviation in grey levels."),
+    noise: float = typer.Option(3.0, "--noise", callback=non_negative, help="Sensor noise, standard deviation in grey levels."),
     max_shift: int = typer.Option(1, "--max-shift", help="Largest whole-frame shift in pixels (capture jitter)."),
     layout: str = typer.Option("davinci-xi", "--layout", help="Layout whose indicators are drawn."),
     as_json: bool = JSON_OPTION,
@@ -66,13 +65,9 @@ def console_video(
     Example: midas simulate console-video --out console.mkv --duration 20 --seed 1
     """
     spec = ConsoleVideoSpec(duration, seed, fps, _parse_size(size), stereo, noise, max_shift, layout)
-    if is_interactive():
-        with Progress(TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                      console=err) as progress:
-            task = progress.add_task("render", total=spec.frames)
-            video = render_console_video(out_path, spec, lambda done, total: progress.update(task, completed=done))
-    else:
-        video = render_console_video(out_path, spec)
+    with progress_display() as progress:
+        task = progress.add_task("rendering frames", total=spec.frames)
+        video = render_console_video(out_path, spec, lambda done, total: progress.update(task, completed=done))
     if as_json:
         print_json({"video": str(video.video), "schedule": str(video.schedule_csv), "frames": video.frames,
                     "pedals": video.pedals})

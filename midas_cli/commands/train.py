@@ -6,10 +6,11 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import JSON_OPTION, out, positive, print_json
+from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.session.reader import find_sessions
 
@@ -25,7 +26,7 @@ SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/2
 EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
-RATE_OPT = typer.Option(None, "--rate", help="Model rate in Hz (default: Raven-II 10, otherwise 30).")
+RATE_OPT = typer.Option(None, "--rate", callback=positive, help="Model rate in Hz (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
 
 
@@ -40,7 +41,7 @@ def _split_list(text: str) -> tuple[str, ...]:
     return tuple(s.strip() for s in text.split(",") if s.strip())
 
 
-def _epoch_progress(progress: Progress, label: str):
+def _epoch_progress(progress, label: str):
     task = progress.add_task(label, total=None, info="")
 
     def update(epoch: int, epochs: int, info: dict) -> None:
@@ -51,9 +52,9 @@ def _epoch_progress(progress: Progress, label: str):
     return update
 
 
-def _progress() -> Progress:
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-                    TimeElapsedColumn(), console=err, transient=False)
+def _progress():
+    return progress_display(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
 
 
 def _render_metrics(metrics: dict, run_dir: Path) -> None:

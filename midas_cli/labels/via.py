@@ -69,21 +69,49 @@ def read_via(path: Path) -> ViaProject:
 
 
 def parse_via_json(text: str, where: str) -> ViaProject:
-    """Parse a VIA 3 project file (the JSON VIA saves with "Save project")."""
+    """Parse a VIA 3 project file (the JSON VIA saves with "Save project"); a section or entry of the
+    wrong JSON type is a SessionError naming it."""
     try:
         store = json.loads(text)
     except json.JSONDecodeError as exc:
         raise SessionError(f"{where} is not valid JSON: {exc}") from exc
+    store = _object(store, "the top level", where)
     missing = {"project", "attribute", "file", "view", "metadata"} - set(store)
     if missing:
         raise SessionError(f"{where} is not a VIA 3 project: missing key(s) {', '.join(sorted(missing))}")
-    files = {fid: f.get("fname", "") for fid, f in store["file"].items()}
-    view_files = {vid: [files.get(str(fid), str(fid)) for fid in v.get("fid_list", [])]
-                  for vid, v in store["view"].items()}
+    files = {fid: _object(f, f"file {fid!r}", where).get("fname", "")
+             for fid, f in _object(store["file"], "'file'", where).items()}
+    view_files = {vid: [files.get(str(fid), str(fid)) for fid in _array(_object(v, f"view {vid!r}", where)
+                                                                          .get("fid_list", []), "fid_list", where)]
+                  for vid, v in _object(store["view"], "'view'", where).items()}
+    entries = {mid: _object(m, f"metadata {mid!r}", where)
+               for mid, m in _object(store["metadata"], "'metadata'", where).items()}
     metadata = [_metadata(mid, m.get("vid", ""), m.get("z", []), m.get("xy", []), m.get("av", {}), where)
-                for mid, m in store["metadata"].items()]
-    return ViaProject("via-json", store["attribute"], view_files, metadata,
-                      str(store["project"].get("creator", "")))
+                for mid, m in entries.items()]
+    return ViaProject("via-json", _attributes(store["attribute"], where), view_files, metadata,
+                      str(_object(store["project"], "'project'", where).get("creator", "")))
+
+
+def _object(value: Any, what: str, where: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise SessionError(f"{where}: {what} must be a JSON object, got {type(value).__name__} (not a VIA 3 file?)")
+    return value
+
+
+def _array(value: Any, what: str, where: str) -> list[Any]:
+    if not isinstance(value, list):
+        raise SessionError(f"{where}: {what} must be a JSON array, got {type(value).__name__} (not a VIA 3 file?)")
+    return value
+
+
+def _attributes(value: Any, where: str) -> dict[str, dict[str, Any]]:
+    """VIA's attribute table, each attribute an object whose ``options`` (if any) map id -> text."""
+    attributes = {}
+    for aid, attr in _object(value, "'attribute'", where).items():
+        attr = dict(_object(attr, f"attribute {aid!r}", where))
+        options = _object(attr.get("options") or {}, f"attribute {aid!r} options", where)
+        attributes[str(aid)] = {**attr, "options": {str(k): str(v) for k, v in options.items()}}
+    return attributes
 
 
 def parse_via_csv(text: str, where: str) -> ViaProject:
@@ -95,7 +123,7 @@ def parse_via_csv(text: str, where: str) -> ViaProject:
         if line.startswith("# ATTRIBUTE = "):
             attributes = _json_field(line.split("=", 1)[1], "# ATTRIBUTE", where)
         elif line.startswith("# ATTRIBUTES = "):  # older VIA 3.0 exports: aid -> name only, no options
-            names = _json_field(line.split("=", 1)[1], "# ATTRIBUTES", where)
+            names = _object(_json_field(line.split("=", 1)[1], "# ATTRIBUTES", where), "# ATTRIBUTES", where)
             attributes = {aid: {"aname": n, "anchor_id": TEMPORAL_ANCHOR, "type": TYPE_TEXT, "options": {}}
                           for aid, n in names.items()}
         elif line.startswith("# CSV_HEADER = "):
@@ -108,7 +136,7 @@ def parse_via_csv(text: str, where: str) -> ViaProject:
     if header[:6] != CSV_COLUMNS:
         raise SessionError(f"{where}: CSV_HEADER {header} is not VIA 3's {CSV_COLUMNS} (the 'temporal segments' "
                            "CSV has no option table: export 'CSV' or use the project JSON)")
-    return ViaProject("via-csv", attributes, *_csv_rows(body, where))
+    return ViaProject("via-csv", _attributes(attributes, where), *_csv_rows(body, where))
 
 
 def _csv_rows(body: list[str], where: str) -> tuple[dict[str, list[str]], list[ViaMetadata]]:
@@ -120,7 +148,7 @@ def _csv_rows(body: list[str], where: str) -> tuple[dict[str, list[str]], list[V
             raise SessionError(f"{where}: data row {number} has {len(row)} fields, expected 6: {row}")
         mid = row[0]
         vid = mid.split("_", 1)[0] if "_" in mid else "1"
-        view_files.setdefault(vid, [str(f) for f in _json_field(row[1], "file_list", where)])
+        view_files.setdefault(vid, [str(f) for f in _array(_json_field(row[1], "file_list", where), "file_list", where)])
         metadata.append(_metadata(mid, vid, _json_field(row[3], "temporal_coordinates", where),
                                   _json_field(row[4], "spatial_coordinates", where),
                                   _json_field(row[5], "metadata", where), where))

@@ -23,7 +23,7 @@ from typing import Callable, Sequence
 
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.models.data import DatasetConfig
-from midas_cli.models.train import TrainConfig, train_run
+from midas_cli.models.train import MODELS, TrainConfig, train_run
 from midas_cli.session.outputs import out_folder, out_target, write_text
 
 log = logging.getLogger(__name__)
@@ -80,6 +80,9 @@ def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequ
                  out_dir: Path, on_run: Callable[[str, int, int], None] | None = None,
                  progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Train every (model, row); write ``table.{md,tex,csv}`` and ``ablation.json``; return the results."""
+    unknown = [m for m in models if m not in MODELS]
+    if unknown or not models:
+        raise ConfigError(f"--models {','.join(unknown or models)!r}: expected a comma list of {', '.join(MODELS)}")
     out_dir = out_folder(out_dir)
     out_folder(out_dir / "runs")
     results, skipped = [], []

@@ -23,6 +23,7 @@ import torch
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models.dinov2 import DinoV2
 from midas_cli.models.resnet import ResNet
+from midas_cli.models.torch_io import load_weights_only
 from midas_cli.session.outputs import out_target, replacing
 
 BACKBONES = ("resnet50", "dinov2")
@@ -50,15 +51,12 @@ class ExtractOptions:
 
 def load_backbone(backbone: str, weights: Path) -> torch.nn.Module:
     """The network with the user's weights (strict key match), in eval mode."""
-    try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError, ValueError) as exc:
-        raise ConfigError(f"cannot load weights {weights}: {exc}") from exc
+    state = load_weights_only(weights, "weights")
     state = state.get("state_dict", state) if isinstance(state, dict) else state
     model = ResNet() if backbone == "resnet50" else DinoV2()
     try:
         model.load_state_dict(state, strict=True)
-    except RuntimeError as exc:
+    except (RuntimeError, TypeError) as exc:  # other keys or shapes, or not a dict at all
         raise ConfigError(f"{weights} is not a {backbone} state dict in the official key layout: "
                           f"{str(exc).splitlines()[0]}") from exc
     return model.eval()

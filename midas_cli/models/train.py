@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import pickle
 import subprocess
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, bui
 from midas_cli.models.mstcn import MSTCN, MSTCNConfig
 from midas_cli.models.plots import write_confusion_png, write_timeline_png
 from midas_cli.models.splits import PARTS, Split, instances, make_split
+from midas_cli.models.torch_io import load_weights_only
 from midas_cli.models.transformer import GestureTransformer, TransformerConfig
 from midas_cli.session.outputs import out_folder, out_target, replacing, write_text
 
@@ -208,10 +208,7 @@ def predict(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> li
 
 
 def load_checkpoint(path: Path) -> dict:
-    try:
-        saved = torch.load(path, map_location="cpu", weights_only=True)
-    except (OSError, RuntimeError, ValueError, pickle.UnpicklingError) as exc:
-        raise SessionError(f"cannot load checkpoint {path}: {exc}") from exc
+    saved = load_weights_only(path, "checkpoint")
     if not isinstance(saved, dict) or saved.get("format") != CHECKPOINT_FORMAT:
         raise SessionError(f"{path} is not a midas gesture checkpoint (expected format {CHECKPOINT_FORMAT})")
     return saved

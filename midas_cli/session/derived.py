@@ -27,6 +27,7 @@ import functools
 import json
 import os
 import threading
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -215,8 +216,8 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
             else:
                 values, values_run = np.load(values_path, mmap_mode="r"), values_run_id(values_path)
             meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
-    except (OSError, KeyError, ValueError) as exc:
-        raise SessionError(f"cannot read {npz_path}: {exc}") from exc
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged or not an npz at all
+        raise SessionError(f"cannot read {npz_path}: {exc} (re-run `midas align {session_path}`)") from exc
     json_run = (meta.get("producer") or {}).get("run_id") if isinstance(meta, dict) else None
     if run_id is not None or values_run is not None or json_run is not None:
         if not run_id == values_run == json_run:

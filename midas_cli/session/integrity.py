@@ -285,7 +285,7 @@ def _cut_torn_tail(folder: Path, name: str, path: Path, spec: StreamSpec, report
     if keep == 0:
         keep_header = spec.header_line().encode()
         _save_cut(folder, name, data)
-        path.write_bytes(keep_header)
+        _replace_bytes(path, keep_header)
         report.cut[name] = {"bytes": len(data), "lines": data.count(b"\n") + (not data.endswith(b"\n"))}
         return
     if keep == len(data):
@@ -302,5 +302,22 @@ def _save_cut(folder: Path, name: str, cut: bytes) -> None:
     target = folder / "logs" / f"repair-{name}.cut"
     target.parent.mkdir(exist_ok=True)
     if target.exists():
+        if target.read_bytes() == cut:  # an earlier repair saved these bytes, then stopped (e.g. disk full)
+            return
         raise SessionError(f"{target} exists already: a previous repair was interrupted; inspect it first")
-    target.write_bytes(cut)
+    _replace_bytes(target, cut)
+
+
+def _replace_bytes(path: Path, data: bytes) -> None:
+    """Write ``path`` through a temporary and a rename: a full disk leaves the old file (or none) as it
+    was, never a half-written one."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -65,10 +65,35 @@ def read_frame_labels(session_path: Path | str, name: str = "gestures") -> Frame
     if not csv_path.is_file():
         have = ", ".join(list_label_sets(session_path)) or "none"
         raise SessionError(f"{session_path} has no label set {name!r} (label sets: {have})")
-    frame = pd.read_csv(csv_path, dtype={"frame": "int64", "label": str}, keep_default_na=False)
+    frame = _read_label_csv(csv_path)
     meta_path = folder / f"{name}.json"
-    meta = json.loads(meta_path.read_text(encoding="utf-8")) if meta_path.is_file() else {}
+    meta = _read_label_meta(meta_path) if meta_path.is_file() else {}
     return FrameLabels(frame["frame"].to_numpy(), frame["label"].to_numpy(dtype=object), meta)
+
+
+def _read_label_csv(csv_path: Path) -> pd.DataFrame:
+    """``frame,label`` rows; anything else is a SessionError naming the file."""
+    try:
+        frame = pd.read_csv(csv_path, dtype=str, keep_default_na=False, encoding="utf-8")
+    except (ValueError, UnicodeDecodeError, pd.errors.ParserError) as exc:  # EmptyDataError is a ValueError
+        raise SessionError(f"{csv_path}: not a frame,label CSV ({exc})") from None
+    if not {"frame", "label"} <= set(frame.columns):
+        raise SessionError(f"{csv_path}: expected columns frame,label, got {','.join(map(str, frame.columns))}")
+    try:
+        frames = frame["frame"].astype("int64")
+    except (ValueError, OverflowError):
+        raise SessionError(f"{csv_path}: column 'frame' must hold whole frame numbers") from None
+    return pd.DataFrame({"frame": frames, "label": frame["label"]})
+
+
+def _read_label_meta(meta_path: Path) -> dict[str, Any]:
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
+        raise SessionError(f"{meta_path}: not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise SessionError(f"{meta_path}: expected a JSON object, got {type(meta).__name__}")
+    return meta
 
 
 def list_label_sets(session_path: Path | str) -> list[str]:
