@@ -34,13 +34,17 @@ def align(
                              "aligned.csv left by an earlier run is removed."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Align every stream of each session onto its video frame clock (causal or nearest sample,
-    per-stream delta, HandKP gaps filled, masks instead of sentinels, calibrations in calib/ applied,
-    velocity / grasper distance / clutch derived) and write derived/aligned.npz, .values.npy and .json (and .csv
-    with --csv). Streams are read from their binary copies (streams/*.npy) when they match the CSVs.
+    """Align each session's streams onto its video frame clock.
 
-    Each stream's coverage by the clock (share of its samples and of its time span inside the first to
-    last frame) is in the output and in derived/aligned.json; under 95% gets a warning on stderr.
+    Align every stream of each session onto its video frame clock (causal or nearest sample,
+    per-stream delta, HandKP gaps filled, masks instead of sentinels, calibrations in calib/
+    applied, velocity / grasper distance / clutch derived) and write derived/aligned.npz,
+    .values.npy and .json (and .csv with --csv). Streams are read from their binary copies
+    (streams/*.npy) when they match the CSVs.
+
+    Each stream's coverage by the clock (share of its samples and of its time span inside the first
+    to last frame) is in the output and in derived/aligned.json; under 95% gets a warning on
+    stderr.
 
     Example: midas align sessions/*/ --rate 10 --jobs 2
 

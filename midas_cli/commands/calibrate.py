@@ -40,10 +40,13 @@ def fps(
     dry_run: bool = typer.Option(False, "--dry-run", help="Show the thresholds; do not change the rig file."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Per-pedal press/release thresholds (with hysteresis) for the FPS pedal board. Live (a terminal,
-    also over SSH): measure every channel at rest, then press and hold each mapped pedal in turn while
-    live bars show the voltages. With --session: from a recording, no prompts. Channels that do not
-    separate keep their thresholds and are flagged. The result goes into the rig file's fps:// URL.
+    """Calibrate the FPS pedal board's per-pedal press/release thresholds.
+
+    Per-pedal press/release thresholds (with hysteresis) for the FPS pedal board. Live (a terminal,
+    also over SSH): measure every channel at rest, then press and hold each mapped pedal in turn
+    while live bars show the voltages. With --session: from a recording, no prompts. Channels that
+    do not separate keep their thresholds and are flagged. The result goes into the rig file's
+    fps:// URL.
 
     Example: midas calibrate fps --rig sessions_template/rigs/davinci-xi.toml --url fps:///dev/ttyACM0
     """

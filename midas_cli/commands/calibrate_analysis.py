@@ -40,10 +40,12 @@ def emht(
     weight_decay: float = DECAY_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """EmHT -> MTM/PSM: rigid least-squares fit (Kabsch; Umeyama scale for PSM) + residual MLP (paper
-    Appendix A.2), orientations by composition of rotations, EmHT latency estimated and compensated;
-    leave-one-trial-out cross-validation. Each session's calib/ gets the fold model that did not see it;
-    `midas align` applies it.
+    """Calibrate EmHT -> MTM/PSM: rigid fit plus residual MLP, per trial fold.
+
+    EmHT -> MTM/PSM: rigid least-squares fit (Kabsch; Umeyama scale for PSM) + residual MLP (paper
+    Appendix A.2), orientations by composition of rotations, EmHT latency estimated and
+    compensated; leave-one-trial-out cross-validation. Each session's calib/ gets the fold model
+    that did not see it; `midas align` applies it.
 
     Example: midas calibrate emht data/raven/*/ --target mtm --out results/emht_to_mtm.json
     """
@@ -61,8 +63,10 @@ def handkp(
     weight_decay: float = DECAY_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """HandKP camera -> MTM/PSM (paper Appendix A.3): rigid hand-eye fit of the keypoint midpoints, and
-    the direct camera -> robot MLP alternative, on detected frames, leave-one-trial-out.
+    """Calibrate the HandKP camera -> MTM/PSM: hand-eye fit or direct MLP.
+
+    HandKP camera -> MTM/PSM (paper Appendix A.3): rigid hand-eye fit of the keypoint midpoints,
+    and the direct camera -> robot MLP alternative, on detected frames, leave-one-trial-out.
 
     Example: midas calibrate handkp data/raven/*/ --target mtm
     """
@@ -114,9 +118,12 @@ def fps_optimize(
                                             "session's calib/fps_optimized.json.", dir_okay=False),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Per pedal, the FSR voltage threshold and polarity that maximise frame-level F1 against the ground
-    truth (Raven-II clutch telemetry or derived/pedals_gt.csv) over all given sessions, with F1 before
-    (the recorded pressed states) and after. `midas eval pedals --optimized` uses the result.
+    """Per pedal, the FSR threshold and polarity that maximise frame-level F1.
+
+    Per pedal, the FSR voltage threshold and polarity that maximise frame-level F1 against the
+    ground truth (Raven-II clutch telemetry or derived/pedals_gt.csv) over all given sessions, with
+    F1 before (the recorded pressed states) and after. `midas eval pedals --optimized` uses the
+    result.
 
     Example: midas calibrate fps-optimize data/davinci/*/ && midas eval pedals data/davinci/*/ --optimized --out results/pedals
     """

@@ -9,6 +9,7 @@ import sys
 from typing import Any, Callable, Optional
 
 import typer
+from typer.core import TyperOption
 
 from midas_cli.console import stderr_console, stdout_console
 from midas_cli.errors import ConfigError
@@ -16,6 +17,22 @@ from midas_cli.errors import ConfigError
 err = stderr_console()
 out = stdout_console()
 STDERR_LOG = logging.StreamHandler(sys.stderr)  # library log records -> stderr (level set by --debug)
+
+
+def _flag_shows_no_type(display_type_rich: Callable[..., Optional[str]]) -> Callable[..., Optional[str]]:
+    """Typer's rich help gives every option a type column, so a flag (``--json``, ``--help``) reads
+    ``--json <bool>`` as if it took a value. A flag takes none: leave its type column empty, as click's
+    plain help does (counters like ``-v`` keep theirs)."""
+    def display(self: TyperOption, ctx: typer.Context) -> Optional[str]:
+        if self.is_flag and not self.count:
+            return None
+        return display_type_rich(self, ctx)
+    display.__wrapped__ = display_type_rich  # type: ignore[attr-defined]
+    return display
+
+
+if not hasattr(TyperOption.display_type_rich, "__wrapped__"):
+    TyperOption.display_type_rich = _flag_shows_no_type(TyperOption.display_type_rich)  # type: ignore[method-assign]
 
 JSON_OPTION = typer.Option(False, "--json", help="Print machine-readable JSON on stdout instead of a table.")
 

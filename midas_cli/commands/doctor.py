@@ -14,8 +14,10 @@ def doctor(
     obs_port: int = typer.Option(4455, help="OBS websocket port."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Report versions, serial ports, OBS reachability, GPU and free disk. OBS settings that a killed
-    `midas record` left changed (its saved copy under $XDG_STATE_HOME/midas/) are put back.
+    """Report versions, serial ports, OBS reachability, GPU and free disk.
+
+    OBS settings that a killed `midas record` left changed (its saved copy under
+    $XDG_STATE_HOME/midas/) are put back.
 
     Example: midas doctor --json > doctor.json
     """

@@ -37,9 +37,11 @@ def trakstar(
     duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Serve the trakSTAR's Flock-of-Birds RS-232 protocol on a pty, paced to the baud rate, with the
-    simulated surgeon's motion and optional faults. Prints the port path (the --link if given) as the
-    first stdout line; stops on Ctrl-C, SIGTERM or --duration and reports what it sent.
+    """Serve the trakSTAR's Flock-of-Birds RS-232 protocol on a pty.
+
+    Serve the trakSTAR's Flock-of-Birds RS-232 protocol on a pty, paced to the baud rate, with the
+    simulated surgeon's motion and optional faults. Prints the port path (the --link if given) as
+    the first stdout line; stops on Ctrl-C, SIGTERM or --duration and reports what it sent.
 
     Example: midas emulate trakstar --link /tmp/trakstar --summary /tmp/trakstar.json --corrupt 0.01
     """
@@ -92,10 +94,13 @@ def fps(
     duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Serve the FPS pedal board's MIDAS-FPS line protocol (firmware/fps/PROTOCOL.md) on a pty, paced
-    by its sample clock, with the simulated surgeon's feet and optional faults. Prints the port path
-    (the --link if given) as the first stdout line. Lines on stdin control it: `press N`, `release N`,
-    `auto N`, `unplug`, `replug`. Stops on Ctrl-C, SIGTERM or --duration and reports what it sent.
+    """Serve the FPS pedal board's MIDAS-FPS line protocol on a pty.
+
+    Serve the FPS pedal board's MIDAS-FPS line protocol (firmware/fps/PROTOCOL.md) on a pty, paced
+    by its sample clock, with the simulated surgeon's feet and optional faults. Prints the port
+    path (the --link if given) as the first stdout line. Lines on stdin control it: `press N`,
+    `release N`, `auto N`, `unplug`, `replug`. Stops on Ctrl-C, SIGTERM or --duration and reports
+    what it sent.
 
     Example: midas emulate fps --link /tmp/fps --summary /tmp/fps.json --corrupt 0.01
     """
@@ -146,9 +151,11 @@ def raven(
     duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Send Raven-II surgeon-console telemetry (124-byte u_struct UDP packets) following the simulated
-    surgeon: position increments, orientations, grasp and the clutch as surgeon_mode. Stops on Ctrl-C,
-    SIGTERM or --duration and reports how many packets it sent.
+    """Send Raven-II surgeon-console telemetry as UDP packets.
+
+    Send Raven-II surgeon-console telemetry (124-byte u_struct UDP packets) following the simulated
+    surgeon: position increments, orientations, grasp and the clutch as surgeon_mode. Stops on
+    Ctrl-C, SIGTERM or --duration and reports how many packets it sent.
 
     Example: midas emulate raven --to 127.0.0.1:36000 --rate 1000 --duration 10
     """

@@ -30,9 +30,11 @@ def correlation(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = O
                                           "otherwise), rigid or mlp. An MLP worse than the rigid fit on "
                                           "held-out trials is marked mlp* wherever it is listed."),
                 as_json: bool = JSON_OPTION) -> None:
-    """CoS and NRMSE per axis (X, Y, Z, roll, pitch, yaw) for EmHT-MTM, EmHT-PSM, HandKP-MTM, HandKP-PSM,
-    grasper open/close IoU/accuracy/precision, HandKP with and without missing frames, and the hand
-    modalities' lag; averaged over the sessions (trials) and both hands.
+    """Agreement of EmHT and HandKP with the robot kinematics (CoS, NRMSE).
+
+    CoS and NRMSE per axis (X, Y, Z, roll, pitch, yaw) for EmHT-MTM, EmHT-PSM, HandKP-MTM,
+    HandKP-PSM, grasper open/close IoU/accuracy/precision, HandKP with and without missing frames,
+    and the hand modalities' lag; averaged over the sessions (trials) and both hands.
 
     Example: midas eval correlation data/raven/*/ --out results/raven-ii
     """
@@ -46,7 +48,9 @@ def pedals(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = OUT_OP
                                           "`calibrate fps-optimize` (calib/fps_optimized.json) instead of the "
                                           "recorded states."),
            as_json: bool = JSON_OPTION) -> None:
-    """Per pedal and overall frame-level precision, recall, F1, temporal IoU and lag (ms) of the FPS
+    """Frame-level precision, recall, F1, IoU and lag of the FPS pedals.
+
+    Per pedal and overall frame-level precision, recall, F1, temporal IoU and lag (ms) of the FPS
     against Raven-II clutch telemetry or derived/pedals_gt.csv, averaged over the sessions.
 
     Example: midas eval pedals data/davinci/*/ --out results/davinci-xi

@@ -23,9 +23,11 @@ def handkp(
     mirrored: bool = typer.Option(False, "--mirrored", help="The camera image is mirrored (MediaPipe handedness)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Detect thumb and middle fingertips of both hands in every recorded stereo frame, give them 3-D
-    positions in the camera frame (mm) from StereoSGBM depth with the session's calibration, and add the
-    HandKP stream to the session (missed hands are empty fields, never zeros).
+    """Detect fingertips in the stereo frames and add the HandKP stream.
+
+    Detect thumb and middle fingertips of both hands in every recorded stereo frame, give them 3-D
+    positions in the camera frame (mm) from StereoSGBM depth with the session's calibration, and
+    add the HandKP stream to the session (missed hands are empty fields, never zeros).
 
     Example: midas extract handkp sessions/suturing_S1_T1_20250101T120000Z --detector mediapipe
     """

@@ -25,7 +25,9 @@ def image(
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Encode every frame of VIDEO into an NPZ: frame (N,), features (N, D); nothing is downloaded.
+    """Encode every frame of VIDEO into an NPZ of image features.
+
+    The NPZ holds frame (N,) and features (N, D); nothing is downloaded.
 
     Example: midas features image session/video/recording.mkv --backbone resnet50 --weights resnet50-11ad3fa6.pth --out session/derived/image_features.npz
     """

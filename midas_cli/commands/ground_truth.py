@@ -36,8 +36,11 @@ def pedals(
                                             "(default: <video>.pedals_gt.csv beside it)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Read pedal states from the console video; write derived/pedals_gt.csv (frame = 0-based video frame
-    index = seq of the session's video stream, t_host_ns, one 0/1 column per pedal) and a JSON sidecar.
+    """Read pedal states from the console video into derived/pedals_gt.csv.
+
+    Read pedal states from the console video; write derived/pedals_gt.csv (frame = 0-based video
+    frame index = seq of the session's video stream, t_host_ns, one 0/1 column per pedal) and a
+    JSON sidecar.
 
     Example: midas ground-truth pedals sessions/suturing_S1_T1_20260101T120000Z --min-duration 2
     """

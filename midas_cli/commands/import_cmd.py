@@ -11,7 +11,8 @@ from midas_cli.commands.common import JSON_OPTION, err, out, print_json
 from midas_cli.importers.midas_dcs import import_midas_dcs
 from midas_cli.importers.surgical import import_surgical
 
-app = typer.Typer(help="Import sessions from other formats (original MiDAS folders, JIGSAWS, COMPASS).",
+app = typer.Typer(help="Import sessions from other formats.\n\n"
+                       "Formats: original MiDAS folders, JIGSAWS, COMPASS.",
                   no_args_is_help=True)
 
 FOLDER_ARG = typer.Argument(..., help="Source folder.")
@@ -51,8 +52,9 @@ def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
                                          "going back, row shape changing mid-file) becomes one session per "
                                          "recording; without it such a folder is refused (exit 4)."),
               as_json: bool = JSON_OPTION) -> None:
-    """Import one folder of the original MiDAS system; quirks and discontinuities (file, line, what) are
-    reported here and in logs/import_report.json.
+    """Import one folder of the original MiDAS system.
+
+    Quirks and discontinuities (file, line, what) are reported here and in logs/import_report.json.
 
     Example: midas import midas-dcs ../shared/data/midas-dcs-sample/trakt_Strakt_T1_2024-07-05 --out sessions
     """
@@ -61,7 +63,9 @@ def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
 
 @app.command("jigsaws")
 def jigsaws(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool = JSON_OPTION) -> None:
-    """Import every JIGSAWS trial (kinematics/AllGestures/*.txt + transcriptions/*.txt) under FOLDER.
+    """Import every JIGSAWS trial under FOLDER.
+
+    Reads kinematics/AllGestures/*.txt and transcriptions/*.txt.
 
     Example: midas import jigsaws JIGSAWS/Suturing --out sessions/jigsaws
     """
@@ -70,7 +74,9 @@ def jigsaws(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool
 
 @app.command("compass")
 def compass(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool = JSON_OPTION) -> None:
-    """Import every COMPASS trial (kinematics/*.csv + gestures/*.txt) under FOLDER.
+    """Import every COMPASS trial under FOLDER.
+
+    Reads kinematics/*.csv and gestures/*.txt.
 
     Example: midas import compass COMPASS/Datasets/dV/Suturing --out sessions/compass
     """

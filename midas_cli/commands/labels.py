@@ -17,7 +17,8 @@ from midas_cli.labels.stats import GestureStats, gesture_stats, transition_heatm
 from midas_cli.session.outputs import out_target, write_text
 from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy
 
-app = typer.Typer(help="Gesture taxonomies, annotation import/export (VIA, JIGSAWS/COMPASS) and label statistics.",
+app = typer.Typer(help="Gesture taxonomies, annotation import/export and label statistics.\n\n"
+                       "Annotation formats: VIA, JIGSAWS/COMPASS.",
                   no_args_is_help=True)
 
 SESSION_ARG = typer.Argument(..., help="Session folder (holds manifest.json).")
@@ -81,7 +82,9 @@ def import_via(
     annotator: Optional[str] = typer.Option(None, help="Annotator name for the provenance (else read from the file)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Turn VIA video-annotator segments (seconds) into frame labels on the session's video frames:
+    """Import VIA video-annotator segments as a session's frame labels.
+
+    Turn VIA video-annotator segments (seconds) into frame labels on the session's video frames:
     frame i covers [i/fps, (i+1)/fps) and takes a segment's label when its midpoint lies inside it.
     Overlaps, gaps, segments past the video and skipped entries are reported.
 
@@ -104,7 +107,9 @@ def import_transcription_cmd(
     force: bool = FORCE_OPTION,
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Import a JIGSAWS/COMPASS gesture transcription (inclusive frame ranges) as frame labels.
+    """Import a JIGSAWS/COMPASS gesture transcription as frame labels.
+
+    The transcription's frame ranges are inclusive.
 
     Example: midas labels import-transcription Suturing_S02_T01.txt sessions/Suturing_S02_T1_20260101T120000Z
     """
@@ -143,8 +148,9 @@ def export(
     name: str = NAME_OPTION,
     out_file: Optional[Path] = typer.Option(None, "--out", help="Write here instead of stdout."),
 ) -> None:
-    """Export a label set as segments, for VIA (re-annotation) or other tools; import-via reads the
-    VIA formats back to the same frame labels.
+    """Export a label set as segments, for VIA (re-annotation) or other tools.
+
+    `midas labels import-via` reads the VIA formats back to the same frame labels.
 
     Example: midas labels export sessions/suturing_S1_T3_20260101T120000Z --format via --out trial3.json
     """
@@ -167,7 +173,9 @@ def stats(
     plot: Optional[Path] = typer.Option(None, "--plot", help="Also write the transition matrix as a PNG heatmap."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Per-gesture segment counts and mean ± std duration (the paper's dataset table), totals, and the
+    """Gesture segment counts, durations and transitions (the dataset table).
+
+    Per-gesture segment counts and mean ± std duration (the paper's dataset table), totals, and the
     gesture transition matrix, over sessions and/or transcription files.
 
     Example: midas labels stats ../shared/data/compass-suturing-gestures --taxonomy jigsaws-suturing

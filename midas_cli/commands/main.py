@@ -49,8 +49,13 @@ def _main(
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logging."),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
 ) -> None:
-    """Every command reads and writes self-describing session folders; results go to stdout,
-    progress and errors to stderr. Exit codes: 0 ok, 1 internal, 2 usage, 3 device, 4 session/data."""
+    """midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).
+
+    Every command reads and writes self-describing session folders; results go to stdout,
+    progress and errors to stderr.
+
+    Exit codes: 0 ok, 1 internal, 2 usage, 3 device, 4 session/data.
+    """
     _state["debug"] = debug
     STDERR_LOG.setLevel(logging.DEBUG if debug else logging.WARNING)
     STDERR_LOG.setFormatter(logging.Formatter("midas: %(levelname)s %(name)s: %(message)s"))
@@ -60,13 +65,12 @@ def _main(
 def build_app(only: str | None = None) -> typer.Typer:
     """The CLI with every command, or with just ``only`` (what `run` uses, to import one module)."""
     app = typer.Typer(
-        help="midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).",
         no_args_is_help=True,
         add_completion=False,
         pretty_exceptions_enable=False,
         context_settings={"help_option_names": ["-h", "--help"]},
     )
-    app.callback()(_main)
+    app.callback()(_main)  # its docstring is `midas --help`'s description
     for name, (module_name, attribute, kind) in COMMANDS.items():
         if only is not None and name != only:
             continue

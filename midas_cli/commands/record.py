@@ -54,9 +54,11 @@ def record(
     queue_size: int = typer.Option(4096, "--queue-size", help="Bookkeeping messages a worker holds before merging "
                                    "them (rows are on disk first; nothing is dropped)."),
 ) -> None:
-    """Record a session: one worker process per device, host-clock timestamps, crash-safe stream
-    files. Stops on Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line
-    (with --status-json, the final JSON object's session_path).
+    """Record a session from the rig's devices into a new session folder.
+
+    One worker process per device, host-clock timestamps, crash-safe stream files. Stops on
+    Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line (with
+    --status-json, the final JSON object's session_path).
 
     Example: midas record --simulate --duration 10 --out sessions --subject 1 --task suturing --trial 1
     """

@@ -29,7 +29,9 @@ def _fmt(value: Any, spec: str = "") -> str:
 
 @app.command()
 def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
-    """Summarise one session: metadata, status, duration, devices and per-stream rates, counts, gaps.
+    """Summarise one session: metadata, status, devices and stream statistics.
+
+    Metadata, status, duration, devices and per-stream rates, counts, gaps.
 
     Example: midas session info sessions/suturing_S1_T1_20260101T120000Z
     """
@@ -74,9 +76,11 @@ def list_sessions(
     max_depth: int = typer.Option(3, "--max-depth", min=1, help="Folder levels under ROOT searched."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Tabulate many sessions for scripts; unreadable folders are reported on stderr and skipped (exit 4,
-    except with --latest once a session is found). Recordings that failed to start are hidden unless
-    --all (or --status failed); stderr says how many.
+    """Tabulate many sessions for scripts.
+
+    Unreadable folders are reported on stderr and skipped (exit 4, except with --latest once a
+    session is found). Recordings that failed to start are hidden unless --all (or --status
+    failed); stderr says how many.
 
     Example: midas session list sessions --task suturing --json | jq -r '.[].path'
 
@@ -168,7 +172,9 @@ def verify(
     strict: bool = typer.Option(False, "--strict", help="Treat declared sequence gaps (outages) as problems."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Check the manifest against the files (counts, sha256, whole lines, every value against its
+    """Check a session's files against its manifest; exit 4 if anything is wrong.
+
+    Check the manifest against the files (counts, sha256, whole lines, every value against its
     column's type and range, monotonic host time, sequence gaps); exit 4 if anything is wrong.
 
     Example: midas session verify sessions/*/
@@ -190,10 +196,12 @@ def verify(
 
 @app.command()
 def repair(paths: list[Path] = typer.Argument(..., help="Session folder(s)."), as_json: bool = JSON_OPTION) -> None:
-    """Make a session left by a crash (status 'recording') readable: cut torn last lines (kept in
-    logs/repair-<stream>.cut), recount every stream, mark it 'recovered'. In any session, remove the
-    temporary files an interrupted write left (*.tmp), and put a complete manifest.json.tmp in place
-    when manifest.json is missing.
+    """Make a crashed session readable and clear interrupted temporary files.
+
+    Make a session left by a crash (status 'recording') readable: cut torn last lines (kept in
+    logs/repair-<stream>.cut), recount every stream, mark it 'recovered'. In any session, remove
+    the temporary files an interrupted write left (*.tmp), and put a complete manifest.json.tmp in
+    place when manifest.json is missing.
 
     Example: midas session repair sessions/suturing_S1_T1_20260101T120000Z && midas session verify $_
     """

@@ -29,8 +29,10 @@ def dataset(
     jobs: int = typer.Option(1, "--jobs", "-j", help="Trials generated in parallel (worker processes)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Write a simulated dataset: one complete session per trial with known ground truth (gesture labels,
-    calibration truth and, on the da Vinci, derived/pedals_gt.csv).
+    """Write a simulated dataset with known ground truth, one session per trial.
+
+    Write a simulated dataset: one complete session per trial with known ground truth (gesture
+    labels, calibration truth and, on the da Vinci, derived/pedals_gt.csv).
 
     Example: midas simulate dataset --out sessions --platform davinci-xi --trials 4 --seed 1
     """
@@ -59,8 +61,11 @@ def console_video(
     layout: str = typer.Option("davinci-xi", "--layout", help="Layout whose indicators are drawn."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Render a synthetic da Vinci Xi console video whose pedal indicators follow a seeded schedule, and
-    write the schedule (frame, one 0/1 column per pedal) to <video stem>.schedule.csv beside it.
+    """Render a synthetic da Vinci Xi console video and its pedal schedule.
+
+    Render a synthetic da Vinci Xi console video whose pedal indicators follow a seeded schedule,
+    and write the schedule (frame, one 0/1 column per pedal) to <video stem>.schedule.csv beside
+    it.
 
     Example: midas simulate console-video --out console.mkv --duration 20 --seed 1
     """

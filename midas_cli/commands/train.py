@@ -16,7 +16,8 @@ from midas_cli.session.reader import find_sessions
 
 # midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast.
 
-app = typer.Typer(help="Train and evaluate gesture-recognition models on aligned, labelled sessions.",
+app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
+                       "Models train on aligned, labelled sessions.",
                   no_args_is_help=True)
 
 SESSIONS_ARG = typer.Argument(..., help="Session folders, or folders holding sessions (searched 3 levels deep).")
@@ -88,7 +89,9 @@ def gestures(
     eval_only: Optional[Path] = typer.Option(None, "--eval-only", help="Evaluate this checkpoint.pt on its test split."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser; metrics to stdout.
+    """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser.
+
+    Metrics go to stdout.
 
     Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
     """
@@ -123,7 +126,9 @@ def ablation(
     out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
     as_json: bool = JSON_OPTION,
 ) -> None:
-    """Train every model x grid row and write the paper-style table (Acc, F1, Prec., Rec.).
+    """Train every model x grid row and write the paper-style table.
+
+    The table's columns: Acc, F1, Prec., Rec.
 
     Example: midas train ablation sessions/ --models transformer,mstcn --grid "emht:pos,ori,vel:exclude-clutch;mtm:pos,ori,vel,grasper:exclude-clutch" --epochs 50 --out results/gestures
     """
