@@ -226,6 +226,7 @@ def _release_fifos(root: Path) -> None:
 
 def run_midas(args: list[str], release: Path) -> tuple[int | None, str]:
     """Run the `midas` entry point in this process; (exit code or None if hung, stdout + stderr)."""
+    from midas_cli.commands.common import STDERR_LOG
     from midas_cli.commands.main import run
 
     def _alarm(_signum, _frame):
@@ -234,6 +235,7 @@ def run_midas(args: list[str], release: Path) -> tuple[int | None, str]:
     captured = io.StringIO()
     argv, previous = sys.argv, signal.signal(signal.SIGALRM, _alarm)
     sys.argv = ["midas", *args]
+    log_stream = STDERR_LOG.setStream(captured)  # library warnings, as `midas` prints them on stderr
     code: int | None
     try:
         signal.alarm(HANG_S)
@@ -249,6 +251,7 @@ def run_midas(args: list[str], release: Path) -> tuple[int | None, str]:
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
         sys.argv = argv
+        STDERR_LOG.setStream(log_stream)
     return code, captured.getvalue()
 
 
