@@ -117,6 +117,21 @@ def test_host_time_going_backwards_is_flagged_by_align(session: Path) -> None:
     assert "goes backwards" in result.stderr
 
 
+def test_a_csv_edited_behind_the_manifests_back_is_read_not_its_stale_binary_copy(session: Path) -> None:
+    """Two host times swapped keep the file's size: the binary copy made at finalise no longer matches
+    the CSV (the record), so align reads the CSV and flags what is in it; verify names the edit."""
+    path = session / "streams" / "emht.csv"
+    lines = path.read_bytes().split(b"\n")
+    lines[99], lines[100] = lines[100], lines[99]
+    path.write_bytes(b"\n".join(lines))
+    assert (session / "streams" / "emht.npy").is_file()
+    result = midas("align", str(session), "--json")
+    assert result.returncode == 0, result.stderr
+    flagged = [w for w in json.loads(result.stdout)[0]["warnings"] if "goes backwards" in w]
+    assert len(flagged) == 1 and "emht.csv" in flagged[0] and "line 101" in flagged[0], flagged
+    assert midas("session", "verify", str(session)).returncode == 4
+
+
 @pytest.mark.parametrize("field, value", [
     (("streams",), []),
     (("devices",), []),

@@ -8,14 +8,16 @@ reader gets. The manifest's stream entry then carries
 
     "binary": {"file": "streams/<name>.npy", "rows": N, "csv_sha256": "<sha256 of the CSV it copies>"}
 
-A reader uses the copy only while it still matches: ``csv_sha256`` equals the manifest's ``sha256``,
-the CSV still has the manifest's size, and the array has the CSV's columns and row count; otherwise
+A reader uses the copy only while it still matches: ``csv_sha256`` equals the manifest's ``sha256``
+and the CSV on disk still hashes to it (an edit that keeps the size, such as two host times swapped, is
+caught; hashing costs a fraction of a parse), and the array has the CSV's columns and row count; otherwise
 it parses the CSV (so a hand-edited CSV is never shadowed by a stale copy that `verify` would not
 see). Analysis that reads whole streams (``midas align``) memory-maps the copy instead of parsing text.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 from pathlib import Path
@@ -36,6 +38,14 @@ BINARY_KEY = "binary"
 def binary_file(spec: StreamSpec) -> str:
     """``streams/<name>.npy``: the copy's path relative to the session folder."""
     return f"streams/{spec.name}.npy"
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def parse_csv_columns(path: Path, spec: StreamSpec) -> np.ndarray:
@@ -86,7 +96,7 @@ def load_binary_copy(folder: Path, name: str, entry: dict[str, Any]) -> np.ndarr
     if not copy_path.is_file():
         return None  # deleted (the remedy `verify` suggests for a bad copy): the CSV is read
     try:
-        if csv_path.stat().st_size != entry.get("bytes"):
+        if csv_path.stat().st_size != entry.get("bytes") or _sha256(csv_path) != binary["csv_sha256"]:
             return None
         table = np.load(copy_path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, KeyError) as exc:
