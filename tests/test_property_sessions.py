@@ -41,7 +41,7 @@ from conftest import midas  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
-EXAMPLES = int(os.environ.get("MIDAS_PROPERTY_EXAMPLES", "60"))
+EXAMPLES = int(os.environ.get("MIDAS_PROPERTY_EXAMPLES", "300"))
 HANG_S = 60  # a command still running after this long on damaged input is hung (a FIFO opened blindly)
 STREAMS = ("video", "emht", "handkp", "fps")
 # commands that read a session; {s} is the session folder
