@@ -11,7 +11,6 @@ Output NPZ like ``derived/image_features.npz``: ``frame`` (N,) int64, ``features
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
@@ -25,6 +24,7 @@ from midas_cli.models.dinov2 import DinoV2
 from midas_cli.models.resnet import ResNet
 from midas_cli.models.torch_io import load_weights_only
 from midas_cli.session.outputs import out_target, replacing
+from midas_cli.session.streamfile import file_sha256
 
 BACKBONES = ("resnet50", "dinov2")
 MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
@@ -83,7 +83,7 @@ def extract_features(video: Path, weights: Path, options: ExtractOptions, out: P
     features = np.concatenate(chunks).astype(np.float32)
     with replacing(out) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, frame=np.asarray(frames, dtype=np.int64), features=features, backbone=options.backbone,
-                 weights_sha256=_sha256(weights), note=f"{options.backbone} features of {Path(video).name}")
+                 weights_sha256=file_sha256(weights), note=f"{options.backbone} features of {Path(video).name}")
     return {"out": str(out), "frames": len(frames), "dim": int(features.shape[1]), "backbone": options.backbone}
 
 
@@ -125,11 +125,3 @@ def _frame_count(video: Path) -> int:
     count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) if capture.isOpened() else 0
     capture.release()
     return count
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

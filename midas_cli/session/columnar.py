@@ -17,7 +17,6 @@ see). Analysis that reads whole streams (``midas align``) memory-maps the copy i
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 from pathlib import Path
@@ -28,6 +27,7 @@ import numpy as np
 from midas_cli.errors import SessionError
 from midas_cli.session.manifest import check_inside
 from midas_cli.session.schema import StreamSpec
+from midas_cli.session.streamfile import file_sha256
 from midas_cli.session.values import parse_stream_file, structured
 
 log = logging.getLogger(__name__)
@@ -38,14 +38,6 @@ BINARY_KEY = "binary"
 def binary_file(spec: StreamSpec) -> str:
     """``streams/<name>.npy``: the copy's path relative to the session folder."""
     return f"streams/{spec.name}.npy"
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def parse_csv_columns(path: Path, spec: StreamSpec) -> np.ndarray:
@@ -96,7 +88,7 @@ def load_binary_copy(folder: Path, name: str, entry: dict[str, Any]) -> np.ndarr
     if not copy_path.is_file():
         return None  # deleted (the remedy `verify` suggests for a bad copy): the CSV is read
     try:
-        if csv_path.stat().st_size != entry.get("bytes") or _sha256(csv_path) != binary["csv_sha256"]:
+        if csv_path.stat().st_size != entry.get("bytes") or file_sha256(csv_path) != binary["csv_sha256"]:
             return None
         table = np.load(copy_path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, KeyError) as exc:

@@ -16,6 +16,15 @@ from midas_cli.session.values import read_regular_file
 MAX_LISTED_GAPS = 200
 
 
+def file_sha256(path: Path) -> str:
+    """sha256 of a file's bytes, read in 1 MiB blocks (no whole-file copy in memory)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 @dataclass
 class StreamSummary:
     """What a stream file holds. Times are host-clock Unix-epoch ns."""
