@@ -79,7 +79,7 @@ def format_chunk(spec, k: np.ndarray, host: np.ndarray, rng: np.random.Generator
     columns = [k.astype(str), host.astype(str)]
     for column in spec.columns[2:]:
         if column.dtype == "int":
-            values = rng.integers(0, 2 if column.name.endswith("pressed") else 1024, len(k))
+            values = rng.integers(0, 2 if column.unit == "bool" else 1024, len(k))  # flags (pressed, detected): 0/1
             columns.append(values.astype(str))
         else:
             values = np.cumsum(rng.normal(0, 0.5, len(k))) + 100.0
