@@ -12,9 +12,10 @@ from midas_cli.importers.midas_dcs import PDS_HEADER_14
 from midas_cli.session.integrity import verify_session
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from tests.conftest import SHARED_DATA, midas
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "midas-dcs-sample" / "trakt_Strakt_T1_2024-07-05"
+SAMPLE_NAME = "midas-dcs-sample/trakt_Strakt_T1_2024-07-05"
+SAMPLE = SHARED_DATA / SAMPLE_NAME
 T0 = 1720199364203926800
 
 
@@ -23,7 +24,7 @@ def _import(*args: str) -> Path:
     return Path(result.stdout.split()[-1])
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"{SAMPLE} not present (shared development data)")
+@pytest.mark.shared_data(SAMPLE_NAME)
 def test_real_midas_folder_imports_and_verifies(tmp_path: Path) -> None:
     session_path = _import("midas-dcs", str(SAMPLE), "--out", str(tmp_path))
     assert midas("session", "verify", str(session_path)).returncode == 0

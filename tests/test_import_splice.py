@@ -13,12 +13,11 @@ import numpy as np
 import pytest
 
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from tests.conftest import SHARED_DATA, midas
 
-SAMPLES = Path(__file__).resolve().parents[2] / "shared" / "data" / "midas-dcs-sample"
+SAMPLES = SHARED_DATA / "midas-dcs-sample"
 FIRST, SECOND = SAMPLES / "trakt_Strakt_T1_2024-07-05", SAMPLES / "smart_Ssmartwatch_T2_2024-07-02"
-pytestmark = pytest.mark.skipif(not FIRST.is_dir() or not SECOND.is_dir(),
-                                reason=f"{SAMPLES} not present (shared development data)")
+pytestmark = pytest.mark.shared_data("midas-dcs-sample/trakt_Strakt_T1_2024-07-05", "midas-dcs-sample/smart_Ssmartwatch_T2_2024-07-02")
 
 
 def _lines(path: Path) -> list[str]:

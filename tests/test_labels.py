@@ -18,11 +18,11 @@ from midas_cli.labels.taxonomy import load_taxonomy, parse_taxonomy
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from tests.conftest import midas, record_until
+from tests.conftest import SHARED_DATA, midas, record_until
 
 FPS = 30.0
 VIDEO = StreamSpec("video", "video", (SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")), FPS)
-COMPASS = Path(__file__).resolve().parents[2] / "shared" / "data" / "compass-suturing-gestures"
+COMPASS = SHARED_DATA / "compass-suturing-gestures"
 
 # VIA 3 attribute table as the video annotator stores it: a select attribute on temporal segments whose
 # options are the taxonomy (option text in the styles annotators use), and a file-level annotator field.
@@ -315,7 +315,7 @@ def test_stats_on_a_session_uses_its_taxonomy_and_frame_rate(tmp_path: Path) -> 
                                                                                  ("S3", 1, 1.0)]
 
 
-@pytest.mark.skipif(not COMPASS.is_dir(), reason=f"real COMPASS transcriptions not present at {COMPASS}")
+@pytest.mark.shared_data("compass-suturing-gestures")
 def test_stats_on_the_real_compass_suturing_transcriptions() -> None:
     files = sorted(COMPASS.glob("*.txt"))
     durations: dict[str, list[float]] = {}

@@ -13,9 +13,9 @@ from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.reader import Session
 from midas_cli.simulate import gestures
 from midas_cli.simulate.truth import Distortion
-from tests.conftest import midas
+from tests.conftest import SHARED_DATA, midas
 
-COMPASS = Path(__file__).resolve().parents[2] / "shared" / "data" / "compass-suturing-gestures"
+COMPASS = SHARED_DATA / "compass-suturing-gestures"
 
 
 def _simulate(out: Path, platform: str, trials: int, seed: int, *extra: str, seconds: int = 30) -> list[Path]:
@@ -143,7 +143,7 @@ def test_gesture_order_follows_the_transition_structure() -> None:
     assert suturing.transitions[suturing.index("G2"), suturing.index("G3")] > 0.9  # target -> push, learned
 
 
-@pytest.mark.skipif(not COMPASS.is_dir(), reason=f"{COMPASS} not present (shared development data)")
+@pytest.mark.shared_data("compass-suturing-gestures")
 def test_packaged_transition_counts_rederive_from_the_compass_folder() -> None:
     assert gestures.derive_transition_counts(COMPASS) == gestures.load_transition_data()["learned_counts"]
 
