@@ -1,4 +1,7 @@
-"""Every stream of a session onto the video frame clock (DESIGN.md section 7), plus a lag estimator.
+"""Every stream of a session onto the video frame clock (DESIGN.md section 7): reading the session,
+associating its streams on threads, applying calibrations and writing ``derived/aligned.*``. The pure
+array functions are ``analysis/sync.py`` (association, gap filling, downsampling, lag estimation), the
+column block ``analysis/columns.py``, the derived hand / robot columns ``analysis/hand_features.py``.
 
 Reference clock: the ``t_host_ns`` of the ``video`` stream (frame i = video ``seq`` i). Each other
 stream is associated with each frame causally (latest sample at or before the frame time) or by the
