@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from midas_cli.analysis.align import (AlignOptions, align_and_write, associate, downsample_rows, estimate_lag,
-                                      fill_gaps)
+from midas_cli.analysis.align import AlignOptions, align_and_write
+from midas_cli.analysis.sync import associate, downsample_rows, estimate_lag, fill_gaps
 from midas_cli.session.derived import read_aligned
 from tests.analysis_sessions import raven_session
 from tests.conftest import midas
@@ -105,7 +105,7 @@ def test_align_refuses_a_session_without_video(small_session: Path) -> None:
 
 
 def test_downsampling_keeps_regular_frames_despite_ns_rounding() -> None:
-    from midas_cli.analysis.align import downsample_rows
+    from midas_cli.analysis.sync import downsample_rows
 
     frame_ns = np.round(np.arange(90) * 1e9 / 30).astype(np.int64)  # frame 3 is at 99 999 999 ns
     assert downsample_rows(frame_ns, 10.0).tolist() == list(range(0, 90, 3))

@@ -109,7 +109,7 @@ def test_empty_backbone_weights_is_exit_4_not_aborted(tmp_path):
 
 
 def test_pickled_calibration_mlp_is_exit_4_naming_it(tmp_path):
-    from midas_cli.analysis.residual_mlp import load_mlp  # torch: imported by this test only
+    from midas_cli.models.residual_mlp import load_mlp  # torch: imported by this test only
     from midas_cli.errors import SessionError
 
     weights = tmp_path / "emht_to_mtm.pt"

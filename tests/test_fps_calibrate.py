@@ -18,8 +18,8 @@ from midas_cli.devices.fps.driver import fps_stream_spec
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.devices.fps.rigfile import load_target, write_target
 from midas_cli.devices.pedals import PedalThresholds
+from midas_cli.devices.rigconfig import load_rig
 from midas_cli.errors import ConfigError
-from midas_cli.rig import load_rig
 from midas_cli.session.writer import SessionMetadata, SessionWriter
 from tests.conftest import REPO, midas
 

@@ -18,8 +18,8 @@ from midas_cli.devices.obs.marker import MarkerPlan, SyncMarker
 from midas_cli.devices.obs.profile import recover_stale
 from midas_cli.devices.obs.saved import SavedSettings, SettingsStore, process_start
 from midas_cli.devices.registry import describe_device
+from midas_cli.devices.rigconfig import parse_rig
 from midas_cli.errors import ConfigError, DeviceError
-from midas_cli.rig import parse_rig
 from obs_fixture import free_port
 
 

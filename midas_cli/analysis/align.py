@@ -1,4 +1,7 @@
-"""Every stream of a session onto the video frame clock (DESIGN.md section 7), plus a lag estimator.
+"""Every stream of a session onto the video frame clock (DESIGN.md section 7): reading the session,
+associating its streams on threads, applying calibrations and writing ``derived/aligned.*``. The pure
+array functions are ``analysis/sync.py`` (association, gap filling, downsampling, lag estimation), the
+column block ``analysis/columns.py``, the derived hand / robot columns ``analysis/hand_features.py``.
 
 Reference clock: the ``t_host_ns`` of the ``video`` stream (frame i = video ``seq`` i). Each other
 stream is associated with each frame causally (latest sample at or before the frame time) or by the
@@ -17,20 +20,24 @@ calibration in ``calib/`` maps a source (emht, handkp) into a robot frame (mtm, 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
-import hashlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from midas_cli.analysis.calibration import MODEL_CHOICES, SOURCES, TARGETS, Calibration, load_calibration
+from midas_cli.analysis.columns import ColumnSet, in_parallel
+from midas_cli.analysis.hand_features import (EMHT_SENSORS, HANDS, add_clutch, add_emht_features,
+                                              add_handkp_features, add_robot_orientation, emht_sensor_arrays,
+                                              hand_points)
+from midas_cli.analysis.sync import associate_stream, downsample_rows, regular_frames
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.geometry import angles_from_matrices, matrices_from_angles, matrices_from_quaternions
+from midas_cli.geometry import angles_from_matrices, matrices_from_angles
 from midas_cli.session.derived import AlignedTable, ValuesFile, find_calibration, write_aligned
 from midas_cli.session.outputs import provenance, session_lock
 from midas_cli.session.reader import Session
@@ -39,9 +46,6 @@ from midas_cli.session.values import FLOAT_LIMIT, REMEDY
 log = logging.getLogger(__name__)
 
 METHODS = ("causal", "nearest")
-HANDS = ("left", "right")
-EMHT_SENSORS = {"left": (2, 1), "right": (3, 4)}  # (thumb, middle) trakSTAR sensor numbers
-CLUTCH_FPS_CHANNEL = 5  # the paper's "Pedal 5 = Clutch"
 REFERENCE = "video"
 
 
@@ -80,158 +84,6 @@ def parse_clock(text: str) -> float | None:
         return float(text)
     except ValueError:
         raise ConfigError(f"--clock must be 'video' or a rate in Hz such as 30, got {text!r}") from None
-
-
-class ColumnSet:
-    """Aligned columns being built: name -> (N,) float64 values (NaN = masked) and metadata.
-
-    The columns live side by side in one column-major block, so the finished table is a view of it
-    (no copy of the whole table) and raw streams are gathered straight into their columns."""
-
-    def __init__(self, n_frames: int, capacity: int = 128) -> None:
-        self.n = n_frames
-        self._block = np.empty((n_frames, capacity), order="F")
-        self._index: dict[str, int] = {}
-        self.meta: dict[str, dict[str, Any]] = {}
-
-    @property
-    def names(self) -> list[str]:
-        return list(self._index)
-
-    def claim(self, names: list[str]) -> np.ndarray:
-        """(len(names), N) storage for new columns ``names`` (row j = column j), to be filled in place;
-        their metadata is set with ``describe``."""
-        used = len(self._index)
-        if used + len(names) > self._block.shape[1]:
-            grown = np.empty((self.n, max(2 * self._block.shape[1], used + len(names))), order="F")
-            grown[:, :used] = self._block[:, :used]
-            self._block = grown
-        for k, name in enumerate(names):
-            if name in self._index:
-                raise SessionError(f"aligned column {name!r} computed twice")
-            self._index[name] = used + k
-        return self._block[:, used : used + len(names)].T
-
-    def describe(self, name: str, unit: str = "", source: str = "", **meta: Any) -> None:
-        self.meta[name] = {"unit": unit, "source": source, **{k: v for k, v in meta.items() if v}}
-
-    def add(self, name: str, values: np.ndarray, unit: str = "", source: str = "", **meta: Any) -> None:
-        values = np.asarray(values, dtype=float)
-        if values.shape != (self.n,):
-            raise SessionError(f"aligned column {name!r} has shape {values.shape}, expected ({self.n},)")
-        self.claim([name])[0] = values  # a name added twice is an error: written columns never change
-        self.describe(name, unit, source, **meta)
-
-    def get(self, name: str) -> np.ndarray | None:
-        index = self._index.get(name)
-        return None if index is None else self._block[:, index]
-
-    def stack(self, names: list[str]) -> np.ndarray:
-        """(N, len(names)) of existing columns."""
-        return np.column_stack([self.get(n) for n in names])
-
-    def table(self, rows: np.ndarray) -> np.ndarray:
-        """(len(rows), C) column-major: a view of the block when every frame is kept."""
-        values = self._block[:, : len(self._index)]
-        return values if len(rows) == self.n else np.asfortranarray(values[rows])
-
-
-class StagedColumns:
-    """Columns computed against a ColumnSet without changing it, added later with ``commit``: lets
-    independent feature groups run on separate threads and still land in a fixed column order."""
-
-    def __init__(self, columns: ColumnSet) -> None:
-        self.columns, self.n = columns, columns.n
-        self.staged: list[tuple[str, np.ndarray, str, str, dict[str, Any]]] = []
-
-    def get(self, name: str) -> np.ndarray | None:
-        return self.columns.get(name)
-
-    def stack(self, names: list[str]) -> np.ndarray:
-        return self.columns.stack(names)
-
-    def add(self, name: str, values: np.ndarray, unit: str = "", source: str = "", **meta: Any) -> None:
-        self.staged.append((name, values, unit, source, meta))
-
-    def commit(self) -> None:
-        for name, values, unit, source, meta in self.staged:
-            self.columns.add(name, values, unit, source, **meta)
-
-
-def in_parallel(columns: ColumnSet, groups: list[Callable[[Any], None]]) -> None:
-    """Run feature groups (each ``group(columns_like)``) on threads, then add their columns in order."""
-    staged = [StagedColumns(columns) for _ in groups]
-    with ThreadPoolExecutor(max_workers=max(1, min(len(groups), os.cpu_count() or 1))) as pool:
-        list(pool.map(lambda pair: pair[0](pair[1]), zip(groups, staged)))
-    for group in staged:
-        group.commit()
-
-
-def associate(sample_ns: np.ndarray, frame_ns: np.ndarray, method: str, stale_ns: int
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Index of the sample chosen for each frame, its validity and its offset.
-
-    sample_ns (M,) ascending, frame_ns (N,) host ns. Returns idx (N,) int (clipped into range),
-    valid (N,) bool, delta_ms (N,) float = sample time - frame time (NaN where invalid).
-    """
-    if len(sample_ns) == 0:
-        return np.zeros(len(frame_ns), dtype=int), np.zeros(len(frame_ns), bool), np.full(len(frame_ns), np.nan)
-    after = np.searchsorted(sample_ns, frame_ns, side="right")
-    idx = after - 1  # latest sample at or before the frame
-    if method == "nearest":
-        nxt = np.minimum(after, len(sample_ns) - 1)
-        prev = np.maximum(idx, 0)
-        take_next = (idx < 0) | (np.abs(sample_ns[nxt] - frame_ns) < np.abs(frame_ns - sample_ns[prev]))
-        idx = np.where(take_next, nxt, prev)
-    valid = idx >= 0
-    idx = np.clip(idx, 0, len(sample_ns) - 1)
-    offset = sample_ns[idx] - frame_ns
-    valid &= np.abs(offset) <= stale_ns
-    return idx, valid, np.where(valid, offset / 1e6, np.nan)
-
-
-def coverage(sample_ns: np.ndarray, frame_ns: np.ndarray) -> dict[str, Any]:
-    """How much of a stream the frame clock covers: of its samples (sample_ns (M,) ascending, host ns)
-    the count and share inside [first frame, last frame], and the share of its time span (first to
-    last sample) inside that interval (1.0 for a single sample inside)."""
-    if len(sample_ns) == 0 or len(frame_ns) == 0:
-        return {"samples": int(len(sample_ns)), "samples_inside": 0, "samples_share": 0.0, "span_s": 0.0,
-                "span_share": 0.0}
-    first, last = int(frame_ns[0]), int(frame_ns[-1])
-    inside = int(np.searchsorted(sample_ns, last, side="right") - np.searchsorted(sample_ns, first, side="left"))
-    span = int(sample_ns[-1] - sample_ns[0])
-    overlap = max(0, min(last, int(sample_ns[-1])) - max(first, int(sample_ns[0])))
-    span_share = overlap / span if span > 0 else float(inside > 0)
-    return {"samples": int(len(sample_ns)), "samples_inside": inside,
-            "samples_share": round(inside / len(sample_ns), 4), "span_s": round(span / 1e9, 3),
-            "span_share": round(span_share, 4)}
-
-
-def associate_stream(table: np.ndarray, spec_columns: list[str], frame_ns: np.ndarray, method: str,
-                     stale_ns: int, out: np.ndarray | None = None, covered: dict[str, Any] | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Values of ``spec_columns`` of a stream (structured array, see ``Session.read_columns``) at each
-    frame, NaN where masked, as ``out`` (C, N) (row j = column j; allocated if None), and delta_ms (N,).
-    Only the chosen rows are read, so a memory-mapped stream is never copied whole. ``covered``, if
-    given, receives the stream's ``coverage`` by the frames."""
-    sample_ns = np.ascontiguousarray(table["t_host_ns"], dtype=np.int64)  # one strided pass over the rows
-    order = None
-    if len(sample_ns) > 1 and (np.diff(sample_ns) < 0).any():
-        order = np.argsort(sample_ns, kind="stable")
-        sample_ns = sample_ns[order]
-    if covered is not None:
-        covered.update(coverage(sample_ns, frame_ns))
-    idx, valid, delta = associate(sample_ns, frame_ns, method, stale_ns)
-    values = np.empty((len(spec_columns), len(frame_ns))) if out is None else out
-    if len(sample_ns):
-        chosen = table.view(np.ndarray)[idx if order is None else order[idx]]  # whole rows, one pass
-        for j, name in enumerate(spec_columns):
-            values[j] = chosen[name]
-        if not valid.all():
-            values[:, ~valid] = np.nan
-    else:
-        values[:] = np.nan
-    return values, delta
 
 
 def value_columns(session: Session, stream: str) -> list[Any]:
@@ -287,18 +139,6 @@ def reference_frames(session: Session, video: np.ndarray | None = None) -> tuple
     return np.asarray(video["seq"], np.int64)[order], np.asarray(video["t_host_ns"], np.int64)[order]
 
 
-def regular_frames(data: dict[str, np.ndarray], rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """A regular clock at ``rate_hz`` from the first sample of any stream in ``data`` to the first tick at
-    or after the last one: frame indices (N,) and host times (N,) ns (frame k at first + k / rate)."""
-    times = [np.asarray(t["t_host_ns"], dtype=np.int64) for t in data.values() if len(t)]
-    if not times:
-        raise SessionError("no stream has samples: nothing to span with a regular clock")
-    first, last = min(int(t.min()) for t in times), max(int(t.max()) for t in times)
-    n = int(np.ceil((last - first) * rate_hz / 1e9 - 1e-9)) + 1
-    frames = np.arange(n, dtype=np.int64)
-    return frames, first + np.round(frames * 1e9 / rate_hz).astype(np.int64)
-
-
 def read_streams(session: Session) -> dict[str, np.ndarray]:
     """Every stream except the reference as a structured array (memory-mapped binary copy, or the CSV
     parsed when the session has none)."""
@@ -337,153 +177,12 @@ def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: Colu
         columns.describe(f"{stream}_delta_ms", "ms", stream, description="chosen sample time - frame time")
 
 
-def emht_sensor_arrays(columns: ColumnSet, prefix: str = "emht") -> tuple[np.ndarray, np.ndarray] | None:
-    """(N, 4, 3) positions (mm) and (N, 4, 3) yaw/pitch/roll (deg) of sensors 1..4, or None."""
-    names = [f"{prefix}.s{s}_{a}_mm" for s in range(1, 5) for a in "xyz"]
-    if any(columns.get(n) is None for n in names):
-        return None
-    angles = [f"{prefix}.s{s}_{a}_deg" for s in range(1, 5) for a in ("azimuth", "elevation", "roll")]
-    pos = columns.stack(names).reshape(-1, 4, 3)
-    ang = columns.stack(angles).reshape(-1, 4, 3) if all(columns.get(n) is not None for n in angles) else None
-    return pos, ang
-
-
-def hand_points(sensor_pos: np.ndarray) -> dict[str, np.ndarray]:
-    """Hand point (N, 3) = midpoint of the thumb and middle sensors, per hand."""
-    return {h: (sensor_pos[:, t - 1] + sensor_pos[:, m - 1]) / 2 for h, (t, m) in EMHT_SENSORS.items()}
-
-
-def add_emht_features(columns: ColumnSet, t_s: np.ndarray) -> None:
-    """Hand points, grasper distances and hand velocities from the aligned EmHT sensors."""
-    arrays = emht_sensor_arrays(columns)
-    if arrays is None:
-        return
-    pos = arrays[0]
-    for hand, point in hand_points(pos).items():
-        thumb, middle = EMHT_SENSORS[hand]
-        for k, axis in enumerate("xyz"):
-            columns.add(f"emht.{hand}_hand_{axis}_mm", point[:, k], "mm", "emht", frame="emht_transmitter",
-                        description="midpoint of the thumb and middle sensors")
-        columns.add(f"emht.{hand}_grasper_mm", np.linalg.norm(pos[:, thumb - 1] - pos[:, middle - 1], axis=1), "mm",
-                    "emht", description="thumb-middle sensor distance (grasper opening)")
-        velocity = velocity_mm_s(point, t_s)
-        for k, axis in enumerate("xyz"):
-            columns.add(f"emht.{hand}_v{axis}_mm_s", velocity[:, k], "mm/s", "emht", frame="emht_transmitter",
-                        description="hand point velocity (central differences on the frame clock)")
-
-
-def velocity_mm_s(points: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-    """Central-difference velocity (N, 3) of points (N, 3) mm sampled at t_s (N,) s; NaN propagates."""
-    if len(t_s) < 2:
-        return np.full_like(points, np.nan)
-    return np.gradient(points, t_s, axis=0)
-
-
-def fill_gaps(t_s: np.ndarray, values: np.ndarray, max_spline_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Fill NaN rows of ``values`` (N, D): cubic spline through the valid rows for gaps whose bounding
-    valid frames are at most ``max_spline_gap_s`` apart, forward fill otherwise (also after the last
-    valid row); rows before the first valid row stay NaN. Returns filled (N, D), fill code (N,) int
-    (0 = original, 1 = spline, 2 = forward fill, -1 = still missing)."""
-    valid = np.isfinite(values).all(axis=1)
-    code = np.where(valid, 0, -1)
-    filled = values.copy()
-    if valid.sum() == 0:
-        return filled, code
-    good = np.flatnonzero(valid)
-    nxt = np.searchsorted(good, np.arange(len(t_s)))  # index into good of the next valid row
-    prev_row = good[np.clip(nxt - 1, 0, len(good) - 1)]
-    has_prev = nxt > 0
-    has_next = nxt < len(good)
-    span = np.where(has_prev & has_next, t_s[good[np.clip(nxt, 0, len(good) - 1)]] - t_s[prev_row], np.inf)
-    spline_rows = ~valid & has_prev & has_next & (span <= max_spline_gap_s)
-    ffill_rows = ~valid & has_prev & ~spline_rows
-    if spline_rows.any() and len(good) >= 2:
-        filled[spline_rows] = CubicSpline(t_s[good], values[good], axis=0)(t_s[spline_rows])
-        code[spline_rows] = 1
-    filled[ffill_rows] = values[prev_row[ffill_rows]]
-    code[ffill_rows] = 2
-    return filled, code
-
-
-def add_handkp_features(columns: ColumnSet, t_s: np.ndarray, options: AlignOptions) -> None:
-    """Per hand: gap-filled keypoint midpoint in the camera frame and which frames were filled."""
-    for hand in HANDS:
-        names = [f"handkp.{hand}_{kp}_{a}_mm" for kp in ("thumb", "middle") for a in "xyz"]
-        if any(columns.get(n) is None for n in names):
-            continue
-        keypoints = columns.stack(names)  # (N, 6): thumb xyz, middle xyz
-        midpoint = (keypoints[:, :3] + keypoints[:, 3:]) / 2
-        raw_valid = np.isfinite(midpoint).all(axis=1)
-        filled, code = fill_gaps(t_s, midpoint, options.spline_max_gap_s)
-        for k, axis in enumerate("xyz"):
-            columns.add(f"handkp.{hand}_hand_{axis}_mm", filled[:, k], "mm", "handkp", frame="camera",
-                        description="thumb-middle keypoint midpoint; gaps filled (see _filled)")
-        columns.add(f"handkp.{hand}_filled", np.where(code < 0, np.nan, code), "code", "handkp",
-                    description="0 detected, 1 cubic-spline filled (gap <= 1 s), 2 forward-filled")
-        columns.add(f"handkp.{hand}_raw_valid", raw_valid.astype(float), "bool", "handkp",
-                    description="1 where the hand was detected in the associated frame")
-
-
-def add_clutch(columns: ColumnSet) -> None:
-    """``clutch`` (0/1): robot clutch telemetry (mtm stream) where present, else the FPS clutch pedal."""
-    for name, source in (("mtm.clutch", "mtm"), (f"fps.ch{CLUTCH_FPS_CHANNEL}_pressed", "fps")):
-        values = columns.get(name)
-        if values is not None:
-            columns.add("clutch", values, "bool", source, description=f"clutch state from {name}")
-            return
-
-
-def downsample_rows(t_ns: np.ndarray, rate_hz: float | None) -> np.ndarray:
-    """Indices of the frames kept at ``rate_hz``: the first frame of each 1/rate bin (all if None).
-
-    Bin edges get a quarter-frame tolerance: frame times rounded to whole ns (frame 3 at 30 Hz is
-    99 999 999 ns) must not slip into the previous bin and make the kept frames irregular."""
-    if rate_hz is None or len(t_ns) == 0:
-        return np.arange(len(t_ns))
-    tolerance_ns = float(np.median(np.diff(t_ns))) / 4 if len(t_ns) > 1 else 0.0
-    bins = np.floor((t_ns - t_ns[0] + tolerance_ns) * rate_hz / 1e9).astype(np.int64)
-    return np.flatnonzero(np.r_[True, np.diff(bins) > 0])
-
-
 def build_table(frames: np.ndarray, frame_ns: np.ndarray, columns: ColumnSet, rows: np.ndarray,
                 meta: dict[str, Any]) -> AlignedTable:
     names = columns.names
     values = columns.table(rows)
     meta = {**meta, "frames": int(len(rows)), "columns": [{"name": n, **columns.meta[n]} for n in names]}
     return AlignedTable(frames[rows], frame_ns[rows], names, values, meta)
-
-
-def estimate_lag(reference: np.ndarray, signal: np.ndarray, rate_hz: float, max_lag_s: float = 0.5) -> float:
-    """Lag in seconds by which ``signal`` trails ``reference`` (both (N,) or (N, D) on one uniform clock
-    at ``rate_hz``): the shift maximising the summed normalised cross-correlation, refined to a
-    fraction of a sample by a parabola through the peak. Positive = signal is late. NaN rows ignored."""
-    ref = _standardise(np.asarray(reference, dtype=float).reshape(len(reference), -1))
-    sig = _standardise(np.asarray(signal, dtype=float).reshape(len(signal), -1))
-    max_shift = max(1, int(round(max_lag_s * rate_hz)))
-    shifts = np.arange(-max_shift, max_shift + 1)
-    scores = np.array([_shifted_correlation(ref, sig, s) for s in shifts])
-    if not np.isfinite(scores).any():
-        raise SessionError("cannot estimate a lag: the signals have no overlapping valid samples")
-    best = int(np.nanargmax(scores))
-    offset = 0.0
-    if 0 < best < len(scores) - 1 and np.isfinite(scores[best - 1 : best + 2]).all():
-        left, mid, right = scores[best - 1 : best + 2]
-        denom = left - 2 * mid + right
-        offset = 0.5 * (left - right) / denom if denom < 0 else 0.0
-    return float((shifts[best] + offset) / rate_hz)
-
-
-def _standardise(x: np.ndarray) -> np.ndarray:
-    mean, std = np.nanmean(x, axis=0), np.nanstd(x, axis=0)
-    return (x - mean) / np.where(std > 0, std, 1.0)
-
-
-def _shifted_correlation(ref: np.ndarray, sig: np.ndarray, shift: int) -> float:
-    """Mean of ref[t] * sig[t + shift] over rows where both are valid."""
-    a, b = (ref[: len(ref) - shift], sig[shift:]) if shift >= 0 else (ref[-shift:], sig[: len(sig) + shift])
-    product = a * b
-    ok = np.isfinite(product)
-    return float(product[ok].mean()) if ok.sum() > 10 else np.nan
 
 
 CALIBRATION_STEMS = tuple(f"{s}_to_{t}" for s in SOURCES for t in TARGETS)
@@ -530,19 +229,6 @@ def add_calibrated(session: Session, data: dict[str, np.ndarray], columns: Colum
                                 frame=calibration.target, description="composition of rotations (thumb and middle sensors)")
 
 
-def add_robot_orientation(columns: ColumnSet) -> None:
-    """``mtm.<hand>_{yaw,pitch,roll}_deg`` / ``psm...`` from the logged quaternions (for evaluation)."""
-    for robot in TARGETS:
-        for hand in HANDS:
-            names = [f"{robot}.{hand}_q{a}" for a in "xyzw"]
-            if any(columns.get(n) is None for n in names):
-                continue
-            angles = angles_from_matrices(matrices_from_quaternions(columns.stack(names)))
-            for k, name in enumerate(("yaw", "pitch", "roll")):
-                columns.add(f"{robot}.{hand}_{name}_deg", angles[:, k], "deg", robot, frame=robot,
-                            description="from the logged quaternion (Rz @ Ry @ Rx convention)")
-
-
 def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
                   on_raw_columns: Callable[[np.ndarray], None] | None = None) -> AlignedTable:
     """Align one session (see the module docstring); does not write anything. ``on_raw_columns`` gets
@@ -564,7 +250,7 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
     add_raw_streams(session, data, columns, frame_ns, options, {}, covered)
     if on_raw_columns is not None and options.rate_hz is None:
         on_raw_columns(columns.table(np.arange(columns.n)))
-    in_parallel(columns, [lambda c: add_emht_features(c, t_s), lambda c: add_handkp_features(c, t_s, options)])
+    in_parallel(columns, [lambda c: add_emht_features(c, t_s), lambda c: add_handkp_features(c, t_s, options.spline_max_gap_s)])
     add_robot_orientation(columns)
     add_clutch(columns)
     calibrations = load_session_calibrations(session.path)

@@ -34,20 +34,6 @@ MODEL_CHOICES = ("best", "rigid", "mlp")  # what align/eval use; best = the held
 FORMAT = "midas-calibration-v1"
 
 
-@dataclass(frozen=True)
-class MLPConfig:
-    """Hyperparameters (paper defaults). ``batch_size`` is not stated in the paper; 1024 keeps 15-fold
-    cross-validation over a dataset within minutes on 2 CPU cores."""
-
-    hidden: tuple[int, ...] = (16, 16)
-    dropout: float = 0.5
-    lr: float = 0.005
-    weight_decay: float = 1.5
-    epochs: int = 50
-    batch_size: int = 1024
-    seed: int = 0
-
-
 @dataclass
 class Calibration:
     """source -> target mapping. ``rotation`` (3, 3), ``translation`` (3,) mm, ``scale``; ``mlp`` is a
@@ -125,7 +111,7 @@ def save_calibration(calibration: Calibration, json_path: Path) -> list[Path]:
     written = []
     description = _describe(calibration)
     if calibration.mlp is not None:
-        from midas_cli.analysis.residual_mlp import save_mlp
+        from midas_cli.models.residual_mlp import save_mlp
 
         weights = json_path.with_suffix(".pt")
         with replacing(weights) as tmp:
@@ -152,7 +138,7 @@ def load_calibration(json_path: Path) -> Calibration:
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SessionError(f"cannot read calibration {json_path}: {exc}") from exc
     if data.get("mlp"):
-        from midas_cli.analysis.residual_mlp import load_mlp
+        from midas_cli.models.residual_mlp import load_mlp
 
         calibration.mlp = load_mlp(json_path.parent / data["mlp"]["weights"], data["mlp"])
     return calibration

@@ -18,9 +18,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from midas_cli.analysis.align import HANDS, estimate_lag
+from midas_cli.analysis.hand_features import HANDS
 from midas_cli.analysis.metrics import (best_lag_frames, binary_scores, closed_states, cosine_similarity,
                                         nrmse_percent, temporal_iou)
+from midas_cli.analysis.sync import estimate_lag
 from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.geometry import unwrap_deg
 from midas_cli.session.derived import AlignedTable

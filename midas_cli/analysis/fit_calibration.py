@@ -16,12 +16,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from midas_cli.analysis.align import EMHT_SENSORS, HANDS, estimate_lag, hand_points
-from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, MLPConfig, save_calibration
+from midas_cli.analysis.calibration import SOURCES, TARGETS, Calibration, save_calibration
+from midas_cli.analysis.hand_features import EMHT_SENSORS, HANDS, hand_points
 from midas_cli.analysis.metrics import cosine_similarity, nrmse_percent
+from midas_cli.analysis.sync import estimate_lag
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
                                            mean_rotation, rotation_angle_deg)
+from midas_cli.models.mlp_config import MLPConfig
 from midas_cli.session.derived import calib_path
 from midas_cli.session.outputs import out_target
 from midas_cli.session.reader import Session
@@ -176,7 +178,7 @@ def fit_calibration(pairs: list[SessionPairs], source: str, target: str, options
     if source == "emht":
         calibration.orientation_offsets = _orientation_offsets(pairs, rotation)
     if not options.rigid_only:
-        from midas_cli.analysis.residual_mlp import train_mlp  # torch: imported only when an MLP is trained
+        from midas_cli.models.residual_mlp import train_mlp  # torch: imported only when an MLP is trained
 
         residual_target = dst if source == "handkp" else dst - calibration.positions(src, "rigid")
         calibration.mlp = train_mlp(src, residual_target, options.mlp, center_output=True)

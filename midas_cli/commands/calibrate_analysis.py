@@ -9,11 +9,12 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from midas_cli.analysis.calibration import TARGETS, MLPConfig
+from midas_cli.analysis.calibration import TARGETS
 from midas_cli.analysis.eval_runs import optimise_pedals
 from midas_cli.analysis.fit_calibration import CalibrationOptions, calibrate_sessions
 from midas_cli.commands.common import JSON_OPTION, err, error_line, non_negative, out, print_json
 from midas_cli.errors import ConfigError
+from midas_cli.models.mlp_config import MLPConfig
 
 SESSIONS_ARG = typer.Argument(..., help="Session folder(s) with robot kinematics (each is one trial).", file_okay=False)
 TARGET_OPTION = typer.Option("mtm", "--target", help=f"Robot frame to map into: {' or '.join(TARGETS)}.")

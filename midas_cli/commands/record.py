@@ -22,7 +22,8 @@ from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.devices.base import DeviceUrl
-from midas_cli.rig import DeviceConfig, RigConfig, load_rig, simulated_rig
+from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
+from midas_cli.rig import simulated_rig
 from midas_cli.session.writer import SessionMetadata
 
 PLAIN_EVERY_S = 2.0

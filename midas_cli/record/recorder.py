@@ -26,8 +26,8 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
+from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.rig import check_device_name
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from midas_cli.analysis.calibration import MLPConfig
 from midas_cli.errors import SessionError
+from midas_cli.models.mlp_config import MLPConfig
 from midas_cli.models.torch_io import load_weights_only
 
 

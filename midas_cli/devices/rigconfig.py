@@ -1,0 +1,132 @@
+"""Rig configuration files (TOML): which devices a console has, and session metadata defaults.
+
+Keys are validated strictly: an unknown key is an error naming the key and the file, never ignored.
+Templates live in ``sessions_template/rigs/``. Passwords never reach the manifest: ``password`` keys
+are dropped from the copy stored there (prefer ``password_env``, the name of an environment variable).
+
+Here, below the rig layer, because device code edits rig files too (``devices/fps/rigfile.py`` writes
+calibrated pedal thresholds back and validates the result); ``midas_cli/rig.py`` builds on this.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from midas_cli.devices.base import KINDS, DeviceUrl
+from midas_cli.errors import ConfigError
+
+RIG_KEYS = {"name": str, "platform": str, "master_rate_hz": (int, float), "description": str}
+METADATA_KEYS = {"subject": (str, int), "task": str, "trial": int, "operator_note": str}
+DEVICE_KEYS = {"url": str, "kind": str, "description": str, "sensors": dict, "pedals": dict,
+               "password_env": str, "password": str}
+SECRET_KEYS = ("password",)
+
+DEVICE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
+
+
+@dataclass
+class DeviceConfig:
+    name: str
+    url: str
+    kind: str
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_device_name(self.name)
+
+
+def check_device_name(name: str) -> None:
+    """A device name names its stream files: a letter, then up to 31 letters, digits, '_' or '-'."""
+    if not DEVICE_NAME.match(name):
+        raise ConfigError(f"device name {name!r} must be a letter followed by up to 31 letters, digits, '_' or '-' "
+                          f"(it names the stream files)")
+
+
+@dataclass
+class RigConfig:
+    name: str
+    platform: str
+    master_rate_hz: float = 30.0
+    description: str = ""
+    metadata: dict[str, Any] = field(default_factory=dict)
+    devices: dict[str, DeviceConfig] = field(default_factory=dict)
+    source: str = ""
+
+    def device_urls(self) -> dict[str, str]:
+        """Device name -> URL; a ``password_env`` key travels as a URL parameter (the name of an
+        environment variable, never a password), so the backend reads the password in its worker."""
+        return {name: _with_password_env(device) for name, device in self.devices.items()}
+
+    def to_manifest(self) -> dict[str, Any]:
+        """The rig as recorded in a manifest: URLs without passwords, secrets dropped."""
+        devices = {}
+        for name, device in self.devices.items():
+            extras = {k: v for k, v in device.extras.items() if k not in SECRET_KEYS}
+            devices[name] = {"url": DeviceUrl.parse(device.url).redacted(), "kind": device.kind, **extras}
+        return {"name": self.name, "platform": self.platform, "master_rate_hz": self.master_rate_hz,
+                "description": self.description, "source": self.source, "devices": devices}
+
+
+def _with_password_env(device: DeviceConfig) -> str:
+    variable = device.extras.get("password_env")
+    if not variable:
+        return device.url
+    return device.url + ("&" if "?" in device.url else "?") + f"password_env={quote(variable)}"
+
+
+def load_rig(path: Path | str) -> RigConfig:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"rig file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read rig file {path}: {exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"rig file {path} is not valid TOML: {exc}") from exc
+    return parse_rig(data, str(path))
+
+
+def parse_rig(data: dict[str, Any], source: str) -> RigConfig:
+    _check_keys(data, {"rig": dict, "metadata": dict, "devices": dict}, source, "")
+    rig = data.get("rig")
+    if rig is None:
+        raise ConfigError(f"{source}: missing [rig] section")
+    _check_keys(rig, RIG_KEYS, source, "rig.")
+    for key in ("name", "platform"):
+        if key not in rig:
+            raise ConfigError(f"{source}: missing rig.{key}")
+    metadata = data.get("metadata", {})
+    _check_keys(metadata, METADATA_KEYS, source, "metadata.")
+    devices = {name: _parse_device(name, entry, source) for name, entry in data.get("devices", {}).items()}
+    if not devices:
+        raise ConfigError(f"{source}: no [devices.<name>] sections")
+    return RigConfig(rig["name"], rig["platform"], float(rig.get("master_rate_hz", 30.0)),
+                     rig.get("description", ""), metadata, devices, source)
+
+
+def _parse_device(name: str, entry: Any, source: str) -> DeviceConfig:
+    if not isinstance(entry, dict):
+        raise ConfigError(f"{source}: devices.{name} must be a table")
+    _check_keys(entry, DEVICE_KEYS, source, f"devices.{name}.")
+    if "url" not in entry:
+        raise ConfigError(f"{source}: devices.{name} has no url")
+    kind = entry.get("kind", name)
+    if kind not in KINDS:
+        raise ConfigError(f"{source}: devices.{name}: unknown kind {kind!r} (kinds: {', '.join(KINDS)})")
+    DeviceUrl.parse(entry["url"])
+    extras = {k: v for k, v in entry.items() if k not in ("url", "kind")}
+    return DeviceConfig(name, entry["url"], kind, extras)
+
+
+def _check_keys(table: dict[str, Any], allowed: dict[str, Any], source: str, prefix: str) -> None:
+    for key, value in table.items():
+        if key not in allowed:
+            raise ConfigError(f"{source}: unknown key {prefix}{key} (allowed: {', '.join(allowed)})")
+        if not isinstance(value, allowed[key]) or isinstance(value, bool):
+            raise ConfigError(f"{source}: {prefix}{key} has the wrong type ({type(value).__name__})")
