@@ -16,6 +16,7 @@ import pytest
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.registry import describe_device
+from midas_cli.devices.pty_emulator import Faults
 from midas_cli.devices.trakstar.driver import FobEmHT
 from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
 from midas_cli.errors import ConfigError, DeviceError
@@ -23,8 +24,9 @@ from midas_cli.errors import ConfigError, DeviceError
 
 @pytest.fixture
 def emulator(tmp_path: Path, request):
-    faults = getattr(request, "param", {})
-    emu = TrakstarEmulator(EmulatorConfig(link=str(tmp_path / "trakstar"), **faults)).start()
+    faults = dict(getattr(request, "param", {}))
+    seed = faults.pop("seed", 0)
+    emu = TrakstarEmulator(EmulatorConfig(seed=seed, link=str(tmp_path / "trakstar"), faults=Faults(**faults))).start()
     yield emu
     emu.stop()
 
