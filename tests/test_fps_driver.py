@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.fps.driver import FpsDevice
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.devices.pty_emulator import Faults
@@ -18,7 +18,7 @@ from midas_cli.errors import ConfigError, DeviceError
 
 def _device(url: str, name: str = "fps") -> FpsDevice:
     clock = HostClock.anchored_now()
-    return FpsDevice(name, DeviceUrl.parse(url), clock, clock.now_ns())
+    return FpsDevice(name, DeviceUrl.parse(url), DeviceContext(clock, clock.now_ns()))
 
 
 def _read_for(device: FpsDevice, seconds: float) -> list[tuple]:
@@ -94,7 +94,8 @@ def test_board_restart_continues_the_session_sequence(tmp_path: Path) -> None:
     with FpsEmulator(FpsEmulatorConfig(channels=3, link=link)) as emulator:
         clock = HostClock.anchored_now()
         start = clock.now_ns()
-        first = create_device("fps", f"fps://{link}?rate=200&channels=3", clock, start)
+        worker = DeviceContext(clock, start)  # the worker keeps one context over reconnects
+        first = create_device("fps", f"fps://{link}?rate=200&channels=3", worker)
         first.open()
         before = _read_for(first, 0.3)
         emulator.set_unplugged(True)
@@ -103,7 +104,7 @@ def test_board_restart_continues_the_session_sequence(tmp_path: Path) -> None:
         first.close()
         emulator.set_unplugged(False)
         time.sleep(0.1)
-        second = create_device("fps", f"fps://{link}?rate=200&channels=3", clock, start)
+        second = create_device("fps", f"fps://{link}?rate=200&channels=3", worker)
         second.open()
         after = _read_for(second, 0.3)
         second.close()

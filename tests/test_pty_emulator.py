@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.devices.pty_emulator import Faults
 from midas_cli.devices.trakstar.driver import FobEmHT
@@ -57,7 +57,7 @@ def test_an_fps_thread_error_is_re_raised_by_join_and_stop() -> None:
 def test_the_trakstar_streams_only_the_sensors_the_host_configured(tmp_path: Path) -> None:
     emulator = TrakstarEmulator(EmulatorConfig(sensors=4, link=str(tmp_path / "trakstar"))).start()
     clock = HostClock.anchored_now()
-    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=2"), clock, clock.now_ns())
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=2"), DeviceContext(clock, clock.now_ns()))
     try:
         device.open()
         rows: list[tuple] = []
