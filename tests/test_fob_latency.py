@@ -12,7 +12,7 @@ import pytest
 import serial
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.trakstar import protocol as fob
 from midas_cli.devices.trakstar.driver import READ_TIMEOUT_S, FobEmHT
@@ -111,7 +111,7 @@ def test_a_cycle_reaches_read_before_the_next_cycle_is_sent(slow_emulator) -> No
     """At 4 Hz each group is followed by 250 ms of silence: its row comes out on the idle window, with no
     byte of the next cycle received (or even sent)."""
     clock = HostClock.anchored_now()
-    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{slow_emulator.path}?rate=4&sensors=4"), clock, clock.now_ns())
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{slow_emulator.path}?rate=4&sensors=4"), DeviceContext(clock, clock.now_ns()))
     device.open()
     try:
         seen = _rows_with_state(device, slow_emulator, 3)
@@ -126,7 +126,7 @@ def test_a_cycle_reaches_read_before_the_next_cycle_is_sent(slow_emulator) -> No
 def test_with_idle_0_a_cycle_waits_for_the_next_cycles_first_byte(slow_emulator) -> None:
     clock = HostClock.anchored_now()
     url = DeviceUrl.parse(f"fob://{slow_emulator.path}?rate=4&sensors=4&idle=0")
-    device = FobEmHT("emht", url, clock, clock.now_ns())
+    device = FobEmHT("emht", url, DeviceContext(clock, clock.now_ns()))
     device.open()
     try:
         seen = _rows_with_state(device, slow_emulator, 2)
@@ -141,7 +141,7 @@ def _raw_pty_device(idle_ms: float) -> tuple[FobEmHT, int, int]:
     master, slave = os.openpty()
     os.set_blocking(master, False)
     clock = HostClock.anchored_now()
-    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{os.ttyname(slave)}?sensors=2&idle={idle_ms}&timeout=5"), clock, 0)
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{os.ttyname(slave)}?sensors=2&idle={idle_ms}&timeout=5"), DeviceContext(clock, 0))
     device._port = serial.serial_for_url(os.ttyname(slave), timeout=READ_TIMEOUT_S)
     device._fd = device._port_fd()
     device._last_data = time.monotonic()

@@ -8,16 +8,17 @@ from pathlib import Path
 import pytest
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.fps.driver import FpsDevice
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
+from midas_cli.devices.pty_emulator import Faults
 from midas_cli.devices.registry import create_device, describe_device
 from midas_cli.errors import ConfigError, DeviceError
 
 
 def _device(url: str, name: str = "fps") -> FpsDevice:
     clock = HostClock.anchored_now()
-    return FpsDevice(name, DeviceUrl.parse(url), clock, clock.now_ns())
+    return FpsDevice(name, DeviceUrl.parse(url), DeviceContext(clock, clock.now_ns()))
 
 
 def _read_for(device: FpsDevice, seconds: float) -> list[tuple]:
@@ -52,7 +53,7 @@ def test_records_every_sample_the_board_sent() -> None:
         rows = _read_until(device, 150)
         device.close()
         time.sleep(0.1)
-    report = emulator.report()
+    report = emulator.summary()
     sent = {s["seq"]: s for s in report["samples"]}
     assert info["firmware"] == "1.0.0" and info["board_channels"] == 9
     assert [r[0] for r in rows] == sorted(sent)[: len(rows)] and len(rows) >= 150
@@ -74,13 +75,13 @@ def test_pressed_states_use_per_channel_thresholds_with_hysteresis() -> None:
 
 
 def test_corrupted_bytes_are_counted_and_never_recorded() -> None:
-    config = FpsEmulatorConfig(channels=9, corrupt_p=0.01, drop_p=0.002, seed=4)
+    config = FpsEmulatorConfig(channels=9, seed=8, faults=Faults(corrupt=0.01, drop=0.002))
     with FpsEmulator(config) as emulator:
         device = _device(f"fps://{emulator.path}?rate=400")
         device.open()
         rows = _read_for(device, 1.5)
         device.close()
-    report = emulator.report()
+    report = emulator.summary()
     sent = {s["seq"]: s for s in report["samples"]}
     assert device.counters.corrupt > 0 and device.counters.discarded_bytes > 0
     assert all(list(r[3:12]) == sent[r[0]]["adc"] and r[2] == sent[r[0]]["t_us"] for r in rows)
@@ -93,7 +94,8 @@ def test_board_restart_continues_the_session_sequence(tmp_path: Path) -> None:
     with FpsEmulator(FpsEmulatorConfig(channels=3, link=link)) as emulator:
         clock = HostClock.anchored_now()
         start = clock.now_ns()
-        first = create_device("fps", f"fps://{link}?rate=200&channels=3", clock, start)
+        worker = DeviceContext(clock, start)  # the worker keeps one context over reconnects
+        first = create_device("fps", f"fps://{link}?rate=200&channels=3", worker)
         first.open()
         before = _read_for(first, 0.3)
         emulator.set_unplugged(True)
@@ -102,18 +104,18 @@ def test_board_restart_continues_the_session_sequence(tmp_path: Path) -> None:
         first.close()
         emulator.set_unplugged(False)
         time.sleep(0.1)
-        second = create_device("fps", f"fps://{link}?rate=200&channels=3", clock, start)
+        second = create_device("fps", f"fps://{link}?rate=200&channels=3", worker)
         second.open()
         after = _read_for(second, 0.3)
         second.close()
-    assert len(emulator.report()["boots"]) == 2
+    assert len(emulator.summary()["boots"]) == 2
     assert after[0][0] > before[-1][0] and second.counters.extra["seq_rebased"] == 1
 
 
 def test_silence_and_missing_ports_raise_device_errors(tmp_path: Path) -> None:
     with pytest.raises(DeviceError, match="cannot open"):
         _device(f"fps://{tmp_path}/nothing?rate=100").open()
-    with FpsEmulator(FpsEmulatorConfig(stalls=((0.0, 5.0),))) as emulator:
+    with FpsEmulator(FpsEmulatorConfig(faults=Faults(stall_at=0.0, stall_for=5.0))) as emulator:
         with pytest.raises(DeviceError, match="no answer to 'ID'"):
             _device(f"fps://{emulator.path}?rate=100&timeout=0.6").open()
 
@@ -137,6 +139,8 @@ def test_emulator_controls() -> None:
     emulator = FpsEmulator(FpsEmulatorConfig(channels=2))
     emulator.control("press 2")
     emulator.control("unplug")
-    assert emulator._forced == [None, True] and emulator._manual_unplug
+    assert emulator._forced == [None, True] and not emulator._plug_wanted(time.monotonic())
+    emulator.control("replug")
+    assert emulator._plug_wanted(time.monotonic())
     with pytest.raises(ConfigError, match="unknown emulator control"):
         emulator.control("jump 3")

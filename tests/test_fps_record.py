@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
+from midas_cli.devices.pty_emulator import Faults
 from midas_cli.session.reader import Session
 from tests.conftest import midas
 
@@ -49,7 +50,7 @@ def test_record_loses_nothing_the_board_sent(tmp_path: Path, duration: float) ->
         session, manifest = _record(tmp_path, f"fps://{emulator.path}?rate=200", duration)
     rows = _rows(session)
     outage = _outages(manifest, rows)  # none on a quiet host; a busy one may stall the emulator's thread
-    sent = [s for s in emulator.report()["samples"] if s["seq"] not in outage]
+    sent = [s for s in emulator.summary()["samples"] if s["seq"] not in outage]
     assert len(rows) >= 200  # at least a second (the devices' start-up is part of --duration)
     assert [r[0] for r in rows] == [s["seq"] for s in sent[: len(rows)]]  # a prefix: nothing lost or reordered
     assert all(r[2] == s["t_us"] and list(r[3:12]) == s["adc"] for r, s in zip(rows, sent))
@@ -60,9 +61,9 @@ def test_record_loses_nothing_the_board_sent(tmp_path: Path, duration: float) ->
 
 
 def test_one_percent_corruption_completes_counts_and_keeps_bad_values_out(tmp_path: Path) -> None:
-    with FpsEmulator(FpsEmulatorConfig(channels=9, corrupt_p=0.01, seed=7)) as emulator:
+    with FpsEmulator(FpsEmulatorConfig(channels=9, seed=7, faults=Faults(corrupt=0.01))) as emulator:
         session, manifest = _record(tmp_path, f"fps://{emulator.path}?rate=200", 6)
-    sent = {s["seq"]: s for s in emulator.report()["samples"]}
+    sent = {s["seq"]: s for s in emulator.summary()["samples"]}
     rows = _rows(session)
     assert all(r[2] == sent[r[0]]["t_us"] and list(r[3:12]) == sent[r[0]]["adc"] for r in rows)
     outage = _outages(manifest, rows)
@@ -78,7 +79,7 @@ def test_unplug_and_replug_reconnects_within_two_seconds(tmp_path: Path) -> None
     link = tmp_path / "fps-port"
     with FpsEmulator(FpsEmulatorConfig(channels=9, link=link)) as emulator:
         def pull_the_cable() -> None:
-            while emulator.report()["sent"] < 300:  # recording for about 1.5 s
+            while emulator.summary()["sent"] < 300:  # recording for about 1.5 s
                 time.sleep(0.05)
             emulator.set_unplugged(True)
             time.sleep(1.0)
@@ -88,7 +89,7 @@ def test_unplug_and_replug_reconnects_within_two_seconds(tmp_path: Path) -> None
         cable.start()
         session, manifest = _record(tmp_path, f"fps://{link}?rate=200", 8)
         cable.join(timeout=1)
-    boots = emulator.report()["boots"]
+    boots = emulator.summary()["boots"]
     assert len(boots) == 2
     rows = _rows(session)
     after = [r for r in rows if r[1] > boots[1]["t_host_ns"]]

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.raven.device import RavenDevice
 from midas_cli.devices.raven.emulator import PacketSource, RavenEmulator, RavenEmulatorConfig
 from midas_cli.devices.raven.protocol import (
@@ -149,8 +149,10 @@ def _udp(host: str = "127.0.0.1") -> socket.socket:
     return sock
 
 
-def _device(session_dir: Path, url: str) -> RavenDevice:
-    return RavenDevice("raven", DeviceUrl.parse(url), HostClock.anchored_now(), str(session_dir))
+def _device(session_dir: Path, url: str, context: DeviceContext | None = None) -> RavenDevice:
+    """A device as the worker builds it; pass one ``context`` to every reconnect of one worker."""
+    context = context or DeviceContext(HostClock.anchored_now(), session_dir=str(session_dir))
+    return RavenDevice("raven", DeviceUrl.parse(url), context)
 
 
 def _read_until(device: RavenDevice, rows: int, timeout_s: float = 30) -> list[tuple]:
@@ -164,7 +166,7 @@ def _read_until(device: RavenDevice, rows: int, timeout_s: float = 30) -> list[t
 
 def test_listen_address_is_loopback_unless_the_url_names_one() -> None:
     def address(url: str) -> tuple[str, int]:
-        return RavenDevice("raven", DeviceUrl.parse(url), HostClock.anchored_now()).address
+        return RavenDevice("raven", DeviceUrl.parse(url), DeviceContext(HostClock.anchored_now())).address
 
     assert address("raven://") == ("127.0.0.1", 36000)
     assert address("raven://?rate=500") == ("127.0.0.1", 36000)
@@ -175,9 +177,9 @@ def test_listen_address_is_loopback_unless_the_url_names_one() -> None:
 
 def test_forwarding_needs_the_consoles_address() -> None:
     with pytest.raises(ConfigError, match="forward= needs from="):
-        RavenDevice("raven", DeviceUrl.parse("raven://?forward=127.0.0.1:36001"), HostClock.anchored_now())
+        RavenDevice("raven", DeviceUrl.parse("raven://?forward=127.0.0.1:36001"), DeviceContext(HostClock.anchored_now()))
     with pytest.raises(ConfigError, match="unknown host"):
-        RavenDevice("raven", DeviceUrl.parse("raven://?from=no-such-host.invalid"), HostClock.anchored_now())
+        RavenDevice("raven", DeviceUrl.parse("raven://?from=no-such-host.invalid"), DeviceContext(HostClock.anchored_now()))
 
 
 def test_default_bind_takes_loopback_datagrams_only(tmp_path: Path) -> None:
@@ -208,8 +210,9 @@ def test_only_the_consoles_datagrams_are_forwarded_and_counts_survive_a_reconnec
     foreign = [encode_packet(p) for p in PacketSource(RavenEmulatorConfig(seed=6)).block(1000, 10)]
     rows, forwarded = [], []
     caplog.set_level(logging.WARNING, logger="midas_cli")
+    worker = DeviceContext(HostClock.anchored_now(), session_dir=str(tmp_path))
     for connection in range(2):
-        device = _device(tmp_path, url)
+        device = _device(tmp_path, url, worker)
         device.open()
         mine = packets[20 * connection:20 * (connection + 1)]
         for k, datagram in enumerate(mine):
@@ -339,16 +342,12 @@ def test_record_keeps_only_the_consoles_datagrams_and_counts_them_over_a_reconne
 def test_a_new_process_resumes_counting_from_the_raw_file(tmp_path: Path, caplog, monkeypatch) -> None:
     """Without the worker's tally (another process), seq, packets and wrong-size counts still continue
     from the raw file; what it cannot know (forwarded, foreign) restarts, and the log says so."""
-    from midas_cli.devices.raven import device as raven_device
-
     port = free_udp_port()
     packets = [encode_packet(p) for p in PacketSource(RavenEmulatorConfig(seed=1)).block(0, 6)]
     rows = []
     with _udp() as console:
         for connection in range(2):
-            if connection:
-                monkeypatch.setattr(raven_device, "_TALLIES", {})
-            device = _device(tmp_path, f"raven://:{port}")
+            device = _device(tmp_path, f"raven://:{port}")  # a new context each time: another process
             device.open()
             console.sendto(packets[3 * connection][:10], ("127.0.0.1", port))
             for datagram in packets[3 * connection:3 * connection + 3]:

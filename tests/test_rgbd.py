@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.rgbd.calibration import Rectifier, load_zed_conf, parse_zed_conf
 from midas_cli.devices.rgbd.device import ZedSdkStereoDevice
 from midas_cli.devices.rgbd.handkp import handkp_spec
@@ -103,7 +103,7 @@ def test_depth_follows_the_markers_not_the_background() -> None:
 def test_zed_sdk_backend_without_pyzed_is_a_clear_device_error(tmp_path: Path) -> None:
     if importlib.util.find_spec("pyzed") is not None:
         pytest.skip("pyzed is installed here")
-    device = ZedSdkStereoDevice("cam", DeviceUrl.parse("zed://?fps=30"), HostClock(0), str(tmp_path))
+    device = ZedSdkStereoDevice("cam", DeviceUrl.parse("zed://?fps=30"), DeviceContext(HostClock(0), session_dir=str(tmp_path)))
     with pytest.raises(DeviceError, match="ZED SDK .*pyzed.*uvc://INDEX"):
         device.open()
 
@@ -120,7 +120,7 @@ def test_uvc_refuses_a_mode_that_is_no_zed_side_by_side_and_a_bad_calibration(tm
 
 
 def test_handkp_layout_matches_the_simulated_handkp_stream() -> None:
-    sim = SimHandKP("handkp", DeviceUrl.parse("sim://handkp"), HostClock(0), 0).streams[0]
+    sim = SimHandKP("handkp", DeviceUrl.parse("sim://handkp"), DeviceContext(HostClock(0), 0)).streams[0]
     assert handkp_spec("handkp", 30.0).column_names == sim.column_names
 
 

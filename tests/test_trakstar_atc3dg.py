@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.registry import create_device
 from midas_cli.devices.trakstar.atc3dg import LIB_ENV, Atc3dgEmHT
 from midas_cli.errors import ConfigError, DeviceError
@@ -28,7 +28,7 @@ def fake_lib(tmp_path_factory) -> Path:
 
 def _device(url: str) -> Atc3dgEmHT:
     clock = HostClock.anchored_now()
-    device = create_device("emht", url, clock, clock.now_ns())
+    device = create_device("emht", url, DeviceContext(clock, clock.now_ns()))
     assert isinstance(device, Atc3dgEmHT)
     return device
 
@@ -87,4 +87,4 @@ def test_a_rate_the_tracker_refuses_is_an_error(fake_lib: Path) -> None:
                                             ("metric=2", "metric must be"), ("sensors=5", "sensors must be")])
 def test_bad_settings_are_refused(query: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
-        Atc3dgEmHT("emht", DeviceUrl.parse(f"atc3dg://?{query}"), HostClock(0), 0)
+        Atc3dgEmHT("emht", DeviceUrl.parse(f"atc3dg://?{query}"), DeviceContext(HostClock(0), 0))

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.registry import describe_device
+from midas_cli.devices.pty_emulator import Faults
 from midas_cli.devices.trakstar.driver import FobEmHT
 from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
 from midas_cli.errors import ConfigError, DeviceError
@@ -23,8 +24,9 @@ from midas_cli.errors import ConfigError, DeviceError
 
 @pytest.fixture
 def emulator(tmp_path: Path, request):
-    faults = getattr(request, "param", {})
-    emu = TrakstarEmulator(EmulatorConfig(link=str(tmp_path / "trakstar"), **faults)).start()
+    faults = dict(getattr(request, "param", {}))
+    seed = faults.pop("seed", 0)
+    emu = TrakstarEmulator(EmulatorConfig(seed=seed, link=str(tmp_path / "trakstar"), faults=Faults(**faults))).start()
     yield emu
     emu.stop()
 
@@ -52,7 +54,7 @@ def _expected(emu: TrakstarEmulator, summary: dict, first_index: int, count: int
 
 def test_driver_configures_the_tracker_and_decodes_every_cycle(emulator) -> None:
     clock = HostClock.anchored_now()
-    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=4"), clock, clock.now_ns())
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=4"), DeviceContext(clock, clock.now_ns()))
     info = device.open()
     rows = _read_for(device, 2.0, wanted=350)
     device.close()
@@ -71,7 +73,7 @@ def test_driver_configures_the_tracker_and_decodes_every_cycle(emulator) -> None
 @pytest.mark.parametrize("emulator", [{"corrupt": 0.01, "drop": 0.005, "seed": 3}], indirect=True)
 def test_corrupted_and_lost_bytes_never_reach_the_rows(emulator) -> None:
     clock = HostClock.anchored_now()
-    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200"), clock, clock.now_ns())
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200"), DeviceContext(clock, clock.now_ns()))
     device.open()
     rows = _read_for(device, 3.0)
     device.close()
@@ -110,11 +112,11 @@ def test_bad_urls_are_refused(url: str, message: str) -> None:
 def test_missing_port_and_silent_device_raise_device_errors(tmp_path: Path) -> None:
     clock = HostClock.anchored_now()
     with pytest.raises(DeviceError, match="cannot open serial port"):
-        FobEmHT("emht", DeviceUrl.parse(f"fob://{tmp_path}/nothing"), clock, 0).open()
+        FobEmHT("emht", DeviceUrl.parse(f"fob://{tmp_path}/nothing"), DeviceContext(clock, 0)).open()
     master, slave = os.openpty()  # a port nobody answers on
     try:
         with pytest.raises(DeviceError, match="no answer to EXAMINE"):
-            FobEmHT("emht", DeviceUrl.parse(f"fob://{os.ttyname(slave)}"), clock, 0).open()
+            FobEmHT("emht", DeviceUrl.parse(f"fob://{os.ttyname(slave)}"), DeviceContext(clock, 0)).open()
     finally:
         os.close(master)
         os.close(slave)
@@ -122,7 +124,7 @@ def test_missing_port_and_silent_device_raise_device_errors(tmp_path: Path) -> N
 
 def test_stall_makes_the_driver_report_silence(emulator) -> None:
     clock = HostClock.anchored_now()
-    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=100&timeout=0.3"), clock, clock.now_ns())
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=100&timeout=0.3"), DeviceContext(clock, clock.now_ns()))
     device.open()
     assert _read_for(device, 0.3)
     emulator.stall(2.0)
@@ -140,7 +142,7 @@ def test_emulate_command_serves_a_pty_and_writes_its_summary(tmp_path: Path) -> 
     try:
         assert process.stdout.readline().strip() == str(link)
         clock = HostClock.anchored_now()
-        device = FobEmHT("emht", DeviceUrl.parse(f"fob://{link}?rate=100&sensors=4"), clock, clock.now_ns())
+        device = FobEmHT("emht", DeviceUrl.parse(f"fob://{link}?rate=100&sensors=4"), DeviceContext(clock, clock.now_ns()))
         device.open()
         rows = _read_for(device, 1.0, wanted=51)
         device.close()

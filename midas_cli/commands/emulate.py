@@ -13,28 +13,34 @@ import typer
 
 from midas_cli.commands.common import JSON_OPTION, err, finite, non_negative, positive, print_json, probability
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
+from midas_cli.devices.pty_emulator import Faults, PtyEmulator
 from midas_cli.devices.raven.device import parse_address
 from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
-from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator, serve_for
+from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
 from midas_cli.errors import ConfigError
 
 app = typer.Typer(help="Serve emulated serial devices on pseudo-terminals.", no_args_is_help=True)
 
+# The options every pty emulator shares (one fault vocabulary: midas_cli.devices.pty_emulator.Faults)
+SEED = typer.Option(0, "--seed", help="Seed of the simulated surgeon's motion and of the faults.")
+CORRUPT = typer.Option(0.0, "--corrupt", callback=probability, help="Probability per byte of line noise replacing it.")
+DROP = typer.Option(0.0, "--drop", callback=probability, help="Probability per byte of losing it.")
+STALL_AT = typer.Option(-1.0, "--stall-at", callback=finite, help="Seconds after start: send nothing (see --stall-for).")
+STALL_FOR = typer.Option(0.0, "--stall-for", callback=non_negative, help="Length of the stall in seconds.")
+UNPLUG_AT = typer.Option(-1.0, "--unplug-at", callback=finite, help="Seconds after start: pull the cable (needs --link).")
+UNPLUG_FOR = typer.Option(0.0, "--unplug-for", callback=non_negative, help="Seconds until the pty is reopened at --link.")
+LINK = typer.Option(None, "--link", help="Symlink that always points at the current pty.")
+SUMMARY = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit.")
+DURATION = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds.")
+
 
 @app.command()
 def trakstar(
-    sensors: int = typer.Option(4, "--sensors", help="Sensors on the tracker (1..4)."),
+    sensors: int = typer.Option(4, "--sensors", help="Sensors attached to the tracker (1..4; the host may use fewer)."),
     baud: int = typer.Option(115200, "--baud", help="Line speed the output is paced to (8N1)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's motion and of the faults."),
-    corrupt: float = typer.Option(0.0, "--corrupt", callback=probability, help="Probability per byte of framing-breaking line noise."),
-    drop: float = typer.Option(0.0, "--drop", callback=probability, help="Probability per byte of losing it."),
-    stall_at: float = typer.Option(-1.0, "--stall-at", callback=finite, help="Seconds after start: stop sending (see --stall-for)."),
-    stall_for: float = typer.Option(0.0, "--stall-for", callback=non_negative, help="Length of the stall in seconds."),
-    unplug_at: float = typer.Option(-1.0, "--unplug-at", callback=finite, help="Seconds after start: close the pty (needs --link)."),
-    unplug_for: float = typer.Option(0.0, "--unplug-for", callback=non_negative, help="Seconds until the pty is reopened at --link."),
-    link: Optional[Path] = typer.Option(None, "--link", help="Symlink that always points at the current pty."),
-    summary: Optional[Path] = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit."),
-    duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
+    seed: int = SEED, corrupt: float = CORRUPT, drop: float = DROP, stall_at: float = STALL_AT,
+    stall_for: float = STALL_FOR, unplug_at: float = UNPLUG_AT, unplug_for: float = UNPLUG_FOR,
+    link: Optional[Path] = LINK, summary: Optional[Path] = SUMMARY, duration: Optional[float] = DURATION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Serve the trakSTAR's Flock-of-Birds RS-232 protocol on a pty.
@@ -45,23 +51,31 @@ def trakstar(
 
     Example: midas emulate trakstar --link /tmp/trakstar --summary /tmp/trakstar.json --corrupt 0.01
     """
-    config = EmulatorConfig(sensors, baud, seed, corrupt, drop, stall_at, stall_for, unplug_at, unplug_for,
-                            str(link) if link else None)
-    emulator = TrakstarEmulator(config)
-    sys.stdout.write(emulator.path + "\n")
-    sys.stdout.flush()
-    stopped = _stop_on_signals()
-    try:
-        serve_for(emulator, duration, lambda: stopped["signal"] is not None)
-    finally:
-        result = emulator.stop()
-        if summary is not None:
-            emulator.write_summary(summary)
+    faults = Faults(corrupt, drop, stall_at, stall_for, unplug_at, unplug_for)
+    emulator = TrakstarEmulator(EmulatorConfig(sensors, baud, seed, faults, str(link) if link else None))
+    result = _serve(emulator, duration, summary)
     err.print(f"trakstar emulator: {result['stream_groups_sent']} cycles streamed, records per sensor "
               f"{result['records_per_sensor']}, {result['bytes_corrupted']} bytes corrupted, "
               f"{result['bytes_dropped']} dropped, {len(result['unplugs'])} unplug(s)")
     if as_json:
         print_json({k: v for k, v in result.items() if k not in ("stream_counters", "stream_t_model_s")})
+
+
+def _serve(emulator: PtyEmulator, duration: Optional[float], summary: Optional[Path], controls=None) -> dict:
+    """Print the port path, serve until a signal or ``duration``, stop, write the summary; return it."""
+    stopped = _stop_on_signals()
+    emulator.start()
+    sys.stdout.write(emulator.path + "\n")
+    sys.stdout.flush()
+    if controls is not None:
+        threading.Thread(target=controls, args=(emulator,), daemon=True).start()
+    try:
+        emulator.serve_for(duration, lambda: stopped["signal"] is not None)
+    finally:
+        result = emulator.stop()
+        if summary is not None:
+            emulator.write_summary(summary)
+    return result
 
 
 def _stop_on_signals() -> dict:
@@ -81,17 +95,10 @@ def fps(
     channels: int = typer.Option(9, "--channels", help="FSR channels on the board (1..9)."),
     rate: int = typer.Option(250, "--rate", callback=positive, help="Sample rate at boot in Hz (the host sets its own with RATE)."),
     baud: int = typer.Option(500000, "--baud", help="The firmware's line speed (limits the rate it accepts)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the simulated surgeon's feet and of the faults."),
     pedals: str = typer.Option("model", "--pedals", help="model: the surgeon presses pedals; idle: feet at rest."),
-    corrupt: float = typer.Option(0.0, "--corrupt", callback=probability, help="Probability per byte of corrupting it."),
-    drop: float = typer.Option(0.0, "--drop", callback=probability, help="Probability per byte of losing it."),
-    stall_at: float = typer.Option(-1.0, "--stall-at", callback=finite, help="Seconds after start: the board hangs (see --stall-for)."),
-    stall_for: float = typer.Option(0.0, "--stall-for", callback=non_negative, help="Length of the stall in seconds."),
-    unplug_at: float = typer.Option(-1.0, "--unplug-at", callback=finite, help="Seconds after start: pull the cable (use --link)."),
-    unplug_for: float = typer.Option(0.0, "--unplug-for", callback=non_negative, help="Seconds until it is plugged back in (a reboot)."),
-    link: Optional[Path] = typer.Option(None, "--link", help="Symlink that always points at the current pty."),
-    summary: Optional[Path] = typer.Option(None, "--summary", help="Write what was sent as JSON here at exit."),
-    duration: Optional[float] = typer.Option(None, "--duration", callback=positive, help="Stop after this many seconds."),
+    seed: int = SEED, corrupt: float = CORRUPT, drop: float = DROP, stall_at: float = STALL_AT,
+    stall_for: float = STALL_FOR, unplug_at: float = UNPLUG_AT, unplug_for: float = UNPLUG_FOR,
+    link: Optional[Path] = LINK, summary: Optional[Path] = SUMMARY, duration: Optional[float] = DURATION,
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Serve the FPS pedal board's MIDAS-FPS line protocol on a pty.
@@ -100,30 +107,17 @@ def fps(
     by its sample clock, with the simulated surgeon's feet and optional faults. Prints the port
     path (the --link if given) as the first stdout line. Lines on stdin control it: `press N`,
     `release N`, `auto N`, `unplug`, `replug`. Stops on Ctrl-C, SIGTERM or --duration and reports
-    what it sent.
+    what it sent. An unplug is a reboot of the board.
 
     Example: midas emulate fps --link /tmp/fps --summary /tmp/fps.json --corrupt 0.01
     """
-    windows = {name: ((at, length),) if at >= 0 and length > 0 else ()
-               for name, at, length in (("stalls", stall_at, stall_for), ("unplugs", unplug_at, unplug_for))}
-    config = FpsEmulatorConfig(channels, rate, baud, seed, pedals, corrupt_p=corrupt, drop_p=drop,
-                               link=link, keep_samples=summary is not None, **windows)
-    emulator = FpsEmulator(config).start()
-    sys.stdout.write(emulator.path + "\n")
-    sys.stdout.flush()
-    stopped = _stop_on_signals()
-    threading.Thread(target=_stdin_controls, args=(emulator,), daemon=True).start()
-    deadline = None if duration is None else time.monotonic() + duration
-    try:
-        while stopped["signal"] is None and (deadline is None or time.monotonic() < deadline):
-            time.sleep(0.05)
-    finally:
-        emulator.stop()
-        if summary is not None:
-            emulator.write_report(summary)
-    result = {k: v for k, v in emulator.report().items() if k != "samples"}
+    faults = Faults(corrupt, drop, stall_at, stall_for, unplug_at, unplug_for)
+    config = FpsEmulatorConfig(channels, rate, baud, seed, pedals, faults=faults, link=link,
+                               keep_samples=summary is not None)
+    result = {k: v for k, v in _serve(FpsEmulator(config), duration, summary, _stdin_controls).items()
+              if k != "samples"}
     err.print(f"fps emulator: {result['sent']} samples sent ({result['intact']} intact), "
-              f"{result['corrupted_bytes']} bytes corrupted, {result['dropped_bytes']} dropped, "
+              f"{result['bytes_corrupted']} bytes corrupted, {result['bytes_dropped']} dropped, "
               f"{len(result['boots'])} boot(s)")
     if as_json:
         print_json(result)

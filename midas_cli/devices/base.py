@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, TypeVar
 from urllib.parse import parse_qsl, urlsplit
 
+from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError
 from midas_cli.session.schema import StreamSpec
 
 KINDS = ("emht", "fps", "video", "handkp", "raven", "lsl")
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,32 @@ class DeviceUrl:
             netloc += f":{parts.port}"
         query = "&".join(f"{k}={v}" for k, v in self.params.items() if k != "password")
         return f"{parts.scheme}://{netloc}{parts.path}" + (f"?{query}" if query else "")
+
+
+@dataclass
+class DeviceContext:
+    """What every backend is built with, as ``Backend(name, url, context)``: the host ``clock``, the
+    session start ``start_ns`` (sample k of a paced device is due at start + k / rate), the session
+    ``seed`` (a URL's ``seed=`` wins), the absolute ``session_dir`` for backends that write files into the
+    session (empty: none), and what a device carries across reconnects (a worker builds one context and
+    reuses it for every reopen of its device, so a reopened device continues its sequence)."""
+
+    clock: HostClock
+    start_ns: int = 0
+    seed: int = 0
+    session_dir: str = ""
+    carried: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def describing(cls, seed: int = 0) -> "DeviceContext":
+        """A context for backends built only for their stream layout and settings (nothing is opened)."""
+        return cls(HostClock(0), 0, seed)
+
+    def carry(self, key: str, factory: Callable[[], T]) -> T:
+        """The state kept under ``key`` across reconnects (made by ``factory`` the first time)."""
+        if key not in self.carried:
+            self.carried[key] = factory()
+        return self.carried[key]
 
 
 @dataclass

@@ -31,7 +31,7 @@ import numpy as np
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import Device
-from midas_cli.devices.registry import create_device
+from midas_cli.devices.registry import DeviceContext, create_device
 from midas_cli.errors import DeviceError, MidasError
 from midas_cli.record.link import StopSignal, WorkerLink
 from midas_cli.record.messages import DataBatch, DeviceEvent
@@ -184,9 +184,10 @@ def _alive(pid: int) -> bool:
 def _serve(job: WorkerJob, output: WorkerOutput, stop) -> None:
     """Open, pump, and reopen with exponential back-off until told to stop."""
     backoff = BACKOFF_START_S
+    context = DeviceContext(output.clock, job.start_ns, job.seed, job.session_dir)  # one per worker: kept over reopens
     while not stop.is_set() and _alive(job.parent_pid):
         try:
-            device = create_device(job.device, job.url, output.clock, job.start_ns, job.seed, job.session_dir)
+            device = create_device(job.device, job.url, context)
             info = device.open()
         except MidasError as exc:
             output.event("open_failed", str(exc))

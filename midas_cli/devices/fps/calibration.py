@@ -21,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 from midas_cli.clock import HostClock
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.fps.driver import FpsDevice
 from midas_cli.devices.pedals import PedalThresholds, adc_to_volts
 from midas_cli.errors import ConfigError, DeviceError, SessionError
@@ -167,7 +167,7 @@ class LiveCalibration:
         if parsed.scheme != "fps":
             raise ConfigError(f"live calibration needs the board's fps:// URL, got {url!r} (or use --session)")
         clock = HostClock.anchored_now()
-        self.device = FpsDevice(device, parsed, clock, clock.now_ns())
+        self.device = FpsDevice(device, parsed, DeviceContext(clock, clock.now_ns()))
         self.channels: int = self.device.params["channels"]
 
     def open(self) -> dict[str, Any]:

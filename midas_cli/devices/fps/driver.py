@@ -23,8 +23,7 @@ from typing import Any
 import numpy as np
 import serial
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.fps.protocol import (
     MAX_RATE_HZ, PROTO_VERSION, Banner, LineDecoder, Message, Reply, Sample, encode_command, max_rate_hz, rate_fits,
 )
@@ -80,22 +79,19 @@ class _SeqState:
     last_t_host_ns: int = 0
 
 
-_CONTINUITY: dict[tuple[str, int], _SeqState] = {}
-
-
 class FpsDevice(Device):
     """The MIDAS-FPS firmware (or its emulator) on a serial port."""
 
     kind = "fps"
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, start_ns: int, seed: int = 0) -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         self.params = url.take(ALLOWED, DEFAULTS)
         self.port = url.target
         self._validate()
         self.thresholds = thresholds_from_params(self.params, url.raw)
-        self.clock = clock
-        self.state = _CONTINUITY.setdefault((name, start_ns), _SeqState())
+        self.clock = context.clock
+        self.state = context.carry(f"{name}/fps-seq", _SeqState)
         self.tracker = PedalStateTracker(self.thresholds)
         self.decoder = LineDecoder()
         self._serial: serial.SerialBase | None = None

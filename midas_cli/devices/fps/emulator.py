@@ -6,26 +6,21 @@ sample line at each tick of the sample clock (host monotonic time, catching up i
 whole lines only. Values come from the simulated surgeon's feet (:meth:`SurgeonMotion.pedal_adc`,
 ``pedals="model"``) or a resting foot (``pedals="idle"``); :meth:`force` presses or releases a channel.
 
-Faults: per-byte corruption and drop probabilities on everything the board sends; stalls (the board
-neither reads nor writes, samples due meanwhile are skipped: their sequence numbers are never sent);
-unplug windows. A pty cannot keep its path across an unplug, so with ``link`` set the emulator keeps a
-symlink pointing at the current slave, removes it while unplugged and re-creates it (atomically) at
-replug. A replug is a reboot, as on a real board: the counter restarts at 0 and the banner is sent.
+Faults are the :class:`~midas_cli.devices.pty_emulator.Faults` of every pty emulator: per-byte
+corruption and drop on everything the board sends; a stall (the board neither reads nor writes,
+samples due meanwhile are skipped: their sequence numbers are never sent); an unplug window. The pty,
+its ``link`` and the serving thread are :class:`~midas_cli.devices.pty_emulator.PtyEmulator`'s. A
+replug is a reboot, as on a real board: the counter restarts at 0 and the banner is sent.
 
-:meth:`report` tells exactly what was sent, sample by sample, so tests can prove zero loss.
+:meth:`summary` tells exactly what was sent, sample by sample, so tests can prove zero loss.
 """
 
 from __future__ import annotations
 
-import json
-import logging
-import os
 import select
-import threading
 import time
-import tty
 from array import array
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +30,9 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.fps.protocol import (
     CommandBuffer, Command, encode_banner, encode_error, encode_ok, encode_sample, rate_fits,
 )
+from midas_cli.devices.pty_emulator import Faults, PtyEmulator
 from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
-from midas_cli.errors import ConfigError, DeviceError
-
-log = logging.getLogger(__name__)
+from midas_cli.errors import ConfigError
 
 FIRMWARE = "1.0.0"
 MCU = "emulator"
@@ -50,7 +44,7 @@ CLOCK_DRIFT = 20e-6  # the board's crystal runs 20 ppm fast
 
 @dataclass(frozen=True)
 class FpsEmulatorConfig:
-    """Board and fault settings. Times of faults are seconds since :meth:`FpsEmulator.start`."""
+    """Board settings and faults (fault times are seconds since :meth:`FpsEmulator.start`)."""
 
     channels: int = 9
     rate_hz: int = 250
@@ -58,10 +52,7 @@ class FpsEmulatorConfig:
     seed: int = 0
     pedals: str = "model"
     press_counts: int = 700
-    corrupt_p: float = 0.0
-    drop_p: float = 0.0
-    stalls: tuple[tuple[float, float], ...] = ()
-    unplugs: tuple[tuple[float, float], ...] = ()
+    faults: Faults = Faults()
     link: Path | None = None
     keep_samples: bool = True
 
@@ -72,9 +63,6 @@ class FpsEmulatorConfig:
             raise ConfigError(f"emulator pedals must be 'model' or 'idle', got {self.pedals!r}")
         if not rate_fits(self.rate_hz, self.channels, self.baud):
             raise ConfigError(f"emulator rate {self.rate_hz} Hz does not fit {self.channels} channels at {self.baud} baud")
-        for name in ("corrupt_p", "drop_p"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise ConfigError(f"emulator {name} must be in [0, 1), got {getattr(self, name)}")
         if not 0 <= self.press_counts <= 1023:
             raise ConfigError(f"emulator press_counts must be 0..1023, got {self.press_counts}")
 
@@ -122,76 +110,36 @@ class _Tally:
     intact: int = 0
     skipped_stall: int = 0
     skipped_tx_full: int = 0
-    corrupted_bytes: int = 0
-    dropped_bytes: int = 0
     commands: dict[str, int] = field(default_factory=dict)
     samples: _SampleLog = field(default_factory=_SampleLog)
     boots: list[dict[str, Any]] = field(default_factory=list)
 
 
-class FpsEmulator:
+class FpsEmulator(PtyEmulator):
     """Run with :meth:`start` (a background thread) and :meth:`stop`; ``path`` is what the driver opens."""
 
+    label = "FPS"
+
     def __init__(self, config: FpsEmulatorConfig = FpsEmulatorConfig()) -> None:
+        super().__init__(config.faults, config.link, config.seed)
         self.config = config
         self.clock = HostClock.anchored_now()
         self.motion = SurgeonMotion(MotionConfig(seed=config.seed))
-        self._rng = np.random.default_rng(config.seed)
         self._rest = self.motion.pedal_adc(np.array([REST_MODEL_T_S]))[0, : config.channels].astype(int)
         self._forced: list[bool | None] = [None] * config.channels
-        self._manual_unplug = False
         self._tally = _Tally()
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
-        self._master = self._slave = -1
-        self.slave_path = ""
         self._out = bytearray()
         self._boundary_ok = True
         self._commands = CommandBuffer()
-        self._t0 = 0.0
         self._boot: _Boot | None = None
 
     # ---- public control ------------------------------------------------------------------------------
-
-    @property
-    def path(self) -> str:
-        """The port to open: the symlink if configured (stable across replugs), else the pty slave."""
-        return str(self.config.link) if self.config.link else self.slave_path
-
-    def start(self) -> "FpsEmulator":
-        """Plug the board in (create the pty, boot) and serve it from a daemon thread."""
-        self._t0 = time.monotonic()
-        self._plug()
-        self._thread = threading.Thread(target=self._run, name="fps-emulator", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        """Stop serving and unplug; re-raises an error the serving thread met."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-        self._unplug()
-        if self._error is not None:
-            raise DeviceError(f"the FPS emulator failed: {self._error}") from self._error
-
-    def __enter__(self) -> "FpsEmulator":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
     def force(self, channel: int, pressed: bool | None) -> None:
         """Hold channel (1-based) pressed (True), released (False), or back to its normal source (None)."""
         if not 1 <= channel <= self.config.channels:
             raise ConfigError(f"channel must be 1..{self.config.channels}, got {channel}")
         self._forced[channel - 1] = pressed
-
-    def set_unplugged(self, unplugged: bool) -> None:
-        """Pull the cable (True) or plug it back in (False), in addition to the configured windows."""
-        self._manual_unplug = unplugged
 
     def control(self, line: str) -> None:
         """Text control (``midas emulate fps`` reads these from stdin): ``press N``, ``release N``,
@@ -205,85 +153,40 @@ class FpsEmulator:
         else:
             raise ConfigError(f"unknown emulator control {line.strip()!r} (press N, release N, auto N, unplug, replug)")
 
-    def report(self) -> dict[str, Any]:
-        """What was sent: counts, boots, and per sample ``boot, seq, t_us, adc, intact`` (intact: no fault
-        touched it or the LF before it, so a correct host must have decoded it)."""
-        with self._lock:
-            t = self._tally
-            return {"port": self.path, "channels": self.config.channels, "sent": t.sent, "intact": t.intact,
-                    "skipped": {"stall": t.skipped_stall, "tx_full": t.skipped_tx_full},
-                    "corrupted_bytes": t.corrupted_bytes, "dropped_bytes": t.dropped_bytes,
-                    "commands": dict(t.commands), "boots": list(t.boots), "samples": t.samples.as_dicts()}
-
-    def write_report(self, path: Path | str) -> None:
-        """:meth:`report` as a JSON file."""
-        Path(path).write_text(json.dumps(self.report()) + "\n", encoding="utf-8")
+    def _summary(self) -> dict[str, Any]:
+        """Counts, boots, and per sample ``boot, seq, t_us, adc, intact`` (intact: no fault touched it or
+        the LF before it, so a correct host must have decoded it)."""
+        t = self._tally
+        return {"config": {k: v for k, v in asdict(self.config).items() if k != "link"},
+                "channels": self.config.channels, "sent": t.sent, "intact": t.intact,
+                "skipped": {"stall": t.skipped_stall, "tx_full": t.skipped_tx_full},
+                "commands": dict(t.commands), "boots": list(t.boots), "samples": t.samples.as_dicts()}
 
     # ---- plugging ------------------------------------------------------------------------------------
 
-    def _plug(self) -> None:
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)  # no echo, no line editing: the line discipline must not touch bytes
-        os.set_blocking(self._master, False)
-        self.slave_path = os.ttyname(self._slave)
-        if self.config.link:
-            tmp = Path(f"{self.config.link}.tmp{os.getpid()}")
-            tmp.unlink(missing_ok=True)
-            tmp.symlink_to(self.slave_path)
-            os.replace(tmp, self.config.link)
+    def _on_plug(self, now: float) -> None:
         self._out.clear()
         self._boundary_ok = True
         self._commands = CommandBuffer()
-        self._reboot()
-
-    def _unplug(self) -> None:
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                os.close(fd)
-        self._master = self._slave = -1
-        if self.config.link:
-            Path(self.config.link).unlink(missing_ok=True)
-
-    def _reboot(self) -> None:
-        now = time.monotonic()
         index = len(self._tally.boots)
         self._boot = _Boot(index, now, self.config.rate_hz)
         with self._lock:
             self._tally.boots.append({"boot": index, "at_s": round(now - self._t0, 6), "t_host_ns": self.clock.now_ns(),
-                                      "path": self.slave_path})
+                                      "path": self.port.pty_path})
         self._send(self._banner())
 
-    def _plugged_wanted(self, t: float) -> bool:
-        return not self._manual_unplug and not any(a <= t < a + d for a, d in self.config.unplugs)
-
-    def _stalled(self, t: float) -> bool:
-        return any(a <= t < a + d for a, d in self.config.stalls)
+    def _while_unplugged(self, now: float) -> None:
+        self._skip_due_samples()
 
     # ---- serving -------------------------------------------------------------------------------------
 
-    def _run(self) -> None:
-        try:
-            while not self._stop.is_set():
-                self._step()
-        except BaseException as exc:  # re-raised by stop(): never swallowed
-            log.exception("FPS emulator thread failed")
-            self._error = exc
-
-    def _step(self) -> None:
-        t = time.monotonic() - self._t0
-        plugged = self._master >= 0
-        if plugged != self._plugged_wanted(t):
-            if plugged:
-                self._unplug()
-            else:
-                self._plug()
-            return
-        if not plugged or self._stalled(t):
+    def _step(self, now: float) -> None:
+        if self._stalled(now):
             self._skip_due_samples()
             time.sleep(min(IDLE_WAIT_S, self._wait_s()))
             return
-        writable = [self._master] if self._out else []
-        readable, can_write, _ = select.select([self._master], writable, [], self._wait_s())
+        writable = [self.port.master] if self._out else []
+        readable, can_write, _ = select.select([self.port.master], writable, [], self._wait_s())
         if readable:
             self._read_commands()
         if can_write or self._out:
@@ -300,13 +203,7 @@ class FpsEmulator:
         return self._boot.tick_origin + tick / self._boot.rate_hz
 
     def _read_commands(self) -> None:
-        try:
-            data = os.read(self._master, 1024)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:  # EIO: nobody has the port open (after the host closed it)
-            return
-        for command in self._commands.feed(data):
+        for command in self._commands.feed(self._read(1024)):
             self._execute(command)
 
     def _execute(self, command: Command) -> None:
@@ -397,31 +294,17 @@ class FpsEmulator:
     def _send(self, line: bytes) -> bool:
         """Queue a line through the fault injector; True if a correct host must decode it: it goes out
         unaltered and the line before it still ends in an LF (else the two merge into one bad line)."""
-        data = self._faulty(line)
+        with self._lock:
+            data = self._damage(line)
         decodable = data == line and self._boundary_ok
         self._boundary_ok = data.endswith(b"\n")
         self._out += data
         self._flush()
         return decodable
 
-    def _faulty(self, line: bytes) -> bytes:
-        cfg = self.config
-        if not (cfg.corrupt_p or cfg.drop_p):
-            return line
-        raw = np.frombuffer(line, dtype=np.uint8).copy()
-        corrupt = self._rng.random(len(raw)) < cfg.corrupt_p
-        raw[corrupt] ^= self._rng.integers(1, 256, int(corrupt.sum()), dtype=np.uint8)  # never the same byte
-        keep = self._rng.random(len(raw)) >= cfg.drop_p
-        with self._lock:
-            self._tally.corrupted_bytes += int(corrupt.sum())
-            self._tally.dropped_bytes += int((~keep).sum())
-        return raw[keep].tobytes()
-
     def _flush(self) -> None:
-        if self._master < 0 or not self._out:
+        if not self.port.plugged or not self._out:
             return
-        try:
-            written = os.write(self._master, self._out)
-        except (BlockingIOError, InterruptedError):
-            return
-        del self._out[:written]
+        written = self._write(bytes(self._out))
+        if written > 0:
+            del self._out[:written]

@@ -24,8 +24,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.device_files import last_recorded_seq
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
@@ -133,14 +132,14 @@ class LslDevice(Device):
 
     kind = "lsl"
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, session_dir: str = "") -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         self.params = url.take(PARAMS, DEFAULTS)
         predicate(self.params, url.raw)
         if self.params["clock_every"] <= 0 or self.params["timeout"] <= 0 or self.params["rate"] < 0:
             raise ConfigError(f"{url.raw}: timeout and clock_every must be > 0 s, rate >= 0 Hz")
-        self.clock = clock
-        self.session_dir = session_dir
+        self.clock = context.clock
+        self.session_dir = context.session_dir
         self.info, full = resolve(self.params, url.raw)
         self.layout = layout_of(full)
         self.inlet = None

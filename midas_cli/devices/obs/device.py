@@ -36,8 +36,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.obs.connection import ObsConnection, resolve_password
 from midas_cli.devices.obs.frames import (FrameClock, RecordingCheck, WrittenRows, check_recording, probe_frame_times,
                                           segment_files, unreadable_recording)
@@ -66,7 +65,7 @@ class ObsDevice(Device):
 
     kind = "video"
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, session_dir: str = "") -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         _refuse_password_in_url(url)
         self.params = url.take(PARAMS, DEFAULTS)
@@ -77,8 +76,8 @@ class ObsDevice(Device):
             p = self.params
             self.marker_plan = MarkerPlan(p["marker"], p["marker_scene"], p["marker_at"], p["marker_on"],
                                           p["marker_every"])
-        self.clock = clock
-        self.session_dir = Path(session_dir) if session_dir else None
+        self.clock = context.clock
+        self.session_dir = Path(context.session_dir) if context.session_dir else None
         self.connection: ObsConnection | None = None
         self.store = SettingsStore(self.host, self.port)
         self.saved: SavedSettings | None = None  # the operator's settings, as saved on disk

@@ -30,8 +30,7 @@ import socket
 from dataclasses import dataclass, field
 from typing import Any
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.raven.protocol import PACKET_SIZE, SequenceTracker, decode_packet
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.device_files import RAW_MAGIC, RawPacketWriter, raw_file_name, read_raw_packets
@@ -142,19 +141,17 @@ class LinkTally:
         return info
 
 
-_TALLIES: dict[tuple[str, str], LinkTally] = {}
-
-
-def tally_for(session_dir: str, stream: str, raw: RawPacketWriter) -> LinkTally:
+def tally_for(context: DeviceContext, stream: str, raw: RawPacketWriter) -> LinkTally:
     """The running tally of ``stream`` in this session; a new one (counting what the raw file already
-    holds) unless this process has counted up to exactly the raw file's current end."""
-    key = (os.path.realpath(session_dir), stream)
-    tally = _TALLIES.get(key)
+    holds) unless this worker's context has counted up to exactly the raw file's current end."""
+    tallies: dict[tuple[str, str], LinkTally] = context.carry("raven/tallies", dict)
+    key = (os.path.realpath(context.session_dir), stream)
+    tally = tallies.get(key)
     if tally is None or tally.raw_size != raw.size:
         if tally is not None or raw.size > len(RAW_MAGIC):
             log.warning("%s: counting resumes from %s; datagrams forwarded or foreign before are not known",
                         stream, raw.path)
-        tally = _TALLIES[key] = LinkTally(raw_size=raw.size)
+        tally = tallies[key] = LinkTally(raw_size=raw.size)
         tally.resume(raw.path)
     return tally
 
@@ -164,7 +161,7 @@ class RavenDevice(Device):
 
     kind = "raven"
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, session_dir: str = "") -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         self.params = url.take({"forward": str, "from": str, "rate": float},
                                {"forward": "", "from": "", "rate": 1000.0})
@@ -177,8 +174,9 @@ class RavenDevice(Device):
         if self.forward is not None and self.sender is None:
             raise ConfigError(f"{url.raw}: forward= needs from=HOST[:PORT], the surgeon console's address: only "
                               f"its datagrams are passed on to the robot (anyone else's would reach it too)")
-        self.clock = clock
-        self.session_dir = session_dir
+        self.context = context
+        self.clock = context.clock
+        self.session_dir = context.session_dir
         self.sock: socket.socket | None = None
         self.raw: RawPacketWriter | None = None
         self.tally = LinkTally()  # replaced by the session's running tally on open
@@ -215,7 +213,7 @@ class RavenDevice(Device):
         sock.setblocking(False)
         self.sock = sock
         self.raw = RawPacketWriter(self.session_dir, self.name)
-        self.tally = tally_for(self.session_dir, self.name, self.raw)
+        self.tally = tally_for(self.context, self.name, self.raw)
         bound = "%s:%d" % sock.getsockname()
         log.info("%s: listening on udp %s%s%s", self.name, bound,
                  f", accepting only {self._sender_text()}" if self.sender else "",

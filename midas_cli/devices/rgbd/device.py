@@ -24,8 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.rgbd.calibration import StereoCalibration, load_zed_conf
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.device_files import device_file, last_recorded_seq
@@ -63,15 +62,15 @@ class StereoVideoDevice(Device):
     extra_params: dict[str, type] = {}
     extra_defaults: dict[str, Any] = {}
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, session_dir: str = "") -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         self.params = url.take({"fps": float, "codec": str, "quality": int, **self.extra_params},
                                {"fps": 30.0, "codec": "mjpg", "quality": 95, **self.extra_defaults})
         if self.params["codec"] not in CODECS or not 0 < self.params["fps"] <= 120:
             raise ConfigError(f"{url.raw}: codec must be one of {', '.join(CODECS)} and fps in (0, 120], "
                               f"got codec={self.params['codec']} fps={self.params['fps']}")
-        self.clock = clock
-        self.session_dir = session_dir
+        self.clock = context.clock
+        self.session_dir = context.session_dir
         self.writer = None
         self.file_index = 0
         self.frames_in_file = 0
@@ -283,16 +282,15 @@ class SimStereoDevice(StereoVideoDevice):
     extra_params = {"seed": int, "distance": float, "rate": float}
     extra_defaults = {"seed": 0, "distance": 600.0, "rate": 0.0}
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, start_ns: int, seed: int = 0,
-                 session_dir: str = "") -> None:
-        super().__init__(name, url, clock, session_dir)
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
+        super().__init__(name, url, context)
         if self.params["rate"]:
             self.params["fps"] = self.params["rate"]
         if "seed" not in url.params:
-            self.params["seed"] = seed
+            self.params["seed"] = context.seed
         if not 300 <= self.params["distance"] <= 1500:
             raise ConfigError(f"{url.raw}: distance must be 300..1500 mm, got {self.params['distance']}")
-        self.start_ns = start_ns
+        self.start_ns = context.start_ns
         self.camera = None
         self._k = 0
         self._truth: list[tuple] = []

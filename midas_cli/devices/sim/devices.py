@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
+from midas_cli.devices.emht_layout import emht_stream
 from midas_cli.devices.pedals import PedalStateTracker, PedalThresholds, adc_to_volts
-from midas_cli.devices.sim.motion import SENSOR_NAMES, MotionConfig, SurgeonMotion
+from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 
@@ -36,17 +36,17 @@ class PacedSimulator(Device):
     extra_params: dict[str, type] = {}
     extra_defaults: dict[str, Any] = {}
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, start_ns: int, seed: int = 0) -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         allowed = {"rate": float, **COMMON_PARAMS, **self.extra_params}
-        defaults = {"rate": self.default_rate, "seed": seed, "dropout_at": -1.0, "dropout_for": 0.0,
+        defaults = {"rate": self.default_rate, "seed": context.seed, "dropout_at": -1.0, "dropout_for": 0.0,
                     **self.extra_defaults}
         self.params = url.take(allowed, defaults)
         self.rate = self.params["rate"]
         if not 0 < self.rate <= 2000:
             raise ConfigError(f"{url.raw}: rate must be in (0, 2000] Hz, got {self.rate}")
-        self.clock = clock
-        self.start_ns = start_ns
+        self.clock = context.clock
+        self.start_ns = context.start_ns
         self.motion = SurgeonMotion(MotionConfig(seed=self.params["seed"]))
         self._next_k: int | None = None
         self._block_start = 0
@@ -113,23 +113,14 @@ class SimEmHT(PacedSimulator):
     extra_params = {"sensors": int}
     extra_defaults = {"sensors": 4}
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
+        super().__init__(name, url, context)
         if not 1 <= self.params["sensors"] <= 4:
             raise ConfigError(f"{self.url.raw}: sensors must be 1..4, got {self.params['sensors']}")
 
     @property
     def streams(self) -> list[StreamSpec]:
-        columns = [SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")]
-        for s in range(1, self.params["sensors"] + 1):
-            where = SENSOR_NAMES[s - 1]
-            columns += [Column(f"s{s}_{a}_mm", "float", "mm", 3, frame="emht_transmitter",
-                               description=f"sensor {s} ({where}) position") for a in "xyz"]
-            columns += [Column(f"s{s}_{a}_deg", "float", "deg", 3, description=f"sensor {s} ({where}) {a}")
-                        for a in ("azimuth", "elevation", "roll")]
-            columns.append(Column(f"s{s}_quality", "float", "", 3, description="distortion metric, 0 = best"))
-        return [StreamSpec(self.name, self.name, tuple(columns), self.rate,
-                           "6-DoF pose per sensor, one row per synchronous record of all sensors")]
+        return [emht_stream(self.name, self.params["sensors"], self.rate)]
 
     def _values(self, t: np.ndarray) -> list[tuple]:
         n = self.params["sensors"]
@@ -149,8 +140,8 @@ class SimFPS(PacedSimulator):
     extra_params = {"channels": int, "press_v": float, "release_v": float}
     extra_defaults = {"channels": 9, "press_v": 1.5, "release_v": 1.0}
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
+        super().__init__(name, url, context)
         if not 1 <= self.params["channels"] <= 9:
             raise ConfigError(f"{self.url.raw}: channels must be 1..9, got {self.params['channels']}")
         thresholds = PedalThresholds.uniform(self.params["channels"], self.params["press_v"], self.params["release_v"])

@@ -20,9 +20,8 @@ import os
 from ctypes import c_double, c_int, c_short, c_ulong, c_ushort
 from typing import Any
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
-from midas_cli.devices.trakstar.driver import emht_stream, first_seq, remember_seq
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
+from midas_cli.devices.emht_layout import emht_stream, first_seq, resume_seq
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import StreamSpec
 
@@ -77,12 +76,13 @@ class Atc3dgEmHT(Device):
 
     kind = "emht"
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, start_ns: int, seed: int = 0) -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         self.params = url.take(PARAMS, DEFAULTS)
         self._validate()
-        self.clock = clock
-        self.start_ns = start_ns
+        self.context = context
+        self.clock = context.clock
+        self._resume = resume_seq(context, name)
         self._lib: ctypes.CDLL | None = None
         self._sensor_ids: list[int] = []
         self._records = (PositionAnglesTimeQ * self.params["sensors"])()
@@ -150,7 +150,7 @@ class Atc3dgEmHT(Device):
         system = self._system_configuration()
         if abs(system.measurementRate - p["rate"]) > 0.01:
             raise DeviceError(f"{self.name}: the tracker runs at {system.measurementRate:g} Hz, asked {p['rate']:g} Hz")
-        self._next_seq = first_seq(self.name, p["rate"], self.clock, self.start_ns)
+        self._next_seq = first_seq(self.context, self.name, p["rate"])
         return {"model": "trakSTAR (ATC3DG)", "serial": ",".join(serials), "sensors_found": system.numberSensors,
                 "measurement_rate_hz": system.measurementRate, "maximum_range_in": system.maximumRange}
 
@@ -208,7 +208,7 @@ class Atc3dgEmHT(Device):
             values += [record.x * scale, record.y * scale, record.z * scale, record.a, record.e, record.r,
                        float(record.quality)]
         seq, self._next_seq = self._next_seq, self._next_seq + 1
-        remember_seq(self.name, self._next_seq)
+        self._resume.next_seq = self._next_seq
         return {self.name: [(seq, t_host_ns, device_time, *values)]}
 
     def close(self) -> None:

@@ -3,7 +3,7 @@
 Opening configures the tracker (optional RTS reset, FBB auto-configuration for N sensors, position
 scaling, measurement rate, POSITION/ANGLES format per sensor, group mode), reads the settings back and
 refuses a device that did not take them, then starts STREAM. Each measurement cycle becomes one row of
-the same stream layout as the simulated EmHT (:class:`~midas_cli.devices.sim.devices.SimEmHT`):
+the EmHT stream layout (:mod:`~midas_cli.devices.emht_layout`, shared with ``sim://emht``):
 ``seq, t_host_ns, t_device_s`` (empty: the FOB records carry no device clock), per sensor x/y/z (mm),
 azimuth/elevation/roll (deg) and quality (empty: not in POSITION/ANGLES records). A sensor whose record
 failed framing has empty fields and is counted in ``counters.corrupt``; bytes thrown away by the decoder
@@ -15,7 +15,7 @@ and at least 1 ns after the previous row's (the session format wants strictly in
 
 ``seq`` is the driver's cycle counter. On every (re)open it starts from the number of cycles the
 session has lasted (session start to now at the nominal rate), never below where the previous
-connection of this device in this process stopped, so an outage shows as a sequence gap.
+connection of this device (in the worker's context) stopped, so an outage shows as a sequence gap.
 ``PORT`` is anything pyserial's ``serial_for_url`` opens: ``/dev/ttyUSB0``, a pty path, a symlink.
 
 The protocol has no checksum, so a record is accepted once the next record's first byte proves its end;
@@ -33,16 +33,14 @@ e.g. pyserial's ``socket://``, always wait for the next record).
 from __future__ import annotations
 
 import logging
-import math
 import select
 import time
 from typing import Any
 
 import serial
 
-from midas_cli.clock import HostClock
-from midas_cli.devices.base import Device, DeviceUrl
-from midas_cli.devices.sim.devices import SimEmHT
+from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
+from midas_cli.devices.emht_layout import emht_stream, first_seq, resume_seq
 from midas_cli.devices.trakstar import protocol as fob
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import StreamSpec
@@ -58,26 +56,6 @@ IDLE_FLOOR_S = 0.0005  # tty-layer and scheduling delay of a byte that was sent 
 REPLY_TIMEOUT_S = 1.0
 AUTOCONFIG_SETTLE_S = 0.6  # the Flock needs this long after an FBB auto-configuration
 RTS_RESET_S = (1.0, 2.0)  # hold RTS high, then wait for the tracker to wake up
-_NEXT_SEQ: dict[str, int] = {}  # per device name, in this worker process: where seq resumes after a reconnect
-
-
-def first_seq(name: str, rate_hz: float, clock: HostClock, start_ns: int) -> int:
-    """Where a (re)opened device's seq starts: cycles since the session start at the nominal rate, never
-    below where the previous connection of device ``name`` in this process stopped."""
-    elapsed_ns = max(0, clock.now_ns() - start_ns)
-    return max(int(math.ceil(elapsed_ns * rate_hz / 1e9)), _NEXT_SEQ.get(name, 0))
-
-
-def remember_seq(name: str, next_seq: int) -> None:
-    """Record the seq the next row of device ``name`` would get (see :func:`first_seq`)."""
-    _NEXT_SEQ[name] = next_seq
-
-
-def emht_stream(name: str, sensors: int, rate_hz: float, description: str) -> StreamSpec:
-    """The simulated EmHT's stream layout (same columns, so downstream code does not care)."""
-    simulated = SimEmHT(name, DeviceUrl.parse(f"sim://emht?sensors={sensors}&rate={rate_hz}"), HostClock(0), 0)
-    spec = simulated.streams[0]
-    return StreamSpec(spec.name, spec.device, spec.columns, rate_hz, description)
 
 
 class FobEmHT(Device):
@@ -85,13 +63,14 @@ class FobEmHT(Device):
 
     kind = "emht"
 
-    def __init__(self, name: str, url: DeviceUrl, clock: HostClock, start_ns: int, seed: int = 0) -> None:
+    def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
         self.params = url.take(PARAMS, DEFAULTS)
         self.port_path = url.target
         self._validate()
-        self.clock = clock
-        self.start_ns = start_ns
+        self.context = context
+        self.clock = context.clock
+        self._resume = resume_seq(context, name)
         self.capacity_hz = fob.line_capacity_hz(self.params["baud"], self.params["sensors"])
         self.warning = self._capacity_warning()
         self._port: serial.Serial | None = None
@@ -219,7 +198,7 @@ class FobEmHT(Device):
 
     def _start_stream(self) -> None:
         self._port.reset_input_buffer()
-        self._seq_base = first_seq(self.name, self.params["rate"], self.clock, self.start_ns)
+        self._seq_base = first_seq(self.context, self.name, self.params["rate"])
         self._decoder = fob.RecordDecoder(self.params["sensors"], self.params["range"], self._byte_ns)
         self._groups = fob.GroupAssembler(self.params["sensors"])
         self._send(fob.STREAM)
@@ -290,7 +269,7 @@ class FobEmHT(Device):
 
     def _row(self, group: fob.Group) -> tuple:
         seq = self._seq_base + group.index
-        remember_seq(self.name, seq + 1)
+        self._resume.next_seq = seq + 1
         self._last_t_host_ns = max(group.t_host_ns, self._last_t_host_ns + 1)
         values: list[Any] = []
         for sensor in group.values:
