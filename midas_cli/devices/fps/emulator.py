@@ -35,7 +35,7 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.fps.protocol import (
     CommandBuffer, Command, encode_banner, encode_error, encode_ok, encode_sample, rate_fits,
 )
-from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 from midas_cli.errors import ConfigError, DeviceError
 
 log = logging.getLogger(__name__)

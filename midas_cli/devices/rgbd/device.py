@@ -305,7 +305,7 @@ class SimStereoDevice(StereoVideoDevice):
 
     def _start(self) -> tuple[StereoCalibration, dict[str, Any]]:
         from midas_cli.devices.rgbd.synthetic import SyntheticStereoCamera, zed_mini_like_calibration
-        from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
+        from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
         calib = zed_mini_like_calibration()
         self.camera = SyntheticStereoCamera(calib, seed=self.params["seed"])
