@@ -14,7 +14,7 @@ from midas_cli.devices.rgbd.calibration import Rectifier, load_zed_conf, parse_z
 from midas_cli.devices.rgbd.device import ZedSdkStereoDevice
 from midas_cli.devices.rgbd.handkp import handkp_spec
 from midas_cli.devices.rgbd.stereo import keypoints_3d
-from midas_cli.devices.rgbd.synthetic import SyntheticStereoCamera, occluded, project_left, zed_mini_like_calibration
+from midas_cli.synthetic.stereo_camera import SyntheticStereoCamera, occluded, project_left, zed_mini_like_calibration
 from midas_cli.devices.sim.devices import SimHandKP
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, DeviceError
