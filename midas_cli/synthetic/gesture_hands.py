@@ -188,8 +188,6 @@ class GestureHands:
         for hand, state in enumerate(states):
             thumb, middle = HAND_SENSORS[hand]
             for sensor, side in ((thumb, THUMB_SIDE[hand]), (middle, -THUMB_SIDE[hand])):
-                along = (self.lever_mm * np.cos(state.half_angle))[:, None]
-                across = (side * self.lever_mm * np.sin(state.half_angle))[:, None]
-                positions[:, sensor] = state.grip_point + state.rotation[:, :, 0] * along + state.rotation[:, :, 1] * across
+                positions[:, sensor] = self.rig.hands.pad_position(state, side)
                 rotations[:, sensor] = pad_rotation(state, side)
         return positions, rotations, states
