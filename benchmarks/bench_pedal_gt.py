@@ -28,7 +28,8 @@ from midas_cli.analysis.pedal_video.agreement import compare
 from midas_cli.analysis.pedal_video.extract import extract_pedal_states
 from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest, run_many
 from midas_cli.analysis.pedal_video.layout import load_layout
-from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
+from midas_cli.simulate.console_video import render_console_video
+from midas_cli.synthetic.console_video import ConsoleVideoSpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load_average, machine_info, write_result  # noqa: E402

@@ -17,9 +17,9 @@ from midas_cli.analysis.kinematics_schema import kinematics_spec
 from midas_cli.clock import HostClock
 from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.devices.registry import describe_device
-from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
 from midas_cli.geometry import matrices_from_angles, quaternions_from_matrices
 from midas_cli.session.writer import SessionMetadata, SessionWriter
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 TRUE_R = matrices_from_angles(np.array([[150.0, 10.0, -5.0]]))[0]
 TRUE_T = np.array([-250.0, 40.0, 320.0])

@@ -18,13 +18,13 @@ from midas_cli.analysis.pedal_video.detectors import BaselineChange, ColorThresh
 from midas_cli.analysis.pedal_video.extract import debounce
 from midas_cli.analysis.pedal_video.layout import load_layout, parse_layout
 from midas_cli.analysis.pedal_video.reader import FrameReader
-from midas_cli.analysis.pedal_video.synthetic import (REF_H, REF_W, ConsoleRenderer, ConsoleVideoSpec,
-                                                      render_console_video)
 from midas_cli.analysis.pedal_video.video import resolve_view, view_size
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError
 from midas_cli.session.schema import SEQ, T_HOST, StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
+from midas_cli.simulate.console_video import console_renderer, render_console_video
+from midas_cli.synthetic.console_video import REF_H, REF_W, ConsoleRenderer, ConsoleVideoSpec
 from tests.conftest import REPO, midas
 
 CAMERA_ICON = cv2.imread(str(REPO / "midas_cli/data/layouts/davinci-xi/camera_icon.png"), cv2.IMREAD_GRAYSCALE)
@@ -158,7 +158,7 @@ def test_layout_errors_name_the_problem(bad: dict, message: str) -> None:
 
 @pytest.fixture(scope="module")
 def renderer() -> ConsoleRenderer:
-    return ConsoleRenderer(load_layout("davinci-xi"), np.random.default_rng(0), noise_sigma=2.0)
+    return console_renderer(load_layout("davinci-xi"), np.random.default_rng(0), noise_sigma=2.0)
 
 
 def _rendered(renderer: ConsoleRenderer, pressed: dict[str, bool], size: tuple[int, int]) -> np.ndarray:

@@ -9,16 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.rgbd.calibration import Rectifier, load_zed_conf, parse_zed_conf
 from midas_cli.devices.rgbd.device import ZedSdkStereoDevice
 from midas_cli.devices.rgbd.handkp import handkp_spec
 from midas_cli.devices.rgbd.stereo import keypoints_3d
-from midas_cli.devices.rgbd.synthetic import SyntheticStereoCamera, occluded, project_left, zed_mini_like_calibration
 from midas_cli.devices.sim.devices import SimHandKP
-from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.reader import Session
+from midas_cli.synthetic.stereo_camera import SyntheticStereoCamera, occluded, project_left, zed_mini_like_calibration
 from tests.conftest import midas, record_until
 
 ZED_CONF = """[LEFT_CAM_2K]

@@ -1,4 +1,4 @@
-"""Tests of the deterministic surgeon model used by the simulated devices (midas_cli.devices.sim.motion)."""
+"""Tests of the deterministic surgeon model used by the simulated devices (midas_cli.synthetic.surgeon)."""
 
 from __future__ import annotations
 
@@ -6,14 +6,9 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from midas_cli.devices.sim.motion import (
-    CAMERA_PEDAL,
-    CLUTCH_PEDAL,
-    N_PEDALS,
-    SENSOR_NAMES,
-    MotionConfig,
-    SurgeonMotion,
-)
+from midas_cli.synthetic.feet import CAMERA_PEDAL, CLUTCH_PEDAL, N_PEDALS
+from midas_cli.synthetic.hands import SENSOR_NAMES
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 EMHT_HZ = 240.0
 LEFT_MIDDLE, LEFT_THUMB, RIGHT_THUMB, RIGHT_MIDDLE = range(4)

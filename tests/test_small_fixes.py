@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
 from midas_cli.clock import HostClock
 from midas_cli.session.reader import Session
 from midas_cli.session.writer import SessionMetadata, SessionWriter
+from midas_cli.simulate.console_video import render_console_video
+from midas_cli.synthetic.console_video import ConsoleVideoSpec
 from tests.conftest import SPEC, midas
 
 

@@ -15,8 +15,8 @@ import pytest
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceContext, DeviceUrl
-from midas_cli.devices.registry import describe_device
 from midas_cli.devices.pty_emulator import Faults
+from midas_cli.devices.registry import describe_device
 from midas_cli.devices.trakstar.driver import FobEmHT
 from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
 from midas_cli.errors import ConfigError, DeviceError

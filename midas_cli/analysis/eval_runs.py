@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 
 from midas_cli.analysis import evaluation as ev
-from midas_cli.analysis.figures import grasper_figure, pedal_figure, trajectory_figure
 from midas_cli.analysis.calibration import MODEL_CHOICES
+from midas_cli.analysis.figures import grasper_figure, pedal_figure, trajectory_figure
 from midas_cli.analysis.metrics import binary_scores
 from midas_cli.analysis.report import json_safe, write_tables
 from midas_cli.devices.pedals import adc_to_volts

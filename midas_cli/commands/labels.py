@@ -14,8 +14,8 @@ from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResul
 from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
 from midas_cli.labels.stats import GestureStats, gesture_stats, transition_heatmap
-from midas_cli.session.outputs import out_target, write_text
 from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy
+from midas_cli.session.outputs import out_target, write_text
 
 app = typer.Typer(help="Gesture taxonomies, annotation import/export and label statistics.\n\n"
                        "Annotation formats: VIA, JIGSAWS/COMPASS.",

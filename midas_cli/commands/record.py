@@ -17,12 +17,12 @@ from rich.text import Text
 
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
 from midas_cli.console import dashboard, is_interactive, status_line
+from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
-from midas_cli.devices.base import DeviceUrl
-from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.rig import simulated_rig
 from midas_cli.session.writer import SessionMetadata
 

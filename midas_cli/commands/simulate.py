@@ -7,11 +7,12 @@ from typing import Any, Optional
 
 import typer
 
-from midas_cli.analysis.pedal_video.synthetic import ConsoleVideoSpec, render_console_video
-from midas_cli.simulate.dataset import generate_dataset, trial_configs
 from midas_cli.commands.common import JSON_OPTION, err, non_negative, out, positive, print_json
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
+from midas_cli.simulate.console_video import render_console_video
+from midas_cli.simulate.dataset import generate_dataset, trial_configs
+from midas_cli.synthetic.console_video import ConsoleVideoSpec
 
 app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
 

@@ -13,8 +13,8 @@ import math
 from dataclasses import dataclass
 
 from midas_cli.devices.base import DeviceContext
-from midas_cli.devices.sim.motion import SENSOR_NAMES
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+from midas_cli.synthetic.hands import SENSOR_NAMES
 
 MAX_SENSORS = 4
 DESCRIPTION = "6-DoF pose per sensor, one row per synchronous record of all sensors"

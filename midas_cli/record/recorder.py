@@ -28,10 +28,10 @@ from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
-from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.writer import LOG_FILE, SessionMetadata, SessionWriter
 

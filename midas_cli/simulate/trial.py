@@ -29,9 +29,10 @@ from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.pedals_gt import pedals_gt_path, write_pedals_gt
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from midas_cli.simulate import gestures, pedals
-from midas_cli.simulate.hands import GestureHands
+from midas_cli.simulate import gestures
 from midas_cli.simulate.truth import GroundTruth, psm_positions
+from midas_cli.synthetic import trial_pedals
+from midas_cli.synthetic.gesture_hands import GestureHands
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +80,8 @@ def draw_trial(config: TrialConfig) -> _Trial:
     drawn = gestures.sample_segments(rng, taxonomy, config.max_seconds)
     bounds = np.concatenate([[0.0], np.cumsum([d for _, d in drawn])])
     segments = [(label, float(bounds[i]), float(bounds[i + 1])) for i, (label, _) in enumerate(drawn)]
-    clutches = pedals.clutch_intervals(rng, config.platform, segments)
-    schedule = pedals.pedal_schedule(rng, config.platform, clutches, float(bounds[-1]))
+    clutches = trial_pedals.clutch_intervals(rng, config.platform, segments)
+    schedule = trial_pedals.pedal_schedule(rng, config.platform, clutches, float(bounds[-1]))
     hands = GestureHands(segments, clutches, config.seed * 1000 + config.trial)
     truth = GroundTruth.build(config.distortion_mm, config.latency_ms)
     start_ns = EPOCH_NS + config.trial * 3_600_000_000_000
@@ -177,7 +178,7 @@ def _write_handkp(writer: SessionWriter, spec: StreamSpec, trial: _Trial, rng: n
     keypoints = keypoints + rng.normal(0.0, 1.0, keypoints.shape) * KEYPOINT_NOISE_MM
     columns: list[np.ndarray] = [k, host, np.round(true_s * 1e9).astype(np.int64) + 987_654_321]
     for hand in range(2):
-        occluded = pedals.pressed_at(pedals.random_presses(rng, 3.0, (0.2, 2.0), trial.duration_s), true_s)
+        occluded = trial_pedals.pressed_at(trial_pedals.random_presses(rng, 3.0, (0.2, 2.0), trial.duration_s), true_s)
         missed = occluded | (rng.random(len(k)) < 0.015)
         values = keypoints[:, hand].reshape(len(k), 6)
         values[missed] = np.nan
@@ -188,7 +189,7 @@ def _write_handkp(writer: SessionWriter, spec: StreamSpec, trial: _Trial, rng: n
 def _write_fps(writer: SessionWriter, spec: StreamSpec, trial: _Trial) -> None:
     k, host = _host_times(trial, 250.0, np.random.default_rng([trial.config.seed, trial.config.trial, 5]))
     true_s = (host - trial.start_ns) / 1e9
-    adc, pressed = pedals.fps_block(trial.schedule, true_s, trial.config.seed * 1000 + trial.config.trial)
+    adc, pressed = trial_pedals.fps_block(trial.schedule, true_s, trial.config.seed * 1000 + trial.config.trial)
     micros = (np.round(true_s * 1e6).astype(np.int64) + 3_000_000) % (1 << 32)
     _append(writer, spec, [k, host, micros, *adc.T.astype(np.int64), *pressed.T.astype(np.int64)])
 
@@ -197,7 +198,7 @@ def _write_kinematics(writer: SessionWriter, mtm_spec: StreamSpec, psm_spec: Str
     k, host = _host_times(trial, KINEMATICS_RATE_HZ, None)
     true_s = k / KINEMATICS_RATE_HZ
     positions, _, states = trial.hands.sensors(true_s)
-    clutch = pedals.pressed_at(trial.schedule[pedals.CLUTCH], true_s)
+    clutch = trial_pedals.pressed_at(trial.schedule[trial_pedals.CLUTCH], true_s)
     truth = trial.truth
     arms = {"mtm": [], "psm": []}
     for hand, pair in enumerate(([1, 0], [2, 3])):
@@ -254,5 +255,5 @@ def _image_features(trial: _Trial, labels: np.ndarray, classes: tuple[str, ...])
 def _pedals_gt(trial: _Trial, frames: np.ndarray, frame_s: np.ndarray) -> pd.DataFrame:
     table = {"frame": frames, "t_host_ns": trial.start_ns + np.round(frame_s * 1e9).astype(np.int64)}
     for name, channel in PEDAL_CHANNELS.items():
-        table[name] = pedals.pressed_at(trial.schedule[channel], frame_s).astype(np.int64)
+        table[name] = trial_pedals.pressed_at(trial.schedule[channel], frame_s).astype(np.int64)
     return pd.DataFrame(table)

@@ -31,8 +31,8 @@ from midas_cli.devices.fps.protocol import (
     CommandBuffer, Command, encode_banner, encode_error, encode_ok, encode_sample, rate_fits,
 )
 from midas_cli.devices.pty_emulator import Faults, PtyEmulator
-from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
 from midas_cli.errors import ConfigError
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 FIRMWARE = "1.0.0"
 MCU = "emulator"

@@ -17,8 +17,8 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 from midas_cli.devices.base import DeviceUrl
-from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.fps.driver import ALLOWED, DEFAULTS, thresholds_from_params
+from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.pedals import PedalThresholds
 from midas_cli.devices.rigconfig import load_rig, parse_rig
 from midas_cli.errors import ConfigError

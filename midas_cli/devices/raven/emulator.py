@@ -1,6 +1,6 @@
 """A Raven-II surgeon console on loopback: sends ``u_struct`` packets over UDP at a fixed rate.
 
-The content follows the simulated surgeon (:class:`~midas_cli.devices.sim.motion.SurgeonMotion`): per
+The content follows the simulated surgeon (:class:`~midas_cli.synthetic.surgeon.SurgeonMotion`): per
 arm, the position increment is the motion of the hand's grip point (midpoint of the thumb and middle
 fingertip sensors) since the previous packet, in micrometres; the orientation is the thumb sensor's;
 the grasp torque grows as the fingers close; ``surgeon_mode`` is disengaged while the clutch pedal is
@@ -21,9 +21,10 @@ import numpy as np
 from midas_cli.devices.raven.protocol import (
     SURGEON_DISENGAGED, SURGEON_ENGAGED, RavenPacket, encode_packet, raven_checksum,
 )
-from midas_cli.devices.sim.motion import CLUTCH_PEDAL, MotionConfig, SurgeonMotion
 from midas_cli.errors import ConfigError
 from midas_cli.geometry import quaternions_from_angles
+from midas_cli.synthetic.feet import CLUTCH_PEDAL
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 log = logging.getLogger(__name__)
 

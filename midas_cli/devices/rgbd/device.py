@@ -302,8 +302,8 @@ class SimStereoDevice(StereoVideoDevice):
                                              "true fingertip positions rendered in each frame (simulation only)")]
 
     def _start(self) -> tuple[StereoCalibration, dict[str, Any]]:
-        from midas_cli.devices.rgbd.synthetic import SyntheticStereoCamera, zed_mini_like_calibration
-        from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
+        from midas_cli.synthetic.stereo_camera import SyntheticStereoCamera, zed_mini_like_calibration
+        from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
         calib = zed_mini_like_calibration()
         self.camera = SyntheticStereoCamera(calib, seed=self.params["seed"])

@@ -61,7 +61,7 @@ class TruthDetector:
     """Projects a simulated session's true fingertips (``<device>_truth``) into the left image."""
 
     def __init__(self, session: Session, device: str, calib: StereoCalibration) -> None:
-        from midas_cli.devices.rgbd.synthetic import occluded, project_left
+        from midas_cli.synthetic.stereo_camera import occluded, project_left
 
         truth = session.read_stream(f"{device}_truth")
         values = truth[[c.name for c in keypoint_columns()]].to_numpy(dtype=float).reshape(-1, 2, 2, 3)

@@ -4,7 +4,7 @@ Each simulated device produces sample k at host time ``start + k / rate`` (the s
 shared by all devices, so every stream follows one surgeon-motion timeline), sleeping until it is
 due and stamping it with the host clock when it is "read". ``seq`` is k: after an outage the counter
 continues from the current time, so the outage shows as a sequence gap exactly as it would on a real
-device. Values come from :class:`~midas_cli.devices.sim.motion.SurgeonMotion` (deterministic with
+device. Values come from :class:`~midas_cli.synthetic.surgeon.SurgeonMotion` (deterministic with
 the seed). Fault injection for tests: ``dropout_at=S&dropout_for=S`` makes the device go silent and
 refuse to reopen for that window (seconds after the session start).
 """
@@ -20,9 +20,9 @@ import numpy as np
 from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.emht_layout import emht_stream
 from midas_cli.devices.pedals import PedalStateTracker, PedalThresholds, adc_to_volts
-from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 BLOCK_S = 0.25  # values are computed a block ahead, vectorised; each sample is still stamped when read
 MAX_SLEEP_S = 0.01

@@ -1,7 +1,7 @@
 """A byte-faithful trakSTAR emulator: the FOB RS-232 protocol served on a pseudo-terminal.
 
 The tracker measures in cycles at its measurement rate (set by the host with CHANGE VALUE 7); cycle k
-samples the simulated surgeon (:class:`~midas_cli.devices.sim.motion.SurgeonMotion`) at model time
+samples the simulated surgeon (:class:`~midas_cli.synthetic.surgeon.SurgeonMotion`) at model time
 ``t_k`` (seconds since the emulator started). In STREAM mode each cycle is sent as one group of
 records (sensor 1..N, 13 bytes each), paced like a real 8N1 line: a cycle whose bytes would not fit
 the line before the next one is due is skipped, as the tracker does. The host's FBB auto-configuration
@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from midas_cli.devices.pty_emulator import Faults, PtyEmulator
-from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion
 from midas_cli.devices.trakstar import protocol as fob
 from midas_cli.errors import ConfigError
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 POWER_ON_RATE_HZ = 80.0
 REVISION = 3 | (67 << 8)  # firmware 3.67: the first byte sent is the major number, the second the minor

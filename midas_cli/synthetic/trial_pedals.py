@@ -12,7 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from midas_cli.devices.pedals import adc_to_volts
-from midas_cli.devices.sim.motion import MotionConfig, SurgeonMotion, _bounce_contact, _minimum_jerk
+from midas_cli.synthetic.feet import bounce_contact
+from midas_cli.synthetic.schedule import minimum_jerk
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 N_CHANNELS = 9
 CLUTCH = 5
@@ -75,13 +77,13 @@ def fsr_adc(intervals: np.ndarray, t: np.ndarray, rng: np.random.Generator, rig:
         inside = (t >= start) & (t < end)
         peak = np.exp(rng.uniform(np.log(4.0), np.log(40.0), len(intervals)))[index]
         rise = rng.uniform(0.02, 0.06, len(intervals))[index]
-        ramp = _minimum_jerk(np.clip(np.minimum(t - start, end - t) / rise, 0.0, 1.0))
+        ramp = minimum_jerk(np.clip(np.minimum(t - start, end - t) / rise, 0.0, 1.0))
         bounces = rng.integers(0, 3, len(intervals))[index]
-        contact = _bounce_contact(t - start, bounces, 0.006) & _bounce_contact(end - t, bounces, 0.006)
+        contact = bounce_contact(t - start, bounces, 0.006) & bounce_contact(end - t, bounces, 0.006)
         held = peak * np.maximum(ramp, 0.3) * (1.0 + 0.06 * np.sin(2 * np.pi * 1.3 * (t - start)))
         force = np.where(inside & contact, held, force)
     noise = rng.normal(0.0, rig.config.adc_noise_counts, len(t))
-    return rig._fsr_counts(force, float(np.exp(rng.uniform(np.log(2e5), np.log(2e6)))), noise)
+    return rig.feet.fsr_counts(force, float(np.exp(rng.uniform(np.log(2e5), np.log(2e6)))), noise)
 
 
 def hysteresis(volts: np.ndarray, press_v: float = PRESS_V, release_v: float = RELEASE_V) -> np.ndarray:

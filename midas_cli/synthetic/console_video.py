@@ -1,31 +1,24 @@
-"""A synthetic da Vinci Xi surgeon-console video whose pedal indicators follow a known, seeded schedule.
+"""Frames of a synthetic da Vinci Xi surgeon-console video whose pedal indicators follow a known, seeded
+schedule.
 
 The picture: an endoscope-like tissue background drifting slowly, two instrument shafts moving over it,
 and the console's bottom UI band drawn at the places the layout reads (energy indicators, instrument
 slots with arm colours and icons, the clutch icon). On top: sensor noise, occasional whole-frame shifts of
-up to ``max_shift_px`` pixels (capture jitter), optional down-scaling, side-by-side stereo, and lossy
-compression by the video writer. Frame i of the file shows schedule row i (0-based).
+up to ``max_shift_px`` pixels (capture jitter), optional down-scaling and side-by-side stereo. Writing the
+video file and its schedule (and reading the layout) is :mod:`midas_cli.simulate.console_video`'s.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-from pathlib import Path
-from typing import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import pandas as pd
-
-from midas_cli.analysis.pedal_video.detectors import load_template
-from midas_cli.analysis.pedal_video.layout import Layout, load_layout
-from midas_cli.errors import ConfigError, SessionError
-from midas_cli.session.pedals_gt import write_pedals_gt
 
 REF_W, REF_H = 1920, 1080
-CODECS = {".mkv": "mp4v", ".mp4": "mp4v", ".avi": "MJPG"}
 LEFT_ENERGY = ("secondary_energy_left", "primary_energy_left")
 RIGHT_ENERGY = ("secondary_energy_right", "primary_energy_right")
+SCHEDULE_PEDALS = (*LEFT_ENERGY, *RIGHT_ENERGY, "clutch", "camera", "arm_swap")
 REQUIRED_REGIONS = ("left_cut", "right1_cut", "right2_cut", "clutch_icon",
                     *(f"camera_slot{i}" for i in range(1, 5)), *(f"arm_slot{i}" for i in range(1, 5)))
 YELLOW, BLUE, ENERGY_OFF = (20, 200, 235), (235, 140, 20), (70, 70, 70)
@@ -57,29 +50,17 @@ class ConsoleVideoSpec:
         return int(round(self.duration_s * self.fps))
 
 
-@dataclass
-class ConsoleVideo:
-    video: Path
-    schedule_csv: Path
-    schedule_json: Path
-    frames: int
-    pedals: list[str]
+def make_schedule(pedal_names: list[str], arm_swap_hold_frames: int, frames: int, rng: np.random.Generator,
+                  lead_in: int = 45) -> np.ndarray:
+    """(frames, P) uint8 true pedal states, columns = ``pedal_names`` (which must hold ``SCHEDULE_PEDALS``).
 
-
-def make_schedule(layout: Layout, frames: int, rng: np.random.Generator, lead_in: int = 45) -> np.ndarray:
-    """(frames, P) uint8 true pedal states, columns = ``layout.pedal_names``.
-
-    Energy pedals on one side never overlap (one pedal, one indicator); arm-swap presses last the layout's
-    ``hold_frames``; nothing is pressed during the first ``lead_in`` frames (baseline detectors learn
+    Energy pedals on one side never overlap (one pedal, one indicator); arm-swap presses last
+    ``arm_swap_hold_frames``; nothing is pressed during the first ``lead_in`` frames (baseline detectors learn
     the released look there).
     """
-    names = layout.pedal_names
-    missing = [p for p in (*LEFT_ENERGY, *RIGHT_ENERGY, "clutch", "camera", "arm_swap") if p not in names]
-    if missing:
-        raise ConfigError(f"the console-video generator draws the da Vinci Xi pedals; layout {layout.name} "
-                          f"lacks {', '.join(missing)}")
+    names = list(pedal_names)
     states = np.zeros((frames, len(names)), dtype=np.uint8)
-    hold = layout.pedals["arm_swap"].hold_frames
+    hold = arm_swap_hold_frames
     groups = [(LEFT_ENERGY, "energy"), (RIGHT_ENERGY, "energy"), (("clutch",), "clutch"),
               (("camera",), "camera"), (("arm_swap",), "arm_swap")]
     for pedals, timing in groups:
@@ -95,14 +76,16 @@ def make_schedule(layout: Layout, frames: int, rng: np.random.Generator, lead_in
 
 
 class ConsoleRenderer:
-    """Draws reference-size (1920 x 1080) console frames for the davinci-xi layout's regions."""
+    """Draws reference-size (1920 x 1080) console frames.
 
-    def __init__(self, layout: Layout, rng: np.random.Generator, noise_sigma: float) -> None:
-        missing = [r for r in REQUIRED_REGIONS if r not in layout.regions]
-        if missing:
-            raise ConfigError(f"layout {layout.name} lacks region(s) {', '.join(missing)} the generator draws")
-        self.rect = {name: layout.regions[name].pixel_rect(REF_W, REF_H) for name in REQUIRED_REGIONS}
-        self.camera_icon = load_template(layout.regions["camera_slot1"], layout)
+    ``rects``: (x, y, w, h) reference-size pixel rectangles of every region in ``REQUIRED_REGIONS`` (the
+    davinci-xi layout's); ``camera_icon``: the greyscale camera icon drawn into the endoscope's slot.
+    """
+
+    def __init__(self, rects: dict[str, tuple[int, int, int, int]], camera_icon: np.ndarray,
+                 rng: np.random.Generator, noise_sigma: float) -> None:
+        self.rect = {name: rects[name] for name in REQUIRED_REGIONS}
+        self.camera_icon = camera_icon
         self.arm_icon = np.array([[235 if c == "#" else TILE[0] for c in row] for row in ARM_ICON], np.uint8)
         self.texture = tissue_texture(rng, REF_H + 80, REF_W + 80)
         self.noise = [_noise_pair(rng, noise_sigma) for _ in range(4)] if noise_sigma > 0 else []
@@ -185,44 +168,6 @@ def _noise_pair(rng: np.random.Generator, sigma: float) -> tuple[np.ndarray, np.
     return cv2.convertScaleAbs(np.maximum(noise, 0)), cv2.convertScaleAbs(np.maximum(-noise, 0))
 
 
-def render_console_video(out_path: Path | str, spec: ConsoleVideoSpec,
-                         on_progress: Callable[[int, int], None] | None = None) -> ConsoleVideo:
-    """Write the video to ``out_path`` (.mkv/.mp4: MPEG-4 part 2 "mp4v"; .avi: MJPG) and its schedule to
-    ``<stem>.schedule.csv`` + ``.json`` beside it (frame, one 0/1 column per pedal)."""
-    out_path = Path(out_path)
-    _check_spec(out_path, spec)
-    layout = load_layout(spec.layout)
-    rng = np.random.default_rng(spec.seed)
-    schedule = make_schedule(layout, spec.frames, rng)
-    pressed = {p: schedule[:, j].astype(bool) for j, p in enumerate(layout.pedal_names)}
-    right_slot = _right_slots(pressed, rng)
-    endoscope_slot = int(rng.integers(4))
-    slot_blue = _slot_colours(pressed["arm_swap"], endoscope_slot, rng)
-    shifts = rng.integers(-spec.max_shift_px, spec.max_shift_px + 1, (spec.frames // SHIFT_EVERY + 1, 2))
-    renderer = ConsoleRenderer(layout, rng, spec.noise_sigma)
-    writer = _open_writer(out_path, spec)
-    try:
-        for i in range(spec.frames):
-            frame = renderer.render(i, {p: bool(v[i]) for p, v in pressed.items()}, int(right_slot[i]), slot_blue[i],
-                                    endoscope_slot)
-            frame = shift_frame(frame, *shifts[i // SHIFT_EVERY])
-            renderer.add_noise(frame, i)
-            writer.write(_finish(frame, spec))
-            if on_progress is not None and i % 30 == 0:
-                on_progress(i + 1, spec.frames)
-    finally:
-        writer.release()
-    table = pd.DataFrame(schedule, columns=layout.pedal_names)
-    table.insert(0, "frame", np.arange(spec.frames, dtype=np.int64))
-    meta = {"generator": "midas simulate console-video", **asdict(spec), "video": out_path.name,
-            "codec": CODECS[out_path.suffix.lower()], "endoscope_slot": endoscope_slot + 1,
-            "shift_every_frames": SHIFT_EVERY, "shifts_px": shifts.tolist(), "layout": layout.describe()}
-    csv_path, json_path = write_pedals_gt(out_path.with_name(out_path.stem + ".schedule.csv"), table, meta)
-    if on_progress is not None:
-        on_progress(spec.frames, spec.frames)
-    return ConsoleVideo(out_path, csv_path, json_path, spec.frames, layout.pedal_names)
-
-
 def shift_frame(frame: np.ndarray, dx: int, dy: int) -> np.ndarray:
     """``frame`` moved by (dx, dy) pixels (right/down positive), edges repeated."""
     if dx == 0 and dy == 0:
@@ -232,28 +177,7 @@ def shift_frame(frame: np.ndarray, dx: int, dy: int) -> np.ndarray:
     return cv2.copyMakeBorder(kept, max(0, dy), max(0, -dy), max(0, dx), max(0, -dx), cv2.BORDER_REPLICATE)
 
 
-def _check_spec(out_path: Path, spec: ConsoleVideoSpec) -> None:
-    if out_path.suffix.lower() not in CODECS:
-        raise ConfigError(f"video {out_path} must end in {', '.join(CODECS)}")
-    if spec.frames < 60 or spec.fps <= 0:
-        raise ConfigError(f"need at least 60 frames (2 s at 30 fps), got {spec.frames} at {spec.fps} fps")
-    if min(spec.size) < 64 or spec.max_shift_px < 0 or spec.noise_sigma < 0:
-        raise ConfigError("size must be at least 64 px, shifts and noise non-negative")
-    if not out_path.parent.is_dir():
-        raise ConfigError(f"folder {out_path.parent} does not exist")
-
-
-def _open_writer(out_path: Path, spec: ConsoleVideoSpec) -> cv2.VideoWriter:
-    width, height = spec.size
-    fourcc = CODECS[out_path.suffix.lower()]
-    writer = cv2.VideoWriter(str(out_path), cv2.VideoWriter_fourcc(*fourcc), spec.fps,
-                             (width * (2 if spec.stereo else 1), height))
-    if not writer.isOpened():
-        raise SessionError(f"this OpenCV build cannot write {fourcc} into {out_path.suffix} ({out_path})")
-    return writer
-
-
-def _finish(frame: np.ndarray, spec: ConsoleVideoSpec) -> np.ndarray:
+def finish_frame(frame: np.ndarray, spec: ConsoleVideoSpec) -> np.ndarray:
     """Scale the reference frame to the view size; put a right view (8 px disparity) beside it if stereo."""
     if spec.size != (REF_W, REF_H):
         frame = cv2.resize(frame, spec.size, interpolation=cv2.INTER_AREA)
@@ -263,7 +187,7 @@ def _finish(frame: np.ndarray, spec: ConsoleVideoSpec) -> np.ndarray:
     return np.concatenate([frame, right], axis=1)
 
 
-def _right_slots(pressed: dict[str, np.ndarray], rng: np.random.Generator) -> np.ndarray:
+def right_slots(pressed: dict[str, np.ndarray], rng: np.random.Generator) -> np.ndarray:
     """Per frame, which right instrument (1 or 2) shows the right energy; redrawn at every press."""
     active = pressed[RIGHT_ENERGY[0]] | pressed[RIGHT_ENERGY[1]]
     onsets = np.flatnonzero(np.diff(active.astype(np.int8), prepend=0) == 1)
@@ -273,7 +197,7 @@ def _right_slots(pressed: dict[str, np.ndarray], rng: np.random.Generator) -> np
     return slots
 
 
-def _slot_colours(swap: np.ndarray, endoscope_slot: int, rng: np.random.Generator) -> np.ndarray:
+def slot_colours(swap: np.ndarray, endoscope_slot: int, rng: np.random.Generator) -> np.ndarray:
     """(frames, 4) bool, True = blue: two instrument slots driven by the hands; every swap onset trades
     one blue slot for the idle black one (the endoscope's slot stays black)."""
     instruments = [i for i in range(4) if i != endoscope_slot]

@@ -6,7 +6,7 @@ sweep during the gesture (needle driving), a circular motion (loops, cinching), 
 manipulation movements, and grasp events (fraction of the gesture, open/closed). Moves are
 minimum-jerk; on top come slow manipulation movements and 8-12 Hz tremor. During a clutch press the
 hands move back towards home. Hand geometry (grip levers, sensor pads, wrist neutral pose, home
-position) is the simulated rig's (midas_cli.devices.sim.motion), so sensors sit where the live
+position) is the simulated rig's (midas_cli.synthetic.hands), so sensors sit where the live
 simulator puts them.
 
 Clock: ``t`` is seconds since the trial started (true time, before any sensor latency).
@@ -18,17 +18,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from midas_cli.devices.sim.motion import (
-    MotionConfig,
-    SurgeonMotion,
-    _HAND_SENSORS,
-    _THUMB_SIDE,
-    _HandState,
-    _minimum_jerk,
-    _pad_rotation,
-    _SinusoidBank,
-)
 from midas_cli.geometry import matrices_from_angles
+from midas_cli.synthetic.hands import HAND_SENSORS, THUMB_SIDE, HandState, pad_rotation
+from midas_cli.synthetic.noise import SinusoidBank
+from midas_cli.synthetic.schedule import minimum_jerk
+from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
 MOVE_BASE_S = 0.35
 MOVE_SPEED_MM_S = 140.0
@@ -85,7 +79,7 @@ def knot_curve(times: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarr
         return np.repeat(values[:1], len(t), axis=0)
     start = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
     span = times[start + 1] - times[start]
-    progress = _minimum_jerk(np.clip((t - times[start]) / span, 0.0, 1.0))
+    progress = minimum_jerk(np.clip((t - times[start]) / span, 0.0, 1.0))
     return values[start] + (values[start + 1] - values[start]) * progress[:, None]
 
 
@@ -116,15 +110,15 @@ class GestureHands:
         self.rig = SurgeonMotion(MotionConfig(seed=seed))
         self.lever_mm = self.rig.config.grip_lever_mm
         rng = np.random.default_rng(np.random.SeedSequence([seed, 7001]))
-        self.home = [self.rig._neutral_grip_point(h) for h in range(2)]
-        self.wrist_base = [self.rig._wrist_base_deg(h) for h in range(2)]
+        self.home = [self.rig.hands.neutral_grip_point(h) for h in range(2)]
+        self.wrist_base = [self.rig.hands.wrist_base_deg(h) for h in range(2)]
         self.segments = segments
         self._bounds = np.array([s[1] for s in segments] + [segments[-1][2]])
         self._knots = [self._plan_hand(h, rng, clutches) for h in range(2)]
         self._circle = np.array([[GESTURE_PLANS[s[0]][h].circle_mm for h in range(2)] for s in segments])
         self._fine = np.array([[GESTURE_PLANS[s[0]][h].fine_mm for h in range(2)] for s in segments])
-        self._slow = [_SinusoidBank.draw(rng, (0.2, 1.2), np.full((3, 3), 1.0)) for _ in range(2)]
-        self._tremor = [_SinusoidBank.draw(rng, (8.0, 12.0), np.full((3, 2), TREMOR_MM)) for _ in range(2)]
+        self._slow = [SinusoidBank.draw(rng, (0.2, 1.2), np.full((3, 3), 1.0)) for _ in range(2)]
+        self._tremor = [SinusoidBank.draw(rng, (8.0, 12.0), np.full((3, 2), TREMOR_MM)) for _ in range(2)]
 
     def _plan_hand(self, hand: int, rng: np.random.Generator, clutches: np.ndarray) -> _HandKnots:
         t_start = self.segments[0][1]
@@ -166,7 +160,7 @@ class GestureHands:
 
     # ---- evaluation --------------------------------------------------------------------------------
 
-    def states(self, t: np.ndarray) -> list[_HandState]:
+    def states(self, t: np.ndarray) -> list[HandState]:
         """Grip point (N, 3) mm, rotation (N, 3, 3) and grip half-angle (N,) rad of (left, right)."""
         segment = np.clip(np.searchsorted(self._bounds, t, side="right") - 1, 0, len(self.segments) - 1)
         t0, t1 = self._bounds[segment], self._bounds[segment + 1]
@@ -183,19 +177,17 @@ class GestureHands:
             grip = self.home[hand] + pose[:, :3] + circle + fine + self._tremor[hand](t)
             rotation = matrices_from_angles(self.wrist_base[hand] + pose[:, 3:])
             aperture = knot_curve(np.array(knots.grip_t), np.array(knots.grip_v)[:, None], t)[:, 0]
-            states.append(_HandState(grip, rotation, np.arcsin(aperture / (2.0 * self.lever_mm))))
+            states.append(HandState(grip, rotation, np.arcsin(aperture / (2.0 * self.lever_mm))))
         return states
 
-    def sensors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[_HandState]]:
+    def sensors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[HandState]]:
         """Sensor positions (N, 4, 3) mm and rotations (N, 4, 3, 3), order 1 left middle, 2 left thumb,
         3 right thumb, 4 right middle (transmitter frame), and the hand states they came from."""
         states = self.states(t)
         positions, rotations = np.empty((len(t), 4, 3)), np.empty((len(t), 4, 3, 3))
         for hand, state in enumerate(states):
-            thumb, middle = _HAND_SENSORS[hand]
-            for sensor, side in ((thumb, _THUMB_SIDE[hand]), (middle, -_THUMB_SIDE[hand])):
-                along = (self.lever_mm * np.cos(state.half_angle))[:, None]
-                across = (side * self.lever_mm * np.sin(state.half_angle))[:, None]
-                positions[:, sensor] = state.grip_point + state.rotation[:, :, 0] * along + state.rotation[:, :, 1] * across
-                rotations[:, sensor] = _pad_rotation(state, side)
+            thumb, middle = HAND_SENSORS[hand]
+            for sensor, side in ((thumb, THUMB_SIDE[hand]), (middle, -THUMB_SIDE[hand])):
+                positions[:, sensor] = self.rig.hands.pad_position(state, side)
+                rotations[:, sensor] = pad_rotation(state, side)
         return positions, rotations, states
