@@ -12,8 +12,8 @@ import pytest
 from midas_cli.analysis.align import AlignOptions, align_and_write
 from midas_cli.analysis.sync import associate, downsample_rows, estimate_lag, fill_gaps
 from midas_cli.session.derived import read_aligned
-from tests.analysis_sessions import raven_session
-from tests.conftest import midas
+from helpers.analysis_sessions import raven_session
+from helpers.cli import midas
 
 MS = 1_000_000
 
@@ -116,7 +116,7 @@ def _short_video_session(root: Path, video_s: float = 1.0, demo_s: float = 10.0)
     from midas_cli.clock import HostClock
     from midas_cli.session.schema import SEQ, T_HOST, StreamSpec
     from midas_cli.session.writer import SessionMetadata, SessionWriter
-    from tests.conftest import SPEC
+    from helpers.cli import SPEC
 
     video = StreamSpec("video", "video", (SEQ, T_HOST), 30.0, "video frame times")
     t0 = 1_720_000_000 * 10**9

@@ -13,8 +13,8 @@ from midas_cli.analysis.align import align_and_write
 from midas_cli.analysis.metrics import cosine_similarity
 from midas_cli.geometry import fit_similarity, matrices_from_angles, rotation_angle_deg
 from midas_cli.session.derived import read_aligned
-from tests.analysis_sessions import TRUE_R, TRUE_T, raven_session
-from tests.conftest import midas
+from helpers.analysis_sessions import TRUE_R, TRUE_T, raven_session
+from helpers.cli import midas
 
 
 def test_kabsch_and_umeyama_recover_known_transforms() -> None:

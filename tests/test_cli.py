@@ -9,7 +9,7 @@ import pytest
 import typer.main
 
 from midas_cli.commands.main import build_app
-from tests.conftest import REPO, midas
+from helpers.cli import REPO, midas
 
 
 def _commands(group: typer.Typer, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis_sessions import raven_session
-from conftest import midas
+from helpers.analysis_sessions import raven_session
+from helpers.cli import midas
 from midas_cli.analysis.align import align_session
 from midas_cli.clock import HostClock
 from midas_cli.session.columnar import parse_csv_columns

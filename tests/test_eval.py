@@ -13,8 +13,8 @@ from midas_cli.analysis.align import align_and_write
 from midas_cli.analysis.eval_runs import best_rule
 from midas_cli.analysis.evaluation import PedalRule, correlation_table
 from midas_cli.session.derived import read_aligned
-from tests.analysis_sessions import raven_session
-from tests.conftest import midas
+from helpers.analysis_sessions import raven_session
+from helpers.cli import midas
 
 
 @pytest.fixture(scope="module")
@@ -98,3 +98,17 @@ def test_correlation_table_uses_the_selected_model_and_marks_a_worse_mlp() -> No
     marked = mark_worse(pd.DataFrame({"model": ["rigid", "mlp"]}), worse, "HandKP-MTM")
     assert marked["model"].tolist() == ["rigid", "mlp*"]
     assert mark_worse(pd.DataFrame({"model": ["mlp"]}), worse, "EmHT-MTM")["model"].tolist() == ["mlp"]
+
+
+def test_eval_pedals_uses_the_thresholds_fps_optimize_found(aligned: Path, tmp_path: Path) -> None:
+    """`calibrate fps-optimize` writes calib/fps_optimized.json; `eval pedals --optimized` reads it back."""
+    midas("calibrate", "fps-optimize", str(aligned), check=True)
+    try:
+        rules = json.loads((aligned / "calib" / "fps_optimized.json").read_text())["pedals"]
+        result = midas("eval", "pedals", str(aligned), "--optimized", "--out", str(tmp_path), "--no-plots", "--json",
+                       check=True)
+    finally:
+        (aligned / "calib" / "fps_optimized.json").unlink()
+    assert "clutch" in rules and rules["clutch"]["polarity"] in ("above", "below")
+    rows = {r["pedal"]: r for r in json.loads(result.stdout)["tables"]["pedals"]}
+    assert 0.5 < rows["clutch"]["f1"] <= 1.0

@@ -14,8 +14,8 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import midas, write_session
-from gesture_sessions import write_gesture_dataset
+from helpers.cli import midas, write_session
+from helpers.gesture_sessions import write_gesture_dataset
 
 from midas_cli.commands.progress import PlainProgress, progress_line
 

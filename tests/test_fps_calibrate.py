@@ -21,7 +21,7 @@ from midas_cli.devices.pedals import PedalThresholds
 from midas_cli.devices.rigconfig import load_rig
 from midas_cli.errors import ConfigError
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from tests.conftest import REPO, midas
+from helpers.cli import REPO, midas
 
 RIG = """# test console
 [rig]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from midas_cli.devices.fps import protocol as p
-from tests.conftest import REPO
+from helpers.cli import REPO
 
 FIRMWARE = REPO / "firmware" / "fps"
 

@@ -12,7 +12,7 @@ import pytest
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.devices.pty_emulator import Faults
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from helpers.cli import midas
 
 
 def _record(tmp_path: Path, url: str, duration: float) -> tuple[Path, dict]:

@@ -13,7 +13,7 @@ import typer.main
 from typer.testing import CliRunner
 
 from midas_cli.commands.main import build_app
-from tests.conftest import REPO
+from helpers.cli import REPO
 
 SUMMARY_MAX = 80
 

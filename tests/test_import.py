@@ -12,7 +12,7 @@ from midas_cli.importers.midas_dcs import PDS_HEADER_14
 from midas_cli.session.integrity import verify_session
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.reader import Session
-from tests.conftest import SHARED_DATA, midas
+from helpers.cli import SHARED_DATA, midas
 
 SAMPLE_NAME = "midas-dcs-sample/trakt_Strakt_T1_2024-07-05"
 SAMPLE = SHARED_DATA / SAMPLE_NAME

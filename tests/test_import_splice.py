@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from midas_cli.session.reader import Session
-from tests.conftest import SHARED_DATA, midas
+from helpers.cli import SHARED_DATA, midas
 
 SAMPLES = SHARED_DATA / "midas-dcs-sample"
 FIRST, SECOND = SAMPLES / "trakt_Strakt_T1_2024-07-05", SAMPLES / "smart_Ssmartwatch_T2_2024-07-02"

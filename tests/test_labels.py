@@ -18,7 +18,7 @@ from midas_cli.labels.taxonomy import load_taxonomy, parse_taxonomy
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from tests.conftest import SHARED_DATA, midas, record_until
+from helpers.cli import SHARED_DATA, midas, record_until
 
 FPS = 30.0
 VIDEO = StreamSpec("video", "video", (SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")), FPS)

@@ -11,8 +11,8 @@ import pytest
 from midas_cli.devices.lsl.device import predicate
 from midas_cli.errors import ConfigError
 from midas_cli.session.reader import Session
-from tests.conftest import midas, record_until
-from tests.lsl_fixture import CounterOutlet, loopback_lsl_config
+from helpers.cli import midas, record_until
+from helpers.lsl_fixture import CounterOutlet, loopback_lsl_config
 
 pytest.importorskip("pylsl", reason="pylsl (pip install pylsl==1.18.6) is not installed")
 

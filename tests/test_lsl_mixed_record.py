@@ -9,9 +9,9 @@ import pytest
 
 from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
 from midas_cli.session.reader import Session
-from tests.conftest import midas, record_until
-from tests.lsl_fixture import CounterOutlet, loopback_lsl_config
-from tests.test_raven import free_udp_port
+from helpers.cli import midas, record_until
+from helpers.lsl_fixture import CounterOutlet, loopback_lsl_config
+from helpers.net import free_udp_port
 
 pytest.importorskip("pylsl", reason="pylsl (pip install pylsl==1.18.6) is not installed")
 fps_emulator = pytest.importorskip("midas_cli.devices.fps.emulator", reason="no FPS emulator in this tree")

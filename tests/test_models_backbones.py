@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import midas
+from helpers.cli import midas
 from midas_cli.errors import ConfigError
 from midas_cli.models.dinov2 import DinoV2
 from midas_cli.models.image_features import MEAN, ExtractOptions, extract_features, preprocess

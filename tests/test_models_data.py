@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from gesture_sessions import CLASSES, write_gesture_dataset, write_gesture_session
+from helpers.gesture_sessions import CLASSES, write_gesture_dataset, write_gesture_session
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models.data import DatasetConfig, Normaliser, build_dataset
 from midas_cli.models.mstcn import MSTCN, MSTCNConfig

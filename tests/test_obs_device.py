@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import midas
+from helpers.cli import midas
 from midas_cli.clock import HostClock
 from midas_cli.devices.obs.connection import ObsConnection, resolve_password
 from midas_cli.devices.obs.frames import FrameClock, WrittenRows, check_recording, segment_files
@@ -20,7 +20,7 @@ from midas_cli.devices.obs.saved import SavedSettings, SettingsStore, process_st
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import parse_rig
 from midas_cli.errors import ConfigError, DeviceError
-from obs_fixture import free_port
+from helpers.net import free_port
 
 
 @pytest.fixture(autouse=True)

@@ -11,9 +11,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import midas
+from helpers.cli import midas
 from midas_cli.analysis.video_marker import marker_offsets_ms, marker_onsets, region_brightness
-from obs_fixture import FPS, MARKER, MARKER_ROI, ObsServer, running_obs
+from helpers.obs_fixture import FPS, MARKER, MARKER_ROI, ObsServer, running_obs
 
 pytestmark = pytest.mark.slow
 PASSWORD = "obs-test-Pa55word-7d1f"
@@ -163,8 +163,8 @@ def test_a_mixed_session_with_obs_emulators_and_lsl_verifies(obs: ObsServer, tmp
     from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
     from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
     from midas_cli.session.reader import Session
-    from tests.lsl_fixture import CounterOutlet, loopback_lsl_config
-    from tests.test_raven import free_udp_port
+    from helpers.lsl_fixture import CounterOutlet, loopback_lsl_config
+    from helpers.net import free_udp_port
 
     pytest.importorskip("pylsl", reason="pylsl is not installed")
     loopback_lsl_config(tmp_path)

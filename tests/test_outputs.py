@@ -22,8 +22,8 @@ import pytest
 from midas_cli.errors import SessionError
 from midas_cli.session.derived import read_aligned
 from midas_cli.session.labels import write_frame_labels
-from tests.analysis_sessions import raven_session
-from tests.conftest import REPO, midas
+from helpers.analysis_sessions import raven_session
+from helpers.cli import REPO, midas
 
 LOCK = ".midas.lock"  # the documented lock file (README "Where midas writes")
 

@@ -25,7 +25,7 @@ from midas_cli.session.schema import SEQ, T_HOST, StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
 from midas_cli.simulate.console_video import console_renderer, render_console_video
 from midas_cli.synthetic.console_video import REF_H, REF_W, ConsoleRenderer, ConsoleVideoSpec
-from tests.conftest import REPO, midas
+from helpers.cli import REPO, midas
 
 CAMERA_ICON = cv2.imread(str(REPO / "midas_cli/data/layouts/davinci-xi/camera_icon.png"), cv2.IMREAD_GRAYSCALE)
 VIDEO_SPEC = StreamSpec("video", "video", (SEQ, T_HOST), 30.0, "video frame times")

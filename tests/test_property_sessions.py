@@ -37,7 +37,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from conftest import midas  # noqa: E402
+from helpers.cli import midas  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

@@ -28,13 +28,9 @@ from midas_cli.devices.raven.protocol import (
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.device_files import read_raw_packets
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from helpers.cli import midas
+from helpers.net import free_udp_port
 
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def test_layout_is_the_124_byte_u_struct_field_by_field() -> None:

@@ -16,7 +16,7 @@ import pytest
 
 from midas_cli.devices.registry import describe_device
 from midas_cli.session.reader import Session
-from tests.conftest import last_seq, midas, record_until
+from helpers.cli import last_seq, midas, record_until
 
 META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 

@@ -12,7 +12,6 @@ import os
 import random
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -25,7 +24,8 @@ from midas_cli.console import dashboard
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.session.reader import Session
-from tests.conftest import midas
+from helpers.cli import midas
+from helpers.net import free_port
 
 META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 TRACEBACK = "Traceback (most recent call last)"
@@ -186,14 +186,8 @@ def test_a_killed_recorder_takes_its_workers_with_it(tmp_path: Path) -> None:
 
 
 # -- a failed start ------------------------------------------------------------------------------
-def _closed_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def test_a_start_that_fails_is_marked_failed_and_hidden_from_lists(tmp_path: Path) -> None:
-    url = f"obs://127.0.0.1:{_closed_port()}?timeout=0.5"
+    url = f"obs://127.0.0.1:{free_port()}?timeout=0.5"
     result = midas("record", "--device", f"video={url}", "--device", "emht=sim://emht", "--duration", "5",
                    "--out", str(tmp_path), *META, "--status-json", timeout=90)
     assert result.returncode == 3, result.stderr

@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import midas
-from obs_fixture import FPS, ObsProcess, obs_process
+from helpers.cli import midas
+from helpers.obs_fixture import FPS, ObsProcess, obs_process
 
 pytestmark = pytest.mark.slow
 PASSWORD = "obs-faults-Pa55word-3c9e"

@@ -19,7 +19,7 @@ from midas_cli.devices.sim.devices import SimHandKP
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.reader import Session
 from midas_cli.synthetic.stereo_camera import SyntheticStereoCamera, occluded, project_left, zed_mini_like_calibration
-from tests.conftest import midas, record_until
+from helpers.cli import midas, record_until
 
 ZED_CONF = """[LEFT_CAM_2K]
 fx=1400.1

@@ -9,7 +9,7 @@ import pytest
 from midas_cli.devices.rigconfig import load_rig, parse_rig
 from midas_cli.errors import ConfigError
 from midas_cli.rig import simulated_rig
-from tests.conftest import REPO
+from helpers.cli import REPO
 
 TEMPLATES = sorted((REPO / "sessions_template" / "rigs").glob("*.toml"))
 

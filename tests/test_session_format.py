@@ -13,7 +13,7 @@ from midas_cli.session.manifest import load_manifest, write_manifest
 from midas_cli.session.reader import Session, find_sessions
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import make_session_folder
-from tests.conftest import SPEC, write_session
+from helpers.cli import SPEC, write_session
 
 
 def test_manifest_round_trip_keeps_every_field(small_session: Path) -> None:
@@ -140,7 +140,7 @@ def test_find_sessions_walks_a_tree(tmp_path: Path) -> None:
 def test_the_documented_example_session_verifies_and_matches_the_simulators() -> None:
     from midas_cli.devices.registry import describe_device
     from midas_cli.rig import simulated_rig
-    from tests.conftest import REPO
+    from helpers.cli import REPO
 
     example = REPO / "sessions_template" / "example_session"
     assert verify_session(example).ok

@@ -16,7 +16,7 @@ from midas_cli.clock import HostClock
 from midas_cli.errors import SessionError
 from midas_cli.session.reader import Session
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from tests.conftest import REPO, SPEC, midas, write_session
+from helpers.cli import REPO, SPEC, midas, write_session
 
 # what a kill or a full disk leaves, one per writer of the session format (find_temporaries' list)
 PLANTED = {

@@ -7,7 +7,7 @@ import os
 import subprocess
 import sys
 
-from conftest import REPO
+from helpers.cli import REPO
 
 
 def _run(require: bool) -> subprocess.CompletedProcess:

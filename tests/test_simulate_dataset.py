@@ -13,7 +13,7 @@ from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.reader import Session
 from midas_cli.simulate import gestures
 from midas_cli.simulate.truth import Distortion
-from tests.conftest import SHARED_DATA, midas
+from helpers.cli import SHARED_DATA, midas
 
 COMPASS = SHARED_DATA / "compass-suturing-gestures"
 

@@ -12,7 +12,7 @@ from midas_cli.session.reader import Session
 from midas_cli.session.writer import SessionMetadata, SessionWriter
 from midas_cli.simulate.console_video import render_console_video
 from midas_cli.synthetic.console_video import ConsoleVideoSpec
-from tests.conftest import SPEC, midas
+from helpers.cli import SPEC, midas
 
 
 def test_jigsaws_summary_names_its_files_and_the_device_is_a_davinci(tmp_path: Path) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import midas
+from helpers.cli import midas
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import midas
-from gesture_sessions import write_gesture_dataset
+from helpers.cli import midas
+from helpers.gesture_sessions import write_gesture_dataset
 from midas_cli.errors import ConfigError
 from midas_cli.models.ablation import GridRow, parse_grid
 from midas_cli.models.data import DatasetConfig

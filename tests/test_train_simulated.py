@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import midas
+from helpers.cli import midas
 from midas_cli.analysis.align import align_and_write
 from midas_cli.models.data import DatasetConfig
 from midas_cli.models.train import TrainConfig, train_run

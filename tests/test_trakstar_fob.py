@@ -15,20 +15,10 @@ import pytest
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceContext, DeviceUrl
-from midas_cli.devices.pty_emulator import Faults
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.trakstar.driver import FobEmHT
-from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
 from midas_cli.errors import ConfigError, DeviceError
-
-
-@pytest.fixture
-def emulator(tmp_path: Path, request):
-    faults = dict(getattr(request, "param", {}))
-    seed = faults.pop("seed", 0)
-    emu = TrakstarEmulator(EmulatorConfig(seed=seed, link=str(tmp_path / "trakstar"), faults=Faults(**faults))).start()
-    yield emu
-    emu.stop()
+from helpers.trakstar import expected_values
 
 
 def _read_for(device: FobEmHT, seconds: float, wanted: int | None = None) -> list[tuple]:
@@ -47,11 +37,6 @@ def _sensor_values(rows: list[tuple]) -> np.ndarray:
     return table.reshape(len(rows), 4, 7)[:, :, :6]
 
 
-def _expected(emu: TrakstarEmulator, summary: dict, first_index: int, count: int) -> np.ndarray:
-    times = np.array(summary["stream_t_model_s"][first_index:first_index + count])
-    return emu.expected_values(times, summary["range_in"])
-
-
 def test_driver_configures_the_tracker_and_decodes_every_cycle(emulator) -> None:
     clock = HostClock.anchored_now()
     device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=4"), DeviceContext(clock, clock.now_ns()))
@@ -65,7 +50,7 @@ def test_driver_configures_the_tracker_and_decodes_every_cycle(emulator) -> None
     seq = np.array([r[0] for r in rows])
     assert (np.diff(seq) == 1).all() and len(rows) >= 350
     assert summary["stream_groups_sent"] - len(rows) <= 2, "only the cycles in flight at close are unread"
-    assert np.array_equal(_sensor_values(rows), _expected(emulator, summary, 0, len(rows)))
+    assert np.array_equal(_sensor_values(rows), expected_values(emulator, summary, 0, len(rows)))
     assert all(r[2] is None and r[9] is None for r in rows), "no device clock, no quality in FOB records"
     assert device.counters.corrupt == 0 and device.counters.discarded_bytes == 0
 
@@ -82,7 +67,7 @@ def test_corrupted_and_lost_bytes_never_reach_the_rows(emulator) -> None:
     counters = np.array(summary["stream_counters"])
     index = np.array([r[0] for r in rows]) - rows[0][0]
     values = _sensor_values(rows)
-    expected = _expected(emulator, summary, 0, int(index[-1]) + 1)[index]
+    expected = expected_values(emulator, summary, 0, int(index[-1]) + 1)[index]
     present = ~np.isnan(values[:, :, 0])
     assert np.array_equal(values[present], expected[present]), "every value that reached a row is exact"
     for row, sensor in zip(*np.nonzero(present)):

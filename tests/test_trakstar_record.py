@@ -15,8 +15,8 @@ import pytest
 from midas_cli.devices.trakstar.emulator import TrakstarEmulator
 from midas_cli.session.integrity import verify_session
 from midas_cli.session.reader import Session
-from tests.conftest import midas
-from tests.test_trakstar_fob import _expected, emulator  # noqa: F401 (pytest fixture)
+from helpers.cli import midas
+from helpers.trakstar import expected_values
 
 META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 SENSOR_COLUMNS = [f"s{s}_{a}" for s in range(1, 5) for a in ("x_mm", "y_mm", "z_mm", "azimuth_deg",
@@ -34,7 +34,7 @@ def _check_zero_loss(emu: TrakstarEmulator, path: Path) -> None:
     frame = Session.open(path).read_stream("emht")
     assert (np.diff(frame["seq"].to_numpy()) == 1).all()
     assert 0 <= summary["stream_groups_sent"] - len(frame) <= 4, "all but the cycles in flight at stop"
-    expected = _expected(emu, summary, 0, len(frame)).reshape(len(frame), 24)
+    expected = expected_values(emu, summary, 0, len(frame)).reshape(len(frame), 24)
     assert np.allclose(frame[SENSOR_COLUMNS].to_numpy(), expected, atol=6e-4), "values survive the CSV (3 dp)"
     assert Session.open(path).manifest["streams"]["emht"]["corrupt"] == 0
 
@@ -69,7 +69,7 @@ def test_record_with_1_percent_corruption_keeps_only_clean_records(emulator, tmp
     frame = session.read_stream("emht")
     summary = emulator.summary()
     index = frame["seq"].to_numpy() - frame["seq"].iloc[0]
-    expected = _expected(emulator, summary, 0, int(index[-1]) + 1)[index].reshape(len(frame), 24)
+    expected = expected_values(emulator, summary, 0, int(index[-1]) + 1)[index].reshape(len(frame), 24)
     values = frame[SENSOR_COLUMNS].to_numpy()
     present = ~np.isnan(values)
     assert np.allclose(values[present], expected[present], atol=6e-4), "no corrupted value in the file"

@@ -3,6 +3,7 @@ per-session rows, average them into the paper's tables, write files and figures.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable

@@ -30,9 +30,12 @@ import threading
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 from midas_cli.errors import SessionError
 from midas_cli.session.outputs import (provenance, replacing, session_folder, session_lock, session_read_lock,

@@ -25,6 +25,8 @@ from typing import Iterator
 
 import pytest
 
+from helpers.net import free_port
+
 START_TIMEOUT_S = 90.0
 FPS = 30
 MARKER = "Marker"
@@ -43,11 +45,6 @@ class ObsServer:
 def missing_tools() -> list[str]:
     return [tool for tool in ("obs", "xvfb-run", "Xvfb", "ffprobe") if shutil.which(tool) is None]
 
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def _ini(sections: dict[str, dict[str, object]]) -> str:
