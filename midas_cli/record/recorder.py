@@ -10,17 +10,14 @@ is finalised from what is on disk.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import multiprocessing as mp
 import os
 import shutil
-import signal
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
@@ -31,6 +28,7 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
+from midas_cli.record.spawn import stop_signals_blocked, worker_context
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.writer import LOG_FILE, SessionMetadata, SessionWriter
@@ -346,33 +344,6 @@ class Recorder:
             self._log_handler = None
 
     _stop_deadline = float("inf")
-
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-WORKER_MODULE = "midas_cli.record.worker"
-
-
-def worker_context():
-    """Workers are forked by multiprocessing's fork server, which imports the worker module (and
-    through it every device backend) once: each worker then starts in milliseconds instead of
-    importing numpy and the backends again, as a spawned one would (~0.5 s of CPU each). The server
-    is itself a fresh, single-threaded process (forking the recorder, which may hold threads of
-    pylsl or BLAS, would not be safe). It is started inside ``stop_signals_blocked`` and keeps the
-    stop signals blocked: a terminal's Ctrl-C or hang-up cannot kill it under running workers."""
-    context = mp.get_context("forkserver")
-    context.set_forkserver_preload([WORKER_MODULE])
-    return context
-
-
-@contextlib.contextmanager
-def stop_signals_blocked() -> Iterator[None]:
-    """Block SIGINT/SIGTERM/SIGHUP in this thread for the duration (pending ones are delivered when
-    the block ends, never dropped); children started meanwhile inherit the block."""
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]:
