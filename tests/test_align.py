@@ -167,3 +167,18 @@ def test_default_alignment_of_a_fully_covered_session_says_nothing(tmp_path: Pat
     result = midas("align", str(session), "--json", check=True)
     assert "warning" not in result.stderr
     assert all(c["samples_share"] >= 0.95 for c in json.loads(result.stdout)[0]["coverage"].values())
+
+
+def test_downsample_is_the_flag_and_rate_its_old_name_with_a_warning(tmp_path: Path) -> None:
+    """issue 18: `--rate` means a device's sample rate everywhere; align's frame-clock downsampling is
+    `--downsample` (the old name still works, saying so; both at once is a usage error)."""
+    session = raven_session(tmp_path, duration_s=4.0)
+    new = midas("align", str(session), "--downsample", "10", "--json", check=True)
+    assert json.loads(new.stdout)[0]["frames"] == 40 and "warning" not in new.stderr
+    old = midas("align", str(session), "--rate", "10", "--json", check=True)
+    assert json.loads(old.stdout)[0]["frames"] == 40
+    assert "--rate is now --downsample" in old.stderr
+    both = midas("align", str(session), "--rate", "10", "--downsample", "10")
+    assert both.returncode == 2 and both.stderr.strip().splitlines() == [
+        "midas: error: --rate is the old name of --downsample: give only --downsample"]
+    assert "--rate" not in midas("align", "--help").stdout.replace("--clock", "")

@@ -189,12 +189,12 @@ def test_a_lock_left_by_a_killed_process_never_blocks(session: Path) -> None:
 
 def test_two_align_runs_at_once_leave_one_runs_complete_output(session: Path, tmp_path: Path) -> None:
     expected = {}
-    for name, args in (("rate10", ["--rate", "10"]), ("full", [])):
+    for name, args in (("rate10", ["--downsample", "10"]), ("full", [])):
         copy = tmp_path / name / session.name
         shutil.copytree(session, copy)
         midas("align", str(copy), *args, check=True)
         expected[name] = read_aligned(copy)
-    runs = [_popen_midas("align", str(session), "--rate", "10"), _popen_midas("align", str(session))]
+    runs = [_popen_midas("align", str(session), "--downsample", "10"), _popen_midas("align", str(session))]
     for proc in runs:
         _, stderr = proc.communicate(timeout=300)
         assert proc.returncode == 0, stderr

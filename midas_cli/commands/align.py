@@ -11,17 +11,19 @@ from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsed
 from rich.table import Table
 
 from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write, parse_clock
-from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
+from midas_cli.commands.common import err, error_line, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG, renamed_option, take_renamed
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 
 
 def align(
-    sessions: list[Path] = typer.Argument(..., help="Session folder(s).", file_okay=False),
+    sessions: list[Path] = SESSIONS_ARG,
     method: str = typer.Option("causal", "--method", help=f"Sample chosen per frame: {' or '.join(METHODS)} "
                                "(latest at or before the frame / nearest in time)."),
-    rate: Optional[float] = typer.Option(None, "--rate", callback=positive, help="Downsample the frame clock to this rate (Hz), "
-                                         "e.g. 10; default: every video frame."),
+    downsample: Optional[float] = typer.Option(None, "--downsample", callback=positive, help="Keep one frame per "
+                                               "1/HZ of the frame clock, e.g. 10; default: every frame."),
+    rate: Optional[float] = renamed_option("--rate", "--downsample"),
     clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
                               "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "
                               "session whose video clock is short or absent."),
@@ -46,13 +48,14 @@ def align(
     to last frame) is in the output and in derived/aligned.json; under 95% gets a warning on
     stderr.
 
-    Example: midas align sessions/*/ --rate 10 --jobs 2
+    Example: midas align sessions/*/ --downsample 10 --jobs 2
 
     Example (a watch-only session, or a video clock covering a fraction): midas align SESSION --clock 30
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    options = AlignOptions(method=method, rate_hz=rate, clock_hz=parse_clock(clock), model=model)
+    downsample = take_renamed(downsample, rate, "--rate", "--downsample", error_line)
+    options = AlignOptions(method=method, rate_hz=downsample, clock_hz=parse_clock(clock), model=model)
     results = _run(sessions, options, jobs, csv)
     for r in results:
         for warning in r["warnings"]:

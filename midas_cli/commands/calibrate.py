@@ -13,7 +13,8 @@ from rich.table import Table
 from rich.text import Text
 
 from midas_cli.commands import calibrate_analysis
-from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
+from midas_cli.commands.common import err, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.devices.fps.calibration import (
     FpsCalibration, LiveCalibration, calibrate_from_session, calibrate_live,
 )

@@ -12,11 +12,11 @@ from rich.table import Table
 from midas_cli.analysis.calibration import TARGETS
 from midas_cli.analysis.eval_runs import optimise_pedals
 from midas_cli.analysis.fit_calibration import CalibrationOptions, calibrate_sessions
-from midas_cli.commands.common import JSON_OPTION, err, error_line, non_negative, out, print_json
+from midas_cli.commands.common import err, error_line, non_negative, out, print_json
+from midas_cli.commands.options import JSON_OPTION, KINEMATIC_SESSIONS_ARG
 from midas_cli.errors import ConfigError
 from midas_cli.models.mlp_config import MLPConfig
 
-SESSIONS_ARG = typer.Argument(..., help="Session folder(s) with robot kinematics (each is one trial).", file_okay=False)
 TARGET_OPTION = typer.Option("mtm", "--target", help=f"Robot frame to map into: {' or '.join(TARGETS)}.")
 OUT_OPTION = typer.Option(None, "--out", help="Also write the model fitted on ALL sessions to this .json "
                           "(weights beside it as .pt).", dir_okay=False)
@@ -33,7 +33,7 @@ def _options(target: str, rigid_only: bool, epochs: int, weight_decay: float) ->
 
 
 def emht(
-    sessions: list[Path] = SESSIONS_ARG,
+    sessions: list[Path] = KINEMATIC_SESSIONS_ARG,
     target: str = TARGET_OPTION,
     rigid_only: bool = typer.Option(False, "--rigid-only", help="Fit R, t only (no residual MLP)."),
     out_file: Optional[Path] = OUT_OPTION,
@@ -56,7 +56,7 @@ def emht(
 
 
 def handkp(
-    sessions: list[Path] = SESSIONS_ARG,
+    sessions: list[Path] = KINEMATIC_SESSIONS_ARG,
     target: str = TARGET_OPTION,
     rigid_only: bool = typer.Option(False, "--rigid-only", help="Hand-eye rigid fit only (no direct MLP)."),
     out_file: Optional[Path] = OUT_OPTION,

@@ -34,7 +34,6 @@ def _flag_shows_no_type(display_type_rich: Callable[..., Optional[str]]) -> Call
 if not hasattr(TyperOption.display_type_rich, "__wrapped__"):
     TyperOption.display_type_rich = _flag_shows_no_type(TyperOption.display_type_rich)  # type: ignore[method-assign]
 
-JSON_OPTION = typer.Option(False, "--json", help="Print machine-readable JSON on stdout instead of a table.")
 
 
 def print_json(data: Any) -> None:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import typer
 
 from midas_cli import diagnostics
-from midas_cli.commands.common import JSON_OPTION, out, print_json
+from midas_cli.commands.common import out, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.console import human_bytes
 
 

@@ -11,7 +11,8 @@ from typing import Optional
 
 import typer
 
-from midas_cli.commands.common import JSON_OPTION, err, finite, non_negative, positive, print_json, probability
+from midas_cli.commands.common import err, finite, non_negative, positive, print_json, probability
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.devices.pty_emulator import Faults, PtyEmulator
 from midas_cli.devices.raven.device import parse_address

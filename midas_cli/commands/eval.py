@@ -11,19 +11,19 @@ from rich.table import Table
 
 from midas_cli.analysis.eval_runs import EvalResult, run_correlation, run_pedals
 from midas_cli.analysis.report import format_cell, json_safe
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import err, out, print_json
+from midas_cli.commands.options import ALIGNED_SESSIONS_ARG, JSON_OPTION
 
 app = typer.Typer(help="Validate sensing modalities against robot ground truth (paper tables).",
                   no_args_is_help=True)
 
-SESSIONS_ARG = typer.Argument(..., help="Aligned session folder(s) (run `midas align` first).", file_okay=False)
 OUT_OPTION = typer.Option(None, "--out", help="Folder for the tables averaged over all sessions (CSV, JSON, "
                           "Markdown, LaTeX); default with one session: its derived/eval/.", file_okay=False)
 PLOTS_OPTION = typer.Option(True, "--plots/--no-plots", help="Write PNG figures into each session's derived/plots/.")
 
 
 @app.command()
-def correlation(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION,
+def correlation(sessions: list[Path] = ALIGNED_SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION,
                 plots: bool = PLOTS_OPTION,
                 model: str = typer.Option("best", "--model", help="Calibration model of the main table: best "
                                           "(the one align recorded: calibrate's held-out winner unless told "
@@ -43,7 +43,7 @@ def correlation(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = O
 
 
 @app.command()
-def pedals(sessions: list[Path] = SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION, plots: bool = PLOTS_OPTION,
+def pedals(sessions: list[Path] = ALIGNED_SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION, plots: bool = PLOTS_OPTION,
            optimized: bool = typer.Option(False, "--optimized", help="Detect presses with the thresholds of "
                                           "`calibrate fps-optimize` (calib/fps_optimized.json) instead of the "
                                           "recorded states."),

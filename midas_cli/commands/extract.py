@@ -7,7 +7,8 @@ from typing import Optional
 
 import typer
 
-from midas_cli.commands.common import JSON_OPTION, out, print_json
+from midas_cli.commands.common import out, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 
 app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)

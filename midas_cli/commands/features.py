@@ -7,7 +7,8 @@ from pathlib import Path
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-from midas_cli.commands.common import JSON_OPTION, out, print_json
+from midas_cli.commands.common import out, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 
 app = typer.Typer(help="Extract learned features from recordings.", no_args_is_help=True)

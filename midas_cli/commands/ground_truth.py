@@ -13,7 +13,8 @@ from midas_cli.analysis.pedal_video.ground_truth import (GroundTruthRequest, Gro
                                                          resolve_input, result_dict, run_many)
 from midas_cli.analysis.pedal_video.layout import load_layout
 from midas_cli.analysis.pedal_video.preview import preview_frame, write_png
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import err, out, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 

@@ -7,7 +7,8 @@ from typing import Any
 
 import typer
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import err, out, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.importers.midas_dcs import import_midas_dcs
 from midas_cli.importers.surgical import import_surgical
 

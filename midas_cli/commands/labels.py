@@ -9,7 +9,8 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from midas_cli.commands.common import JSON_OPTION, err, out, positive, print_json
+from midas_cli.commands.common import err, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION, SESSION_ARG
 from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResult, export_labels, import_transcription
 from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
@@ -21,7 +22,6 @@ app = typer.Typer(help="Gesture taxonomies, annotation import/export and label s
                        "Annotation formats: VIA, JIGSAWS/COMPASS.",
                   no_args_is_help=True)
 
-SESSION_ARG = typer.Argument(..., help="Session folder (holds manifest.json).")
 NAME_OPTION = typer.Option("gestures", "--name", help="Label set name (labels/<name>.csv in the session).")
 GAPS_OPTION = typer.Option("unlabelled", "--gaps", help="Frames no segment covers: 'unlabelled' (empty label) "
                            "or 'idle' (the taxonomy's idle class, e.g. peg-transfer's Idle).")

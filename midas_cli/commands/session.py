@@ -10,7 +10,8 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from midas_cli.commands.common import JSON_OPTION, err, out, print_json
+from midas_cli.commands.common import err, out, print_json
+from midas_cli.commands.options import JSON_OPTION, SESSION_ARG
 from midas_cli.console import clock_text
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.session.integrity import repair_session, verify_session
@@ -20,7 +21,6 @@ from midas_cli.session.summary import summarize_session
 
 app = typer.Typer(help="Inspect, list, verify and repair session folders.", no_args_is_help=True)
 
-SESSION_ARG = typer.Argument(..., help="Session folder (holds manifest.json).")
 
 
 def _fmt(value: Any, spec: str = "") -> str:

@@ -7,7 +7,8 @@ from typing import Any, Optional
 
 import typer
 
-from midas_cli.commands.common import JSON_OPTION, err, non_negative, out, positive, print_json
+from midas_cli.commands.common import err, non_negative, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.simulate.console_video import render_console_video

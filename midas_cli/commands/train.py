@@ -9,7 +9,8 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from midas_cli.commands.common import JSON_OPTION, out, positive, print_json
+from midas_cli.commands.common import error_line, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION, SESSION_TREES_ARG, renamed_option, take_renamed
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.session.reader import find_sessions
@@ -20,14 +21,14 @@ app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
                        "Models train on aligned, labelled sessions.",
                   no_args_is_help=True)
 
-SESSIONS_ARG = typer.Argument(..., help="Session folders, or folders holding sessions (searched 3 levels deep).")
 MODALITIES_OPT = typer.Option("emht", "--modalities", help="Comma list of emht, handkp, mtm, psm, image.")
 FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, grasper, clutch.")
 SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto or louo.")
 EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
-RATE_OPT = typer.Option(None, "--rate", callback=positive, help="Model rate in Hz (default: Raven-II 10, otherwise 30).")
+MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
+                              "table at (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
 
 
@@ -73,7 +74,7 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 
 @app.command()
 def gestures(
-    sessions: list[Path] = SESSIONS_ARG,
+    sessions: list[Path] = SESSION_TREES_ARG,
     model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++) or transformer (MTRSAP-style)."),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
@@ -82,7 +83,8 @@ def gestures(
     epochs: int = EPOCHS_OPT,
     seed: int = SEED_OPT,
     device: str = DEVICE_OPT,
-    rate: Optional[float] = RATE_OPT,
+    model_rate: Optional[float] = MODEL_RATE_OPT,
+    rate: Optional[float] = renamed_option("--rate", "--model-rate"),
     exclude_clutch: bool = EXCLUDE_OPT,
     shuffle_labels: bool = typer.Option(False, "--shuffle-labels", help="Control run: permute training gesture classes."),
     out_dir: Path = typer.Option(..., "--out", help="New run folder (config, split, metrics, checkpoint, plots)."),
@@ -98,12 +100,13 @@ def gestures(
     from midas_cli.models.data import DatasetConfig
     from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
 
+    model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
     paths = session_paths(sessions)
     with _progress() as progress:
         if eval_only is not None:
             result = evaluate_checkpoint(paths, eval_only, out_dir, device)
         else:
-            data = DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, rate)
+            data = DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, model_rate)
             config = TrainConfig(model=model, split=split, fold=fold, epochs=epochs, seed=seed, device=device,
                                  shuffle_labels=shuffle_labels)
             result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
@@ -115,7 +118,7 @@ def gestures(
 
 @app.command()
 def ablation(
-    sessions: list[Path] = SESSIONS_ARG,
+    sessions: list[Path] = SESSION_TREES_ARG,
     models: str = typer.Option("transformer,mstcn", "--models", help="Comma list of models (table order)."),
     grid: Optional[str] = typer.Option(None, "--grid", help="';'-separated rows MODALITIES:FEATURES[:exclude-clutch] "
                                        "(default: the paper's Raven-II grid)."),

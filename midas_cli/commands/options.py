@@ -1,0 +1,49 @@
+"""Options and arguments that several commands share, defined once, with one meaning per name.
+
+Names and what they always mean:
+
+* ``SESSION_ARG``: one session folder (holds manifest.json).
+* ``SESSIONS_ARG``: one or more session folders.
+* ``ALIGNED_SESSIONS_ARG``: session folders `midas align` has run on (derived/aligned.*).
+* ``KINEMATIC_SESSIONS_ARG``: session folders with robot kinematics (mtm/psm streams), one per trial.
+* ``SESSION_TREES_ARG``: session folders, or folders holding sessions (searched 3 levels deep).
+* ``--json`` (``JSON_OPTION``): machine-readable JSON on stdout instead of a table.
+* ``--rate``: a device's own sample rate (the emulators). The frame rate of an aligned table is
+  ``align --downsample``; the rate the gesture models see is ``train --model-rate``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import typer
+
+from midas_cli.commands.common import positive
+from midas_cli.errors import ConfigError
+
+JSON_OPTION = typer.Option(False, "--json", help="Print machine-readable JSON on stdout instead of a table.")
+
+SESSION_ARG = typer.Argument(..., help="Session folder (holds manifest.json).")
+SESSIONS_ARG = typer.Argument(..., help="Session folder(s).", file_okay=False)
+ALIGNED_SESSIONS_ARG = typer.Argument(..., help="Aligned session folder(s) (run `midas align` first).",
+                                      file_okay=False)
+KINEMATIC_SESSIONS_ARG = typer.Argument(..., help="Session folder(s) with robot kinematics (each is one trial).",
+                                        file_okay=False)
+SESSION_TREES_ARG = typer.Argument(..., help="Session folders, or folders holding sessions (searched 3 levels "
+                                   "deep).")
+
+
+def renamed_option(old: str, new: str) -> typer.models.OptionInfo:
+    """A hidden option under a flag's old name, still accepted for a release (see ``take_renamed``)."""
+    return typer.Option(None, old, hidden=True, callback=positive, help=f"Old name of {new}.")
+
+
+def take_renamed(value, old_value, old: str, new: str, warn: Callable[[str], None]):
+    """The value given under ``new``, or under its old name ``old`` (with a warning, via ``warn``);
+    both at once is a usage error."""
+    if old_value is None:
+        return value
+    if value is not None:
+        raise ConfigError(f"{old} is the old name of {new}: give only {new}")
+    warn(f"midas: warning: {old} is now {new} (the old name will go in a later release)")
+    return old_value
