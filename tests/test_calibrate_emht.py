@@ -149,7 +149,7 @@ def test_collapsed_mlp_is_reported_not_used_by_default_and_marked_in_the_table(t
     saved = json.loads((Path(sessions[0]) / "calib" / "handkp_to_mtm.json").read_text())
     assert saved["info"]["selection"] == selection
 
-    aligned = midas("align", sessions[0], "--model", "mlp", "--json", check=True)  # told otherwise
+    aligned = midas("align", sessions[0], "--calibration-model", "mlp", "--json", check=True)  # told otherwise
     assert json.loads(aligned.stdout)[0]["calibration_models"] == {"calib/handkp_to_mtm.json": "mlp"}
     for session in sessions:
         aligned = midas("align", session, "--json", check=True)
@@ -163,6 +163,6 @@ def test_collapsed_mlp_is_reported_not_used_by_default_and_marked_in_the_table(t
     assert sorted(r["model"] for r in tables["handkp_all_frames"]) == ["mlp*", "rigid"]
     markdown = (tmp_path / "best" / "correlation.md").read_text()
     assert "| mlp* |" in markdown and "* MLP worse than the rigid fit on held-out trials (HandKP-MTM: RMSE" in markdown
-    forced = midas("eval", "correlation", *sessions, "--no-plots", "--model", "mlp", "--out", str(tmp_path / "mlp"),
-                   "--json", check=True)
+    forced = midas("eval", "correlation", *sessions, "--no-plots", "--calibration-model", "mlp",
+                   "--out", str(tmp_path / "mlp"), "--json", check=True)
     assert {r["comparison"]: r["model"] for r in json.loads(forced.stdout)["tables"]["correlation"]}["HandKP-MTM"] == "mlp*"

@@ -67,7 +67,8 @@ class AlignOptions:
 
     def __post_init__(self) -> None:
         if self.model not in MODEL_CHOICES:
-            raise ConfigError(f"--model {self.model!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
+            raise ConfigError(f"--calibration-model {self.model!r} is unknown "
+                              f"(expected one of {', '.join(MODEL_CHOICES)})")
         if self.method not in METHODS:
             raise ConfigError(f"alignment method {self.method!r} is unknown (expected one of {', '.join(METHODS)})")
         if self.rate_hz is not None and not 0 < self.rate_hz <= 1000:
@@ -317,7 +318,7 @@ def model_warnings(applied: list[dict[str, Any]]) -> list[str]:
             errors = selection["held_out"]
             lines.append(f"{c['file']}: the MLP is worse than the rigid fit on held-out trials (RMSE "
                          f"{errors['mlp']['rmse_mm']:.2f} vs {errors['rigid']['rmse_mm']:.2f} mm); "
-                         f"{c['selected']} is the one used (--model {c['asked']})")
+                         f"{c['selected']} is the one used (--calibration-model {c['asked']})")
     return lines
 
 

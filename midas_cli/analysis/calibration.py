@@ -70,7 +70,7 @@ class Calibration:
         """``wanted`` best|rigid|mlp -> the model to use: best = the held-out winner; mlp falls back to
         rigid when no MLP was fitted."""
         if wanted not in MODEL_CHOICES:
-            raise ConfigError(f"--model {wanted!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
+            raise ConfigError(f"--calibration-model {wanted!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
         if wanted == "best":
             return self.selection["best"] if self.selection["best"] in self.models else "rigid"
         return wanted if wanted in self.models else "rigid"

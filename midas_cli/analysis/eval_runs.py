@@ -63,7 +63,7 @@ def model_choices(table: AlignedTable, wanted: str = "best") -> tuple[dict[str, 
     model ``align`` recorded (calibrate's held-out winner unless align was told otherwise); rigid|mlp
     force it where fitted. An aligned table from an older midas has no record: the MLP when present."""
     if wanted not in MODEL_CHOICES:
-        raise ConfigError(f"--model {wanted!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
+        raise ConfigError(f"--calibration-model {wanted!r} is unknown (expected one of {', '.join(MODEL_CHOICES)})")
     names = {f"{source}_to_{target}": name for name, source, target in ev.COMPARISONS}
     applied = {names[Path(a["file"]).stem]: a for a in table.meta.get("calibrations_applied", [])
                if Path(a["file"]).stem in names}
@@ -115,7 +115,7 @@ def worse_note(worse: dict[str, dict]) -> str:
     parts = [f"{name}: RMSE {s['held_out']['mlp']['rmse_mm']:.2f} vs {s['held_out']['rigid']['rmse_mm']:.2f} mm"
              for name, s in sorted(worse.items())]
     return (f"; * MLP worse than the rigid fit on held-out trials ({'; '.join(parts)}), "
-            "so --model best uses the rigid fit")
+            "so --calibration-model best uses the rigid fit")
 
 
 def correlation_tables(rows: dict[str, list[dict[str, Any]]],

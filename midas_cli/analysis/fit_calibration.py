@@ -238,7 +238,7 @@ def summarise_folds(metrics: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def select_model(cv: dict[str, Any], models: list[str]) -> dict[str, Any]:
-    """Which model ``align``/``eval`` use by default (``--model best``): the MLP only when its mean
+    """Which model ``align``/``eval`` use by default (``--calibration-model best``): the MLP only when its mean
     held-out RMSE over the leave-one-trial-out folds is no worse than the rigid fit's. Both held-out
     errors are kept; without folds (one session) nothing is compared and the MLP stays the default."""
     if "mlp" not in models:

@@ -27,9 +27,9 @@ def align(
     clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
                               "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "
                               "session whose video clock is short or absent."),
-    model: str = typer.Option("best", "--model", help="Calibration model to use downstream (eval): best (the "
-                              "winner of calibrate's held-out comparison), rigid or mlp. Both models' columns "
-                              "are written; the choice is recorded in derived/aligned.json."),
+    model: str = typer.Option("best", "--calibration-model", help="Calibration model to use downstream (eval): "
+                              "best (the winner of calibrate's held-out comparison), rigid or mlp. Both models' "
+                              "columns are written; the choice is recorded in derived/aligned.json."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
     csv: bool = typer.Option(False, "--csv", help="Also write derived/aligned.csv (6 significant digits; "
                              "slow for long sessions: the npz holds the exact values). Without it, an "

@@ -84,7 +84,7 @@ def _warn_if_mlp_worse(report: dict[str, Any]) -> None:
         error_line(f"midas: warning: {report['source']} -> {report['target']}: the MLP is worse than the rigid "
                    f"fit on held-out trials (mean RMSE {mlp['rmse_mm']:.2f} mm vs {rigid['rmse_mm']:.2f} mm, "
                    f"CoS {mlp['cos']:.3f} vs {rigid['cos']:.3f}, {selection['folds']} folds); align and eval use "
-                   f"the rigid fit (--model best; --model mlp to use it anyway)")
+                   f"the rigid fit (--calibration-model best; --calibration-model mlp to use it anyway)")
 
 
 def _render(report: dict[str, Any], as_json: bool) -> None:

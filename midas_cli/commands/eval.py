@@ -25,10 +25,10 @@ PLOTS_OPTION = typer.Option(True, "--plots/--no-plots", help="Write PNG figures 
 @app.command()
 def correlation(sessions: list[Path] = ALIGNED_SESSIONS_ARG, out_dir: Optional[Path] = OUT_OPTION,
                 plots: bool = PLOTS_OPTION,
-                model: str = typer.Option("best", "--model", help="Calibration model of the main table: best "
-                                          "(the one align recorded: calibrate's held-out winner unless told "
-                                          "otherwise), rigid or mlp. An MLP worse than the rigid fit on "
-                                          "held-out trials is marked mlp* wherever it is listed."),
+                model: str = typer.Option("best", "--calibration-model", help=(
+                    "Calibration model of the main table: best (the one align recorded: calibrate's held-out "
+                    "winner unless told otherwise), rigid or mlp. An MLP worse than the rigid fit on held-out "
+                    "trials is marked mlp* wherever it is listed.")),
                 as_json: bool = JSON_OPTION) -> None:
     """Agreement of EmHT and HandKP with the robot kinematics (CoS, NRMSE).
 

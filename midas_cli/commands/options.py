@@ -10,6 +10,8 @@ Names and what they always mean:
 * ``--json`` (``JSON_OPTION``): machine-readable JSON on stdout instead of a table.
 * ``--rate``: a device's own sample rate (the emulators). The frame rate of an aligned table is
   ``align --downsample``; the rate the gesture models see is ``train --model-rate``.
+* ``--model``: which gesture model ``train`` trains; the calibration model ``align`` and ``eval``
+  use is ``--calibration-model``.
 """
 
 from __future__ import annotations
