@@ -211,7 +211,7 @@ def ablation(
     paths = session_paths(sessions)
     rows = parse_grid(grid)
     model_list = list(_split_list(models))
-    if baseline and not any(m.startswith("baseline") for m in model_list):
+    if baseline and "baseline" not in model_list:
         model_list.append("baseline")
     fold_index = _parse_fold(fold)
     base = TrainConfig(split=split, fold=fold_index or 0, validation=val, epochs=epochs, seed=seed, device=device)

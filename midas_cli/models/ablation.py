@@ -97,7 +97,7 @@ def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequ
         raise ConfigError(f"--models {','.join(unknown or models)!r}: expected a comma list of {', '.join(MODELS)}")
     if cv and base.split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {base.split}")
-    models = list(models) + (["baseline"] if baseline and not any(m.startswith("baseline") for m in models) else [])
+    models = list(models) + (["baseline"] if baseline and "baseline" not in models else [])
     out_dir = out_folder(out_dir)
     out_folder(out_dir / "runs")
     results, skipped = [], []

@@ -26,7 +26,7 @@ import logging
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -34,8 +34,10 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.splits import GROUP_SPLITS, fold_groups
-from midas_cli.models.train import TrainConfig, train_run
 from midas_cli.session.outputs import out_folder, out_target, write_text
+
+if TYPE_CHECKING:  # torch is imported only to train: `midas train cv-summary` reads JSON and CSV
+    from midas_cli.models.train import TrainConfig
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +92,8 @@ def run_cv(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainCo
 def run_fold(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainConfig, run_dir: Path,
              progress: Callable[[int, int, dict], None] | None = None) -> None:
     """One fold as an ordinary run; a finished one (metrics.json) is kept."""
+    from midas_cli.models.train import train_run
+
     if (run_dir / "metrics.json").is_file():
         log.info("%s: finished fold reused", run_dir)
         return
