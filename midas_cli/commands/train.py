@@ -147,10 +147,10 @@ def gestures(
     if eval_only is None and fold_index is None:
         _render_cv(report, out_dir, as_json)
         return
-    if eval_only is None and split in GROUP_SPLITS and out_dir.name == f"fold-{fold_index}" \
-            and cv.complete(out_dir.parent):
-        cv.summarise(out_dir.parent)  # the last fold of a cluster run: aggregate
-        error_line(f"every fold under {out_dir.parent} has finished: wrote cv.json and cv.md there")
+    cv_root = out_dir.parent.parent if out_dir.parent.name == cv.BASELINE else out_dir.parent
+    if eval_only is None and split in GROUP_SPLITS and out_dir.name == f"fold-{fold_index}" and cv.complete(cv_root):
+        cv.summarise(cv_root)  # the last fold of a cluster run: aggregate
+        error_line(f"every fold under {cv_root} has finished: wrote cv.json and cv.md there")
     if as_json:
         print_json({"run": str(result.out_dir), "test": result.metrics["test"]["summary"]})
         return
