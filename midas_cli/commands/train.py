@@ -23,13 +23,31 @@ app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
 
 MODALITIES_OPT = typer.Option("emht", "--modalities", help="Comma list of emht, handkp, mtm, psm, image.")
 FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, grasper, clutch.")
-SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto or louo.")
+SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto, louo or loso "
+                         "(leave one trial / user / super-trial out).")
+VAL_OPT = typer.Option("none", "--val", help="loto/louo/loso model selection: none (fixed epochs, last-epoch model; "
+                       "default, as in the papers) or inner (a seeded ~15% of the training trials validate).")
+BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", help="Cross-validation and ablation: also train the "
+                            "per-frame logistic-regression baseline and add its row to every table.")
 EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
 MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
                               "table at (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
+
+
+def _parse_fold(text: str) -> int | None:
+    """``--fold``: a fold index, or ``all`` (None)."""
+    if text.strip().lower() == "all":
+        return None
+    try:
+        fold = int(text)
+    except ValueError:
+        raise ConfigError(f"--fold must be a fold index (0, 1, ...) or 'all', got {text!r}") from None
+    if fold < 0:
+        raise ConfigError(f"--fold must be >= 0 or 'all', got {fold}")
+    return fold
 
 
 def session_paths(paths: list[Path]) -> list[Path]:
@@ -75,11 +93,15 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 @app.command()
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
-    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++) or transformer (MTRSAP-style)."),
+    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++), transformer (MTRSAP-style), baseline "
+                              "(per-frame logistic regression) or baseline-mlp."),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
     split: str = SPLIT_OPT,
-    fold: int = typer.Option(0, "--fold", min=0, help="loto/louo: which trial/subject (sorted) is held out."),
+    fold: str = typer.Option("0", "--fold", help="loto/louo/loso: which trial/subject/super-trial (sorted) is held "
+                             "out, or 'all': every fold into OUT/fold-<k>/ plus cv.json and cv.md."),
+    val: str = VAL_OPT,
+    baseline: bool = BASELINE_OPT,
     epochs: int = EPOCHS_OPT,
     seed: int = SEED_OPT,
     device: str = DEVICE_OPT,
@@ -97,23 +119,67 @@ def gestures(
 
     Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
     """
+    from midas_cli.models import cv
     from midas_cli.models.data import DatasetConfig
+    from midas_cli.models.splits import GROUP_SPLITS
     from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
 
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
+    fold_index = _parse_fold(fold)
+    if fold_index is None and split not in GROUP_SPLITS:
+        raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
     paths = session_paths(sessions)
     with _progress() as progress:
         if eval_only is not None:
             result = evaluate_checkpoint(paths, eval_only, out_dir, device)
         else:
             data = DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, model_rate)
-            config = TrainConfig(model=model, split=split, fold=fold, epochs=epochs, seed=seed, device=device,
-                                 shuffle_labels=shuffle_labels)
-            result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
+            config = TrainConfig(model=model, split=split, fold=fold_index or 0, validation=val, epochs=epochs,
+                                 seed=seed, device=device, shuffle_labels=shuffle_labels)
+            if fold_index is None:
+                folds = progress.add_task("folds", total=None, info="")
+                report = cv.run_cv(paths, data, config, out_dir, baseline=cv.BASELINE if baseline else None,
+                                   on_fold=lambda label, k, n: progress.update(folds, completed=k - 1, total=n,
+                                                                               info=label),
+                                   progress=_epoch_progress(progress, f"{model} epochs"))
+            else:
+                result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
+    if eval_only is None and fold_index is None:
+        _render_cv(report, out_dir, as_json)
+        return
+    cv_root = out_dir.parent.parent if out_dir.parent.name == cv.BASELINE else out_dir.parent
+    if eval_only is None and split in GROUP_SPLITS and out_dir.name == f"fold-{fold_index}" and cv.complete(cv_root):
+        cv.summarise(cv_root)  # the last fold of a cluster run: aggregate
+        error_line(f"every fold under {cv_root} has finished: wrote cv.json and cv.md there")
     if as_json:
         print_json({"run": str(result.out_dir), "test": result.metrics["test"]["summary"]})
         return
     _render_metrics(result.metrics, result.out_dir)
+
+
+def _render_cv(report: dict, root: Path, as_json: bool) -> None:
+    if as_json:
+        print_json({"cv": str(root / "cv.json"), "protocol": report["protocol"], "validation": report["validation"],
+                    "mean": report["mean"], "sd": report["sd"], "pooled": report["pooled"],
+                    **({"baseline": {k: report["baseline"][k] for k in ("mean", "sd", "pooled")}}
+                       if "baseline" in report else {})})
+        return
+    out.print((root / "cv.md").read_text(encoding="utf-8"), markup=False)
+    out.print(f"cross-validation folder: {root} (cv.json, cv.md, fold-<k>/)", markup=False)
+
+
+@app.command("cv-summary")
+def cv_summary(
+    root: Path = typer.Argument(..., help="Cross-validation folder holding fold-<k>/ runs (and baseline/fold-<k>/)."),
+    as_json: bool = JSON_OPTION,
+) -> None:
+    """Aggregate finished fold runs into cv.json and cv.md (missing folds are listed).
+
+    Example: midas train cv-summary runs/louo-mstcn
+    """
+    from midas_cli.models import cv
+
+    _render_cv(cv.summarise(root), root, as_json)
 
 
 @app.command()
@@ -123,6 +189,10 @@ def ablation(
     grid: Optional[str] = typer.Option(None, "--grid", help="';'-separated rows MODALITIES:FEATURES[:exclude-clutch] "
                                        "(default: the paper's Raven-II grid)."),
     split: str = SPLIT_OPT,
+    fold: str = typer.Option("0", "--fold", help="loto/louo/loso: the held-out fold, or 'all': every cell is a "
+                             "cross-validation (mean ± sd over folds)."),
+    val: str = VAL_OPT,
+    baseline: bool = BASELINE_OPT,
     epochs: int = EPOCHS_OPT,
     seed: int = SEED_OPT,
     device: str = DEVICE_OPT,
@@ -141,7 +211,10 @@ def ablation(
     paths = session_paths(sessions)
     rows = parse_grid(grid)
     model_list = list(_split_list(models))
-    base = TrainConfig(split=split, epochs=epochs, seed=seed, device=device)
+    if baseline and "baseline" not in model_list:
+        model_list.append("baseline")
+    fold_index = _parse_fold(fold)
+    base = TrainConfig(split=split, fold=fold_index or 0, validation=val, epochs=epochs, seed=seed, device=device)
     with _progress() as progress:
         runs = progress.add_task("ablation runs", total=len(rows) * len(model_list), info="")
         epoch_update = _epoch_progress(progress, "epochs")
@@ -149,7 +222,8 @@ def ablation(
         def on_run(label: str, k: int, n: int) -> None:
             progress.update(runs, completed=k - 1, info=label)
 
-        report = run_ablation(paths, rows, model_list, base, out_dir, on_run, epoch_update)
+        report = run_ablation(paths, rows, model_list, base, out_dir, on_run, epoch_update, cv=fold_index is None,
+                              baseline=baseline)
         progress.update(runs, completed=len(rows) * len(model_list))
     if as_json:
         print_json(report)

@@ -8,6 +8,12 @@ A grid row is written ``MODALITIES:FEATURES[:exclude-clutch]``: modalities joine
 interrupted ablation resumes. Rows whose data are missing (no MTM on a da Vinci, no image features)
 are listed as skipped with the reason. Scores are fractions of the test split (macro F1, precision,
 recall), as in the paper.
+
+Every table has a baseline row per grid row: the per-frame logistic regression (models/baseline.py) on
+the same features, so each model is measured against something simple (``baseline=False`` leaves it
+out). With ``cv=True`` (a group split, ``--fold all``) every (model, row) is a whole cross-validation
+(models/cv.py) in ``OUT/runs/<model>__<row slug>/``; the cells are mean ± sd over folds and the table
+gains the segmental columns Edit, F1@10, F1@25, F1@50 (mean ± sd; 0-100).
 """
 
 from __future__ import annotations
@@ -23,12 +29,14 @@ from typing import Callable, Sequence
 
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.models.data import DatasetConfig
+from midas_cli.models.splits import GROUP_SPLITS
 from midas_cli.models.train import MODELS, TrainConfig, train_run
 from midas_cli.session.outputs import out_folder, out_target, write_text
 
 log = logging.getLogger(__name__)
 
-MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++"}
+MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++", "baseline": "Baseline (LR)",
+                "baseline-mlp": "Baseline (MLP)"}
 MODALITY_TITLES = {"emht": "EmHT", "handkp": "HandKP", "mtm": "MTM", "psm": "PSM", "image": "Image"}
 FEATURE_TITLES = {"pos": "pos.", "ori": "ori.", "vel": "vel.", "grasper": "grasp.", "clutch": "clutch"}
 PAPER_GRID = (
@@ -39,6 +47,9 @@ PAPER_GRID = (
     "image:pos:exclude-clutch", "handkp:pos,vel:exclude-clutch", "handkp+image:pos,vel:exclude-clutch",
 )
 COLUMNS = ("Dataset", "Model", "Modality", "Features", "Acc", "F1", "Prec.", "Rec.")
+SCORES = ("accuracy", "f1", "precision", "recall")
+CV_COLUMNS = COLUMNS + ("Edit", "F1@10", "F1@25", "F1@50")
+CV_SCORES = SCORES + ("edit", "f1@10", "f1@25", "f1@50")
 
 
 @dataclass(frozen=True)
@@ -78,11 +89,15 @@ class GridRow:
 
 def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequence[str], base: TrainConfig,
                  out_dir: Path, on_run: Callable[[str, int, int], None] | None = None,
-                 progress: Callable[[int, int, dict], None] | None = None) -> dict:
+                 progress: Callable[[int, int, dict], None] | None = None, cv: bool = False,
+                 baseline: bool = True) -> dict:
     """Train every (model, row); write ``table.{md,tex,csv}`` and ``ablation.json``; return the results."""
     unknown = [m for m in models if m not in MODELS]
     if unknown or not models:
         raise ConfigError(f"--models {','.join(unknown or models)!r}: expected a comma list of {', '.join(MODELS)}")
+    if cv and base.split not in GROUP_SPLITS:
+        raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {base.split}")
+    models = list(models) + (["baseline"] if baseline and "baseline" not in models else [])
     out_dir = out_folder(out_dir)
     out_folder(out_dir / "runs")
     results, skipped = [], []
@@ -91,30 +106,43 @@ def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequ
         if on_run:
             on_run(f"{MODEL_TITLES[model]} {row.modality_title()} [{row.feature_title()}]", k, len(jobs))
         try:
-            summary, dataset_title = _run_one(sessions, model, row, base, out_dir / "runs" / f"{model}__{row.slug()}", progress)
+            summary, dataset_title = _run_one(sessions, model, row, base, out_dir / "runs" / f"{model}__{row.slug()}",
+                                              progress, cv)
         except MidasError as exc:
             log.warning("ablation row %s / %s skipped: %s", model, row.slug(), exc)
             skipped.append({"model": model, "row": row.slug(), "reason": str(exc)})
             continue
         results.append({"dataset": dataset_title, "model": MODEL_TITLES[model], "modality": row.modality_title(),
-                        "features": row.feature_title(), **{k: summary[k] for k in ("accuracy", "f1", "precision", "recall")}})
+                        "features": row.feature_title(), **summary})
     if not results:
         raise ConfigError(f"no ablation row could run ({len(skipped)} skipped; first reason: "
                           f"{skipped[0]['reason'] if skipped else 'empty grid'})")
-    report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__}}
+    report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__},
+              "cross_validation": cv}
     write_tables(out_dir, results, skipped)
     write_text(out_target(out_dir / "ablation.json"), json.dumps(report, indent=2) + "\n")
     return report
 
 
 def _run_one(sessions: Sequence[Path], model: str, row: GridRow, base: TrainConfig, run_dir: Path,
-             progress) -> tuple[dict, str]:
+             progress, cv: bool = False) -> tuple[dict, str]:
+    """The row's scores (``cv``: mean, ``<key>_sd`` and the fold count) and the dataset title."""
+    data = DatasetConfig(row.modalities, row.features, exclude_clutch=row.exclude_clutch)
+    if cv:
+        from midas_cli.models.cv import fold_dir, run_cv, summarise
+
+        report = run_cv(sessions, data, replace(base, model=model), run_dir, baseline=None, progress=progress) \
+            or summarise(run_dir)
+        run = json.loads((fold_dir(run_dir, report["folds"][0]["fold"]) / "run.json").read_text(encoding="utf-8"))
+        scores = {k: report["mean"][k] for k in CV_SCORES}
+        scores.update({f"{k}_sd": report["sd"][k] for k in CV_SCORES})
+        return {**scores, "folds": len(report["folds"]), "validation": report["validation"]}, dataset_title(run["trials"])
     metrics_path, run_path = run_dir / "metrics.json", run_dir / "run.json"
     if not metrics_path.is_file():
-        data = DatasetConfig(row.modalities, row.features, exclude_clutch=row.exclude_clutch)
         train_run(sessions, data, replace(base, model=model), run_dir, progress)
     run = json.loads(run_path.read_text(encoding="utf-8"))
-    return json.loads(metrics_path.read_text(encoding="utf-8"))["test"]["summary"], dataset_title(run["trials"])
+    summary = json.loads(metrics_path.read_text(encoding="utf-8"))["test"]["summary"]
+    return {k: summary[k] for k in SCORES}, dataset_title(run["trials"])
 
 
 def dataset_title(trials: list[dict]) -> str:
@@ -123,36 +151,45 @@ def dataset_title(trials: list[dict]) -> str:
     return f"{' / '.join(names.get(p, p) for p in platforms)} ({len(trials)} trials)"
 
 
+def _score(result: dict, key: str) -> str:
+    """Fractions with 2 decimals, edit/F1@k (0-100) with 1; ``± sd`` over folds when cross-validated."""
+    digits = 1 if key == "edit" or key.startswith("f1@") else 2
+    sd = result.get(f"{key}_sd")
+    return f"{result[key]:.{digits}f}" + (f" ± {sd:.{digits}f}" if sd is not None else "")
+
+
 def write_tables(out_dir: Path, results: list[dict], skipped: list[dict]) -> dict[str, Path]:
-    rows = [[r["dataset"], r["model"], r["modality"], r["features"],
-             *(f"{r[k]:.2f}" for k in ("accuracy", "f1", "precision", "recall"))] for r in results]
+    cv = any("folds" in r for r in results)
+    columns, scores = (CV_COLUMNS, CV_SCORES) if cv else (COLUMNS, SCORES)
+    rows = [[r["dataset"], r["model"], r["modality"], r["features"], *(_score(r, k) for k in scores)]
+            for r in results]
     paths = {"md": out_dir / "table.md", "tex": out_dir / "table.tex", "csv": out_dir / "table.csv"}
-    write_text(out_target(paths["md"]), markdown_table(rows, skipped))
-    write_text(out_target(paths["tex"]), latex_table(rows))
+    write_text(out_target(paths["md"]), markdown_table(rows, skipped, columns))
+    write_text(out_target(paths["tex"]), latex_table(rows, columns))
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(COLUMNS)
+    writer.writerow(columns)
     writer.writerows(rows)
     write_text(out_target(paths["csv"]), buffer.getvalue())
     return paths
 
 
-def markdown_table(rows: list[list[str]], skipped: list[dict]) -> str:
-    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * 4 + "---:|" * 4]
+def markdown_table(rows: list[list[str]], skipped: list[dict], columns: Sequence[str] = COLUMNS) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * 4 + "---:|" * (len(columns) - 4)]
     lines += ["| " + " | ".join(row) + " |" for row in rows]
     if skipped:
         lines += ["", "Skipped: " + "; ".join(f"{s['model']} {s['row']} ({s['reason']})" for s in skipped)]
     return "\n".join(lines) + "\n"
 
 
-def latex_table(rows: list[list[str]]) -> str:
+def latex_table(rows: list[list[str]], columns: Sequence[str] = COLUMNS) -> str:
     """A booktabs tabular with the paper's columns; a rule between models."""
-    out = ["\\begin{tabular}{@{}llllcccc@{}}", "\\toprule",
-           " & ".join(f"\\textbf{{{c}}}" for c in COLUMNS) + " \\\\", "\\midrule"]
+    out = [f"\\begin{{tabular}}{{@{{}}llll{'c' * (len(columns) - 4)}@{{}}}}", "\\toprule",
+           " & ".join(f"\\textbf{{{c}}}" for c in columns) + " \\\\", "\\midrule"]
     previous = None
     for row in rows:
         if previous is not None and row[1] != previous:
-            out.append("\\cmidrule(l){2-8}")
+            out.append(f"\\cmidrule(l){{2-{len(columns)}}}")
         previous = row[1]
         out.append(" & ".join(_latex_escape(c) for c in row) + " \\\\")
     out += ["\\bottomrule", "\\end{tabular}"]
@@ -160,7 +197,8 @@ def latex_table(rows: list[list[str]]) -> str:
 
 
 def _latex_escape(text: str) -> str:
-    return text.replace("\\", "\\textbackslash{}").replace("&", "\\&").replace("%", "\\%").replace("_", "\\_")
+    return (text.replace("\\", "\\textbackslash{}").replace("&", "\\&").replace("%", "\\%").replace("_", "\\_")
+            .replace("±", "$\\pm$"))
 
 
 def parse_grid(text: str | None) -> list[GridRow]:

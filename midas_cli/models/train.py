@@ -33,6 +33,7 @@ import torch
 from midas_cli import __version__
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
+from midas_cli.models.baseline import BaselineConfig, FrameBaseline
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
 from midas_cli.models.mstcn import MSTCN, MSTCNConfig
 from midas_cli.models.plots import write_confusion_png, write_timeline_png
@@ -43,9 +44,9 @@ from midas_cli.session.outputs import out_folder, out_target, replacing, write_t
 
 log = logging.getLogger(__name__)
 
-MODELS = ("mstcn", "transformer")
+MODELS = ("mstcn", "transformer", "baseline", "baseline-mlp")
 CHECKPOINT_FORMAT = "midas-gesture-run/1"
-DEFAULT_LR = {"mstcn": 5e-4, "transformer": 1e-3}
+DEFAULT_LR = {"mstcn": 5e-4, "transformer": 1e-3, "baseline": 1e-2, "baseline-mlp": 1e-3}
 
 
 @dataclass
@@ -53,6 +54,7 @@ class TrainConfig:
     model: str = "mstcn"
     split: str = "gesture"
     fold: int = 0
+    validation: str = "none"  # group splits: none (fixed epochs, last epoch) or inner (models/splits.py)
     epochs: int = 50
     batch_size: int = 4
     lr: float | None = None  # None = the model's default (MS-TCN++ paper: 5e-4)
@@ -96,7 +98,7 @@ def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: Trai
     out_dir = _new_run_dir(out_dir)
     device = _device(config.device)
     dataset = build_dataset(sessions, data_config)
-    split = make_split(dataset, config.split, config.seed, config.fold)
+    split = make_split(dataset, config.split, config.seed, config.fold, config.validation)
     order = list(data_config.modalities)
     normaliser = Normaliser.fit([dataset.trials[dataset.trial_index(n)].stacked(order)[a:b]
                                  for n, a, b in split.units["train"]])
@@ -145,6 +147,9 @@ def build_model(name: str, modality_dims: dict[str, int], n_classes: int, option
     if name == "mstcn":
         cfg = MSTCNConfig(in_features=sum(modality_dims.values()), n_classes=n_classes)
         model_cls = MSTCN
+    elif name in ("baseline", "baseline-mlp"):
+        cfg = BaselineConfig(sum(modality_dims.values()), n_classes, hidden=64 if name == "baseline-mlp" else 0)
+        model_cls = FrameBaseline
     else:
         cfg = TransformerConfig(modality_dims=dict(modality_dims), n_classes=n_classes)
         model_cls = GestureTransformer
