@@ -18,7 +18,7 @@ FRAME_STREAM = "video"  # labels/*.csv count frames in the seq of this stream (s
 
 def column_facts(session: Session, name: str) -> list[dict[str, Any]]:
     """One entry per column of stream ``name``: name, dtype, unit, description (and clock/frame if set)."""
-    return [column.to_manifest() for column in session.stream_spec(name).columns]
+    return [{"unit": column.unit, **column.to_manifest()} for column in session.stream_spec(name).columns]
 
 
 def units(session: Session, name: str) -> dict[str, str]:
