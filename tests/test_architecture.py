@@ -37,7 +37,8 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "midas_cli"
 #   rig/labels/models  the built-in simulated rig; gesture labels; learned models (gesture networks,
 #                the calibration's residual MLP)
 #   analysis     alignment, calibration fitting, evaluation
-#   record/importers/simulate  producing whole sessions: live recording, imports, simulated datasets
+#   record/importers/interop/simulate  producing whole sessions: live recording, imports, exports
+#                (interop: MCAP, Parquet, XDF), simulated datasets
 #   console/diagnostics  terminal rendering and machine checks
 #   commands     the typer CLI
 #   __main__     entry point
@@ -47,7 +48,7 @@ LAYERS: list[set[str]] = [
     {"devices", "synthetic"},
     {"rig", "labels", "models"},
     {"analysis"},
-    {"record", "importers", "simulate"},
+    {"record", "importers", "interop", "simulate"},
     {"console", "diagnostics"},
     {"commands"},
     {"__main__"},

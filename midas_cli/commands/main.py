@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "train": ("train", "app", "group"),
     "features": ("features", "app", "group"),
     "extract": ("extract", "app", "group"),
+    "export": ("export", "export", "command"),
     "doctor": ("doctor", "doctor", "command"),
 }
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
@@ -13,9 +15,10 @@ from midas_cli.errors import SessionError
 from midas_cli.session.columnar import load_binary_copy
 from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
 from midas_cli.session.schema import StreamSpec
-from midas_cli.session.values import ParsedStream, parse_stream_file, structured
+from midas_cli.session.values import ParsedStream, parse_stream_bytes, parse_stream_file, read_regular_file, structured
 
 log = logging.getLogger(__name__)
+CHUNK_BYTES = 8 << 20  # iter_stream's pieces: about this much CSV text at a time
 _TORN_WARNED: set[tuple[Path, int]] = set()  # (file, size): each torn file is reported once per process
 
 if TYPE_CHECKING:  # pandas is imported where it is used: `midas align` reads binary copies without it
@@ -81,6 +84,37 @@ class Session:
         table = load_binary_copy(self.path, name, self._stream_entry(name))
         return structured(self._parse_csv(name).frame, self.stream_spec(name)) if table is None else table
 
+    def iter_stream(self, name: str, chunk_bytes: int = CHUNK_BYTES,
+                    allow_incomplete: bool = False) -> Iterator[pd.DataFrame]:
+        """One stream in pieces of whole lines (about ``chunk_bytes`` of CSV each), each parsed and checked as
+        ``read_stream`` does (same columns and dtypes), so memory stays flat in the stream's length. At least
+        one frame comes (empty for a stream without rows). A bad value anywhere refuses the stream with the
+        error ``read_stream`` gives (the file is then parsed whole once, to name the line); a torn last line
+        is left out, with a warning."""
+        self._refuse_unfinished(allow_incomplete)
+        path, spec = self.stream_path(name), self.stream_spec(name)
+        with _open_regular(path) as fh:
+            header = fh.readline(len(spec.header_line()) + 1)
+            rows, tail, sent = 0, b"", False
+            while True:
+                block = fh.read(max(int(chunk_bytes), 1))
+                data = tail + block
+                cut = data.rfind(b"\n") + 1 if block else 0
+                body, tail = data[:cut], data[cut:]
+                if body or not (block or sent):
+                    try:
+                        frame = parse_stream_bytes(header + body, spec, path).frame
+                    except SessionError as exc:
+                        parse_stream_file(path, spec)  # raises the error naming the file's own line number
+                        raise exc  # (only if the whole file parses: cannot happen, kept for safety)
+                    rows += len(frame)
+                    sent = True
+                    yield frame
+                if not block:
+                    break
+        if tail:
+            _warn_torn_tail(path, ParsedStream(frame.iloc[:0], len(tail)), rows)
+
     def _parse_csv(self, name: str) -> ParsedStream:
         path = self.stream_path(name)
         parsed = parse_stream_file(path, self.stream_spec(name))
@@ -102,13 +136,29 @@ class Session:
             raise SessionError(f"session {self.path} has no stream {name!r} (streams: {known})") from None
 
 
-def _warn_torn_tail(path: Path, parsed: ParsedStream) -> None:
+def _open_regular(path: Path):
+    """``path`` opened for reading in binary; SessionError (as ``read_regular_file``) if it is not a regular
+    file: a FIFO is never opened for a blocking read."""
+    try:
+        if stat.S_ISREG(os.stat(path).st_mode):
+            fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+            if stat.S_ISREG(os.fstat(fd).st_mode):
+                os.set_blocking(fd, True)
+                return os.fdopen(fd, "rb")
+            os.close(fd)
+    except OSError as exc:
+        raise SessionError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    read_regular_file(path)  # raises, naming what the path is instead
+    raise SessionError(f"{path} is not a regular file")
+
+
+def _warn_torn_tail(path: Path, parsed: ParsedStream, rows: int | None = None) -> None:
     key = (path, parsed.torn_tail_bytes)
     if key in _TORN_WARNED:
         return
     _TORN_WARNED.add(key)
     log.warning("%s ends in a torn line (%d bytes without a newline: the recorder stopped mid-write); using "
-                "its %d whole lines", path, parsed.torn_tail_bytes, len(parsed.frame))
+                "its %d whole lines", path, parsed.torn_tail_bytes, len(parsed.frame) if rows is None else rows)
 
 
 def find_sessions(root: Path | str, max_depth: int = 3) -> Iterator[Path]:

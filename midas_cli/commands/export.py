@@ -1,0 +1,40 @@
+"""`midas export`: sessions out to MCAP, Parquet and XDF."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from midas_cli.commands.common import err, out, print_json
+from midas_cli.commands.options import JSON_OPTION
+from midas_cli.interop.export import export_session, parse_formats
+
+
+def export(sessions: list[Path] = typer.Argument(..., help="Session folder(s)."),
+           formats: list[str] = typer.Option(..., "--format", help="mcap, parquet and/or xdf (repeat the option or "
+                                             "separate with commas)."),
+           out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),
+           as_json: bool = JSON_OPTION) -> None:
+    """Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.
+
+    Per session: <out>/<id>.mcap (a channel per stream, labels, the manifest as metadata),
+    <out>/<id>/<stream>.parquet (+ labels_<set>.parquet, aligned.parquet), <out>/<id>.xdf (a stream per
+    stream, units in the headers, clock offsets 0: the host clock is the session's only clock).
+    Streams are read and written a piece at a time.
+
+    Example: midas export sessions/suturing_S1_T1_20240703T104640Z --format mcap,parquet,xdf --out exported
+    """
+    wanted = parse_formats(formats)
+    results = []
+    for path in sessions:
+        result = export_session(path, wanted, out_dir, progress=lambda what: err.print(
+            f"exporting {what}", markup=False, highlight=False))
+        results.append(result)
+    if as_json:
+        print_json(results)
+        return
+    for result in results:
+        for name in wanted:
+            written = result[name]
+            out.print(written.get("file") or written.get("folder"), markup=False, highlight=False, soft_wrap=True)

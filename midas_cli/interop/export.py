@@ -1,0 +1,45 @@
+"""`midas export`: sessions -> MCAP, Parquet and/or XDF files in one output folder.
+
+``<out>/<session_id>.mcap``, ``<out>/<session_id>/*.parquet``, ``<out>/<session_id>.xdf`` (see each
+writer's module). Each file is written beside its target and renamed into place.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from midas_cli.errors import ConfigError
+from midas_cli.interop.mcap_export import write_mcap
+from midas_cli.interop.parquet_export import write_parquet
+from midas_cli.interop.xdf import write_xdf
+from midas_cli.session.outputs import out_folder, out_target
+from midas_cli.session.reader import Session
+
+FORMATS = ("mcap", "parquet", "xdf")
+
+
+def parse_formats(values: Sequence[str]) -> list[str]:
+    """``--format`` values (repeatable, or comma-separated) in FORMATS order; ConfigError for another."""
+    wanted = {v.strip().lower() for value in values for v in value.split(",") if v.strip()}
+    unknown = sorted(wanted - set(FORMATS))
+    if unknown or not wanted:
+        raise ConfigError(f"--format {','.join(unknown) or '(none)'}: expected one or more of {', '.join(FORMATS)}")
+    return [f for f in FORMATS if f in wanted]
+
+
+def export_session(path: Path | str, formats: Sequence[str], out_dir: Path | str,
+                   progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Export one session; returns what was written per format."""
+    session = Session.open(path)
+    folder = out_folder(out_dir)
+    stem = str(session.manifest.get("session_id") or session.path.name)
+    result: dict[str, Any] = {"session": str(session.path)}
+    writers = {"mcap": lambda: write_mcap(session, out_target(folder / f"{stem}.mcap")),
+               "parquet": lambda: write_parquet(session, out_folder(folder / stem)),
+               "xdf": lambda: write_xdf(session, out_target(folder / f"{stem}.xdf"))}
+    for name in formats:
+        if progress is not None:
+            progress(f"{session.path.name}: {name}")
+        result[name] = writers[name]()
+    return result

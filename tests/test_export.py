@@ -1,0 +1,154 @@
+"""`midas export --format mcap|parquet|xdf`: round trips through mcap's reader, pandas.read_parquet and pyxdf."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from midas_cli.session.labels import read_frame_labels
+from midas_cli.session.reader import Session
+from helpers.cli import SHARED_DATA, midas
+
+SAMPLE_NAME = "midas-dcs-sample/trakt_Strakt_T1_2024-07-05"
+
+
+def _export(session: Path, out: Path) -> None:
+    result = midas("export", str(session), "--format", "mcap,parquet", "--format", "xdf", "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    stem = Session.open(session).manifest["session_id"]
+    assert result.stdout.split() == [str(out / f"{stem}.mcap"), str(out / stem), str(out / f"{stem}.xdf")]
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("export")
+    made = midas("simulate", "dataset", "--trials", "1", "--max-seconds", "5", "--out", str(root / "sim"), check=True)
+    session = Path(made.stdout.split()[-1])
+    midas("align", str(session), check=True)
+    _export(session, root / "out")
+    return session, root / "out"
+
+
+def _check_mcap(session_path: Path, out: Path) -> None:
+    from mcap.reader import make_reader
+
+    session = Session.open(session_path)
+    with open(out / f"{session.manifest['session_id']}.mcap", "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        topics = {c.topic: c for c in summary.channels.values()}
+        counts = {topics_id.topic: summary.statistics.channel_message_counts.get(cid, 0)
+                  for cid, topics_id in summary.channels.items()}
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+        first: dict[str, list] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            first.setdefault(channel.topic, []).append((message.log_time, message.data))
+    assert json.loads(metadata["midas.manifest"]["manifest.json"]) == session.manifest
+    for name in session.stream_names:
+        frame = session.read_stream(name)
+        assert counts[f"/{name}"] == len(frame)
+        schema = json.loads(summary.schemas[topics[f"/{name}"].schema_id].data)
+        assert {k: v["unit"] for k, v in schema["properties"].items()} == \
+            {c.name: c.unit for c in session.stream_spec(name).columns}
+        times = np.array([t for t, _ in first[f"/{name}"]], dtype=np.int64)
+        assert np.array_equal(times, frame["t_host_ns"].to_numpy())  # log_time = t_host_ns, exactly
+        row = json.loads(first[f"/{name}"][-1][1])
+        expected = {k: (None if pd.isna(v) else v) for k, v in frame.iloc[-1].to_dict().items()}
+        assert row == pytest.approx(expected, nan_ok=True)
+    for name in (p.stem for p in (session_path / "labels").glob("*.csv")):
+        labels = read_frame_labels(session_path, name)
+        assert counts[f"/labels/{name}"] == len(labels.frames)
+        assert [json.loads(d)["label"] for _, d in first[f"/labels/{name}"]] == labels.labels.tolist()
+
+
+def _check_parquet(session_path: Path, out: Path) -> None:
+    session = Session.open(session_path)
+    folder = out / session.manifest["session_id"]
+    for name in session.stream_names:
+        back = pd.read_parquet(folder / f"{name}.parquet")
+        pd.testing.assert_frame_equal(back, session.read_stream(name), check_exact=True)
+        raw = pd.read_csv(session.stream_path(name), keep_default_na=False, na_values=[""])  # the CSV as text -> numbers
+        assert np.array_equal(back.to_numpy(np.float64, na_value=np.nan), raw.to_numpy(np.float64), equal_nan=True)
+        assert back["t_host_ns"].dtype == np.int64 and back["t_host_ns"].equals(raw["t_host_ns"])
+        import pyarrow.parquet as pq
+        meta = pq.read_schema(folder / f"{name}.parquet").metadata
+        assert json.loads(meta[b"midas.units"]) == {c.name: c.unit for c in session.stream_spec(name).columns}
+        assert json.loads(meta[b"midas.manifest"]) == session.manifest
+    for name in (p.stem for p in (session_path / "labels").glob("*.csv")):
+        back = pd.read_parquet(folder / f"labels_{name}.parquet")
+        csv = pd.read_csv(session_path / "labels" / f"{name}.csv", dtype={"label": str}, keep_default_na=False)
+        pd.testing.assert_frame_equal(back[["frame", "label"]], csv, check_dtype=False)
+
+
+def _check_xdf(session_path: Path, out: Path) -> None:
+    import pyxdf
+
+    session = Session.open(session_path)
+    path = out / f"{session.manifest['session_id']}.xdf"
+    for sync in (False, True):
+        streams, header = pyxdf.load_xdf(str(path), synchronize_clocks=sync, dejitter_timestamps=False)
+        by_name = {s["info"]["name"][0]: s for s in streams}
+        for name in session.stream_names:
+            frame, spec, stream = session.read_stream(name), session.stream_spec(name), by_name[name]
+            channels = stream["info"]["desc"][0]["channels"][0]["channel"]
+            columns = [c for c in spec.columns if c.name != "t_host_ns"]
+            assert int(stream["info"]["channel_count"][0]) == len(columns)
+            assert [c["label"][0] for c in channels] == [c.name for c in columns]
+            assert [(c["unit"] or [""])[0] or "" for c in channels] == [c.unit for c in columns]
+            assert float(stream["info"]["nominal_srate"][0]) == (spec.nominal_rate_hz or 0)
+            assert stream["time_series"].shape == (len(frame), len(columns))
+            assert np.abs(stream["time_stamps"] - frame["t_host_ns"].to_numpy() / 1e9).max(initial=0) < 1e-6
+            assert np.array_equal(stream["time_series"], frame[[c.name for c in columns]].to_numpy(
+                np.float64, na_value=np.nan), equal_nan=True)
+            assert stream["clock_values"] and not any(stream["clock_values"])  # one host clock: offsets 0
+
+
+def test_simulated_session_round_trips(simulated: tuple[Path, Path]) -> None:
+    session, out = simulated
+    _check_mcap(session, out)
+    _check_parquet(session, out)
+    aligned = pd.read_parquet(out / Session.open(session).manifest["session_id"] / "aligned.parquet")
+    assert len(aligned) > 0 and aligned["t_host_ns"].dtype == np.int64
+    _check_xdf(session, out)
+
+
+def test_small_pieces_give_the_same_files(simulated: tuple[Path, Path], tmp_path: Path, monkeypatch) -> None:
+    """Streams are read a piece at a time: many small pieces give the same values."""
+    from midas_cli.interop.export import export_session
+    from midas_cli.session import reader
+
+    monkeypatch.setattr(reader, "CHUNK_BYTES", 4096)
+    monkeypatch.setattr(reader.Session.iter_stream, "__defaults__", (4096, False))
+    session, _ = simulated
+    export_session(session, ["parquet", "xdf"], tmp_path)
+    _check_parquet(session, tmp_path)
+    _check_xdf(session, tmp_path)
+    import pyarrow.parquet as pq
+    stem = Session.open(session).manifest["session_id"]
+    assert pq.ParquetFile(tmp_path / stem / "emht.parquet").num_row_groups > 10
+
+
+def test_bad_format_is_a_usage_error(simulated: tuple[Path, Path], tmp_path: Path) -> None:
+    result = midas("export", str(simulated[0]), "--format", "hdf5", "--out", str(tmp_path))
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1 and "hdf5" in result.stderr
+    assert not any(tmp_path.iterdir())
+
+
+def test_out_inside_a_session_is_refused(simulated: tuple[Path, Path]) -> None:
+    result = midas("export", str(simulated[0]), "--format", "xdf", "--out", str(simulated[0] / "streams"))
+    assert result.returncode == 2, result.stderr
+
+
+@pytest.mark.shared_data(SAMPLE_NAME)
+def test_imported_original_session_round_trips(tmp_path: Path) -> None:
+    made = midas("import", "midas-dcs", str(SHARED_DATA / SAMPLE_NAME), "--out", str(tmp_path / "in"), check=True)
+    session = Path(made.stdout.split()[-1])
+    _export(session, tmp_path / "out")
+    _check_mcap(session, tmp_path / "out")
+    _check_parquet(session, tmp_path / "out")
+    _check_xdf(session, tmp_path / "out")
