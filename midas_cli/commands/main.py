@@ -33,6 +33,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "train": ("train", "app", "group"),
     "features": ("features", "app", "group"),
     "extract": ("extract", "app", "group"),
+    "plot": ("plot", "plot", "command"),
+    "rig": ("rig", "app", "group"),
     "doctor": ("doctor", "doctor", "command"),
 }
 
