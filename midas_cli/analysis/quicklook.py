@@ -102,7 +102,7 @@ def quicklook(session_path: Path | str, out: Path | str | None = None, dpi: int 
         shows = _stream_panel(ax, session, name, data)
         result.panels.append({"name": name, "stream": name, "shows": shows})
         for gap in gaps:
-            if gap.stream == name or (gap.kind == "outage" and gap.stream in _device_streams(session, name)):
+            if gap.stream in (name, session.manifest["streams"][name].get("device")):
                 _shade(ax, gap)
     if labels is not None:
         _label_panel(axes[-1], *labels)
@@ -176,12 +176,6 @@ def _outages(session: Session, start_ns: int) -> list[Gap]:
         if lost_at is not None and stop_ns is not None:
             gaps.append(Gap(device, "outage", (lost_at - start_ns) / 1e9, (stop_ns - start_ns) / 1e9))
     return gaps
-
-
-def _device_streams(session: Session, stream: str) -> set[str]:
-    """The device names whose outages concern ``stream`` (its own device)."""
-    device = session.manifest["streams"][stream].get("device")
-    return {device} if device else set()
 
 
 def _labels(session: Session, video: _Stream | None) -> tuple[np.ndarray, np.ndarray, list[str]] | None:
@@ -398,11 +392,8 @@ def _legend_for_gaps(ax, gaps: list[Gap]) -> None:
     from matplotlib.patches import Patch
 
     handles, labels = ax.get_legend_handles_labels()
-    kinds = {g.kind for g in gaps}
-    if "seq_gap" in kinds:
-        handles.append(Patch(color=SEQ_GAP_COLOUR, alpha=0.25))
-        labels.append("sequence gap")
-    if "outage" in kinds:
-        handles.append(Patch(color=OUTAGE_COLOUR, alpha=0.25))
-        labels.append("device outage")
+    for kind, colour, label in (("seq_gap", SEQ_GAP_COLOUR, "sequence gap"), ("outage", OUTAGE_COLOUR, "device outage")):
+        if any(g.kind == kind for g in gaps):
+            handles.append(Patch(color=colour, alpha=0.25))
+            labels.append(label)
     ax.legend(handles, labels, loc="lower left", fontsize=7, ncol=min(6, len(labels)))
