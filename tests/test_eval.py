@@ -76,6 +76,7 @@ def test_correlation_tables_and_files(aligned: Path, tmp_path: Path) -> None:
     assert lag["EmHT-MTM"] == pytest.approx(40.0, abs=1000 / 30)
     assert (tmp_path / "correlation.tex").read_text().startswith("\\begin{table}")
     assert (aligned / "derived" / "plots" / "trajectory_emht_left.png").is_file()
+    assert (aligned / "derived" / "plots" / "trajectory_emht_right.png").is_file()
 
 
 def test_correlation_table_prefers_mlp_and_averages_sessions() -> None:

@@ -142,20 +142,26 @@ def correlation_tables(rows: dict[str, list[dict[str, Any]]],
 
 
 def correlation_figures(path: Path, table: AlignedTable, chosen: dict[str, str]) -> list[Path]:
-    """Per session: trajectory overlays (left hand) for each calibrated source (the ``chosen`` model per
-    comparison), and grasper states."""
+    """Per session and hand: trajectory overlays (MTM and PSM side by side) for each calibrated source
+    (the ``chosen`` model per comparison), and grasper states; titled with the session's name."""
     folder = output_dir(path, "plots")
     files = []
-    for name, source, target in ev.COMPARISONS:
-        if target == "mtm" and name in chosen:
-            prefix = f"{source}_{target}_{chosen[name]}"
-            drawn = trajectory_figure(table, "left", prefix, folder / f"trajectory_{source}_left.png",
-                                      f"{name} ({chosen[name]}), left hand")
+    session_name = Path(path).resolve().name
+    for source in dict.fromkeys(source for _, source, _ in ev.COMPARISONS):
+        prefixes = {target: f"{source}_{target}_{chosen[name]}" for name, s, target in ev.COMPARISONS
+                    if s == source and name in chosen}
+        models = ", ".join(f"{target.upper()}: {chosen[name]}" for name, s, target in ev.COMPARISONS
+                           if s == source and name in chosen)
+        for hand in ("left", "right") if prefixes else ():
+            drawn = trajectory_figure(table, hand, prefixes, folder / f"trajectory_{source}_{hand}.png",
+                                      f"{session_name}: {source} calibrated onto MTM / PSM ({models}), {hand} hand")
             files += [drawn] if drawn else []
     states = ev.grasper_states(table)
-    left = {label: by_hand["left"] for label, by_hand in states.items() if "left" in by_hand}
-    if left:
-        files.append(grasper_figure(table.times_s(), left, folder / "grasper_left.png", "Left grasper"))
+    for hand in ("left", "right"):
+        by_source = {label: by_hand[hand] for label, by_hand in states.items() if hand in by_hand}
+        if by_source:
+            files.append(grasper_figure(table.times_s(), by_source, folder / f"grasper_{hand}.png",
+                                        f"{session_name}: {hand} grasper"))
     return files
 
 

@@ -24,26 +24,50 @@ def _pyplot():
     return plt
 
 
-def trajectory_figure(table: AlignedTable, hand: str, source_prefix: str, path: Path, title: str) -> Path | None:
-    """Six panels (X, Y, Z, roll, pitch, yaw): MTM, PSM and the calibrated source over time."""
+def trajectory_figure(table: AlignedTable, hand: str, sources: dict[str, str], path: Path, title: str) -> Path | None:
+    """Six rows (X, Y, Z, roll, pitch, yaw) by two columns: MTM (left) and PSM (right), each with the
+    source calibrated onto it (``sources``: target "mtm"/"psm" -> column prefix, e.g. ``emht_mtm_rigid``)
+    dashed over it. Angles are unwrapped (no vertical lines where yaw crosses +-180 deg); a source's
+    angle is shifted by whole turns to lie within half a turn of its target's."""
     plt = _pyplot()
     t = table.times_s()
-    fig, axes = plt.subplots(6, 1, figsize=(10, 11), sharex=True)
+    fig, axes = plt.subplots(6, 2, figsize=(13, 11), sharex=True)
     drawn = False
-    for ax, (axis, suffix) in zip(axes, AXES):
-        for column, label, style in ((f"mtm.{hand}_{suffix}", "MTM", "-"), (f"psm.{hand}_{suffix}", "PSM", ":"),
-                                     (f"{source_prefix}.{hand}_{suffix}", source_prefix, "--")):
-            if table.has(column):
-                ax.plot(t, table.column(column), style, lw=1, label=label)
+    for col, target in enumerate(("mtm", "psm")):
+        for row, (axis, suffix) in enumerate(AXES):
+            ax = axes[row, col]
+            reference = None
+            for column, label, style in ((f"{target}.{hand}_{suffix}", target.upper(), "-"),
+                                         (f"{sources.get(target)}.{hand}_{suffix}", sources.get(target), "--")):
+                if label is None or not table.has(column):
+                    continue
+                values = np.asarray(table.column(column), dtype=float)
+                if suffix.endswith("deg"):
+                    values = unwrap_deg(values, reference)
+                    reference = values if reference is None else reference
+                ax.plot(t, values, style, lw=1, label=label)
                 drawn = True
-        ax.set_ylabel(f"{axis} ({'mm' if suffix.endswith('mm') else 'deg'})")
+            ax.set_ylabel(f"{axis} ({'mm' if suffix.endswith('mm') else 'deg, unwrapped'})", fontsize=8)
+        axes[0, col].set_title(f"{target.upper()} ({hand} hand)")
+        axes[0, col].legend(loc="upper right", fontsize=8)
+        axes[-1, col].set_xlabel("time since first frame (s)")
     if not drawn:
         plt.close(fig)
         return None
-    axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title(title)
-    axes[-1].set_xlabel("time since first frame (s)")
+    fig.suptitle(title)
     return _save(plt, fig, path)
+
+
+def unwrap_deg(values: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """Angles (deg) unwrapped over their finite samples (NaN kept); with ``reference``, shifted by whole
+    turns so their median lies within 180 deg of the reference's."""
+    out = np.array(values, dtype=float)
+    ok = np.isfinite(out)
+    if ok.sum() > 1:
+        out[ok] = np.degrees(np.unwrap(np.radians(out[ok])))
+    if reference is not None and ok.any() and np.isfinite(reference).any():
+        out -= 360.0 * np.round((np.nanmedian(out) - np.nanmedian(reference)) / 360.0)
+    return out
 
 
 def pedal_figure(t_s: np.ndarray, truth: np.ndarray, detected: np.ndarray, path: Path, title: str) -> Path:

@@ -34,6 +34,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "features": ("features", "app", "group"),
     "extract": ("extract", "app", "group"),
     "export": ("export", "export", "command"),
+    "plot": ("plot", "plot", "command"),
+    "rig": ("rig", "app", "group"),
     "doctor": ("doctor", "doctor", "command"),
 }
 

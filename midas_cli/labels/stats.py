@@ -92,27 +92,42 @@ def _ordered(durations: dict[str, list[float]], taxonomy: Taxonomy | None,
     return [g for g in taxonomy.ids if g in durations]
 
 
-def transition_heatmap(stats: GestureStats, path: Path, cell_px: int = 56) -> Path:
-    """Write the transition matrix as a PNG heatmap (OpenCV): row = from, column = to, counts in cells."""
+def transition_heatmap(stats: GestureStats, path: Path, cell_px: int = 56,
+                       title: str = "Gesture transitions (counts)") -> Path:
+    """Write the transition matrix as a PNG heatmap (OpenCV): row = from, column = to, counts in cells,
+    with a title, axis labels and a colour bar (viridis, 0 to the largest count)."""
     import cv2
 
     n = len(stats.classes)
-    margin = cell_px
-    image = np.full((margin + n * cell_px + 8, margin + n * cell_px + 8, 3), 255, dtype=np.uint8)
-    peak = max(int(stats.transitions.max()), 1)
+    top, left, bar_w = cell_px + 60, cell_px + 30, 18
+    image = np.full((top + n * cell_px + 20, max(left + n * cell_px + 40 + bar_w + 50, 420), 3), 255, dtype=np.uint8)
+    peak = max(int(stats.transitions.max()), 1) if n else 1
     scaled = (255 * stats.transitions / peak).astype(np.uint8)
     colours = cv2.applyColorMap(scaled.reshape(n, n, 1) if n else np.zeros((1, 1, 1), np.uint8), cv2.COLORMAP_VIRIDIS)
-    font, scale = cv2.FONT_HERSHEY_SIMPLEX, cell_px / 140
+    font, scale, ink_black = cv2.FONT_HERSHEY_SIMPLEX, cell_px / 140, (0, 0, 0)
+    cv2.putText(image, title[:60], (10, 24), font, 0.6, ink_black, 1, cv2.LINE_AA)
+    cv2.putText(image, "to (next gesture)", (left, top - 32), font, 0.5, ink_black, 1, cv2.LINE_AA)
+    (label_w, label_h), _ = cv2.getTextSize("from", font, 0.5, 1)
+    patch = np.full((label_h + 6, label_w + 2, 3), 255, np.uint8)
+    cv2.putText(patch, "from", (1, label_h + 1), font, 0.5, ink_black, 1, cv2.LINE_AA)
+    patch = cv2.rotate(patch, cv2.ROTATE_90_COUNTERCLOCKWISE)
+    y0 = top + max(0, (n * cell_px - patch.shape[0]) // 2)
+    image[y0:y0 + patch.shape[0], 4:4 + patch.shape[1]] = patch
     for i, label in enumerate(stats.classes):
-        cv2.putText(image, label, (4, margin + i * cell_px + cell_px // 2 + 5), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
-        cv2.putText(image, label, (margin + i * cell_px + 6, margin - 10), font, scale, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(image, label, (26, top + i * cell_px + cell_px // 2 + 5), font, scale, ink_black, 1, cv2.LINE_AA)
+        cv2.putText(image, label, (left + i * cell_px + 6, top - 10), font, scale, ink_black, 1, cv2.LINE_AA)
         for j in range(n):
-            x, y = margin + j * cell_px, margin + i * cell_px
+            x, y = left + j * cell_px, top + i * cell_px
             colour = tuple(int(c) for c in colours[i, j])
             cv2.rectangle(image, (x, y), (x + cell_px - 1, y + cell_px - 1), colour, thickness=-1)
             ink = (0, 0, 0) if scaled[i, j] > 150 else (255, 255, 255)
             cv2.putText(image, str(stats.transitions[i, j]), (x + 6, y + cell_px // 2 + 5), font, scale, ink, 1,
                         cv2.LINE_AA)
+    bar_x, bar_h = left + n * cell_px + 40, max(n * cell_px, 60)
+    ramp = cv2.applyColorMap(np.linspace(255, 0, bar_h).astype(np.uint8).reshape(bar_h, 1, 1), cv2.COLORMAP_VIRIDIS)
+    image[top:top + bar_h, bar_x:bar_x + bar_w] = ramp.reshape(bar_h, 1, 3)
+    cv2.putText(image, str(peak), (bar_x + bar_w + 4, top + 10), font, 0.4, ink_black, 1, cv2.LINE_AA)
+    cv2.putText(image, "0", (bar_x + bar_w + 4, top + bar_h), font, 0.4, ink_black, 1, cv2.LINE_AA)
     ok, encoded = cv2.imencode(Path(path).suffix or ".png", image)
     if not ok:
         raise ConfigError(f"cannot write the heatmap to {path}: name it .png")
