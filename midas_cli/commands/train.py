@@ -22,14 +22,29 @@ app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
                   no_args_is_help=True)
 
 MODALITIES_OPT = typer.Option("emht", "--modalities", help="Comma list of emht, handkp, mtm, psm, image.")
-FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, grasper, clutch.")
+FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, angvel, grasper, clutch.")
 SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto or louo.")
-EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
+EPOCHS_OPT = typer.Option(None, "--epochs", min=0, help="Training epochs (default: the model's recipe, "
+                          "mstcn 100, transformer 50).")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
 MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
                               "table at (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
+SIDES_OPT = typer.Option("both", "--sides", help="Arms / hands to use: left, right or both (left,right).")
+ROTATION_OPT = typer.Option("matrix", "--rotation", help="Robot orientation as a rotation matrix (9 per arm) or "
+                            "quat (the logged quaternion, 4).")
+NORMALISE_OPT = typer.Option("train", "--normalise", help="z-score fitted on the training split (train), per "
+                             "trial (trial), or none.")
+
+
+def data_config(modalities: str, features: str, exclude_clutch: bool, model_rate: Optional[float], sides: str,
+                rotation: str, normalise: str):
+    from midas_cli.models.data import SIDES, DatasetConfig
+
+    side_list = SIDES if sides.strip() == "both" else _split_list(sides)
+    return DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, model_rate,
+                         sides=side_list, rotation=rotation, normalise=normalise)
 
 
 def session_paths(paths: list[Path]) -> list[Path]:
@@ -75,7 +90,8 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 @app.command()
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
-    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++) or transformer (MTRSAP-style)."),
+    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++), transformer (MTRSAP-style with "
+                              "MS-TCN++ refinement stages) or transformer-plain (without)."),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
     split: str = SPLIT_OPT,
@@ -86,6 +102,9 @@ def gestures(
     model_rate: Optional[float] = MODEL_RATE_OPT,
     rate: Optional[float] = renamed_option("--rate", "--model-rate"),
     exclude_clutch: bool = EXCLUDE_OPT,
+    sides: str = SIDES_OPT,
+    rotation: str = ROTATION_OPT,
+    normalise: str = NORMALISE_OPT,
     shuffle_labels: bool = typer.Option(False, "--shuffle-labels", help="Control run: permute training gesture classes."),
     out_dir: Path = typer.Option(..., "--out", help="New run folder (config, split, metrics, checkpoint, plots)."),
     eval_only: Optional[Path] = typer.Option(None, "--eval-only", help="Evaluate this checkpoint.pt on its test split."),
@@ -97,7 +116,6 @@ def gestures(
 
     Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
     """
-    from midas_cli.models.data import DatasetConfig
     from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
 
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
@@ -106,7 +124,7 @@ def gestures(
         if eval_only is not None:
             result = evaluate_checkpoint(paths, eval_only, out_dir, device)
         else:
-            data = DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, model_rate)
+            data = data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise)
             config = TrainConfig(model=model, split=split, fold=fold, epochs=epochs, seed=seed, device=device,
                                  shuffle_labels=shuffle_labels)
             result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))

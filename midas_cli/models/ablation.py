@@ -28,7 +28,7 @@ from midas_cli.session.outputs import out_folder, out_target, write_text
 
 log = logging.getLogger(__name__)
 
-MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++"}
+MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++", "transformer-plain": "MTRSAP (plain)"}
 MODALITY_TITLES = {"emht": "EmHT", "handkp": "HandKP", "mtm": "MTM", "psm": "PSM", "image": "Image"}
 FEATURE_TITLES = {"pos": "pos.", "ori": "ori.", "vel": "vel.", "grasper": "grasp.", "clutch": "clutch"}
 PAPER_GRID = (

@@ -6,17 +6,25 @@ A separate step from training (the loop never parses session files). Per session
 modality, ``derived/<image_features>.npz`` (``frame`` (N,), ``features`` (N, D)).
 
 Feature sets per modality (columns of the aligned table; velocities are time derivatives of the
-positions on the frame clock, in mm/s, computed before resampling):
+positions on the frame clock, in mm/s, computed before resampling; angular velocities (rad/s, base
+frame) are central differences of the orientations, ``geometry.angular_velocities``):
 
-========  =====================================  ===================  ==========================  ===========
-modality  pos                                    ori                  vel                         grasper
-========  =====================================  ===================  ==========================  ===========
-emht      ``emht.s{1-4}_{x,y,z}_mm`` (12)         sin, cos of the 12   d/dt of pos (12)            thumb-middle
-                                                 sensor angles (24)                               distance (2)
-handkp    ``handkp.{hand}_{kp}_{x,y,z}_mm`` (12)  --                   d/dt of pos (12)            as emht (2)
-mtm, psm  ``{side}_{x,y,z}_mm`` (6)               quaternion (8)       logged ``_v*_mm_s`` (6)     ``_grasper_deg``
+========  ===================================  =====================  ===================  ===========  ============
+modality  pos                                  ori                    vel                  angvel       grasper
+========  ===================================  =====================  ===================  ===========  ============
+emht      ``emht.s{1-4}_{x,y,z}_mm`` (12)       sin, cos of the 12     d/dt of pos (12)     per sensor   thumb-middle
+                                               sensor angles (24)                          (12)         distance (2)
+handkp    ``handkp.{hand}_{kp}_{x,y,z}_mm`` (12)  --                   d/dt of pos (12)     --           as emht (2)
+mtm, psm  ``{side}_{x,y,z}_mm`` (6)             rotation matrix (18)   logged ``_v*_mm_s``  per arm (6)  ``_grasper_deg``
+                                               or quaternion (8)      (6)                               (2)
 image     all ``features`` columns of the NPZ; feature sets do not apply
-========  =====================================  ===================  ==========================  ===========
+========  ===================================  =====================  ===================  ===========  ============
+
+Counts are for both sides; ``sides`` (``left``/``right``) keeps one arm, hand or the EmHT sensors on
+that hand (``HANDS``) and halves them. Robot orientation (``rotation``): ``matrix`` by default -- the 9
+entries are continuous in the motion and unique, as in the JIGSAWS kinematics, whereas a quaternion
+has two signs per rotation and the stored w >= 0 convention flips it whenever w crosses 0;
+``quat`` keeps the logged quaternion (what runs before this option used).
 
 ``clutch`` adds the clutch state (aligned ``clutch`` column) as one feature. A feature set a modality
 does not have (HandKP orientation) is skipped and listed in ``GestureDataset.skipped``. Missing values
@@ -29,8 +37,11 @@ native 30 Hz). ``exclude_clutch`` drops frames with the clutch pressed (before t
 inference, as in the paper's appendix B). Frames without a label are kept inside a trial as class -1
 (ignored by losses and metrics) and trimmed at its ends. A session without the label set, or with no
 labelled frame left, is skipped with a warning and listed in ``GestureDataset.skipped_sessions``; only
-when no session remains is that an error. Normalisation (:class:`Normaliser`) is
-fitted on the training split only.
+when no session remains is that an error. Normalisation (``normalise``, applied in ``train.py``):
+``train`` (default) = per-feature z-score fitted on the training split only, so test data never shape
+it and a test trial is scaled like the trials the model learned from; ``trial`` = each trial scaled
+by its own mean and std (removes per-subject/per-setup offsets, e.g. where the robot's base frame
+sits, at the price of using a whole test trial's statistics); ``none``.
 """
 
 from __future__ import annotations
@@ -45,6 +56,7 @@ from typing import Sequence
 import numpy as np
 
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.geometry import angular_velocities, matrices_from_angles, matrices_from_quaternions
 from midas_cli.session.derived import AlignedTable, read_aligned
 from midas_cli.session.labels import list_label_sets, read_frame_labels
 from midas_cli.session.reader import Session
@@ -52,7 +64,11 @@ from midas_cli.session.reader import Session
 log = logging.getLogger(__name__)
 
 MODALITIES = ("emht", "handkp", "mtm", "psm", "image")
-FEATURE_SETS = ("pos", "ori", "vel", "grasper", "clutch")
+FEATURE_SETS = ("pos", "ori", "vel", "angvel", "grasper", "clutch")
+ROTATIONS = ("matrix", "quat")
+NORMALISATIONS = ("train", "trial", "none")
+# What a checkpoint written before these options existed was built with.
+LEGACY_CONFIG = {"sides": ("left", "right"), "rotation": "quat", "normalise": "train"}
 PLATFORM_RATE_HZ = {"raven-ii": 10.0}  # the paper's resampling; everything else keeps 30 Hz
 DEFAULT_RATE_HZ = 30.0
 HANDS = {"left": (2, 1), "right": (3, 4)}  # EmHT (thumb, middle) sensor numbers
@@ -61,7 +77,8 @@ SIDES = ("left", "right")
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    """What to build: modalities and feature sets, clutch exclusion, rate (None = platform default)."""
+    """What to build: modalities and feature sets, clutch exclusion, rate (None = platform default),
+    which sides (arms / hands), the robot rotation representation and the normalisation."""
 
     modalities: tuple[str, ...]
     features: tuple[str, ...] = ("pos", "ori", "vel")
@@ -69,10 +86,21 @@ class DatasetConfig:
     rate_hz: float | None = None
     label_set: str = "gestures"
     image_features: str = "image_features"
+    sides: tuple[str, ...] = SIDES
+    rotation: str = "matrix"
+    normalise: str = "train"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
         object.__setattr__(self, "features", tuple(self.features))
+        sides = tuple(self.sides)
+        object.__setattr__(self, "sides", tuple(s for s in SIDES if s in sides))  # canonical order
+        if not sides or len(sides) != len(set(sides)) or any(s not in SIDES for s in sides):
+            raise ConfigError(f"sides must be left, right or both, got {','.join(sides)!r}")
+        if self.rotation not in ROTATIONS:
+            raise ConfigError(f"rotation must be one of {', '.join(ROTATIONS)}, got {self.rotation!r}")
+        if self.normalise not in NORMALISATIONS:
+            raise ConfigError(f"normalise must be one of {', '.join(NORMALISATIONS)}, got {self.normalise!r}")
         for name, given, known in (("modality", self.modalities, MODALITIES), ("feature set", self.features, FEATURE_SETS)):
             bad = [g for g in given if g not in known]
             if bad or not given or len(set(given)) != len(given):
@@ -82,7 +110,13 @@ class DatasetConfig:
             raise ConfigError(f"rate must be in (0, 1000] Hz, got {self.rate_hz}")
 
     def to_json(self) -> dict:
-        return {**asdict(self), "modalities": list(self.modalities), "features": list(self.features)}
+        return {**asdict(self), "modalities": list(self.modalities), "features": list(self.features),
+                "sides": list(self.sides)}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "DatasetConfig":
+        """From ``to_json``; keys a run written before they existed take their old meaning."""
+        return cls(**{**LEGACY_CONFIG, **data})
 
 
 @dataclass
@@ -280,7 +314,7 @@ def _modality_features(path: Path, table: AlignedTable, times_s: np.ndarray, mod
         return _image_features(path, table.frame, config.image_features)
     blocks, names = [], []
     for feature in config.features:
-        block = _feature_block(table, times_s, modality, feature, path)
+        block = _feature_block(table, times_s, modality, feature, path, config)
         if block is None:
             skipped.append(f"{modality}:{feature}")
             continue
@@ -289,55 +323,93 @@ def _modality_features(path: Path, table: AlignedTable, times_s: np.ndarray, mod
     return (np.concatenate(blocks, axis=1) if blocks else np.zeros((len(table.frame), 0))), names
 
 
-def _feature_block(table: AlignedTable, times_s: np.ndarray, modality: str, feature: str,
-                   path: Path) -> tuple[np.ndarray, list[str]] | None:
+def _feature_block(table: AlignedTable, times_s: np.ndarray, modality: str, feature: str, path: Path,
+                   config: DatasetConfig) -> tuple[np.ndarray, list[str]] | None:
     """One feature set of one modality, or None where the modality does not have it."""
+    sides = config.sides
     if feature == "clutch":
         return _clutch(table, path)[:, None], ["clutch"]
-    positions = _position_columns(modality)
+    positions = _position_columns(modality, sides)
     if feature == "pos":
         return _columns(table, positions, path), positions
     if feature == "vel":
         if modality in ("mtm", "psm"):
-            names = [f"{modality}.{s}_v{a}_mm_s" for s in SIDES for a in "xyz"]
+            names = [f"{modality}.{s}_v{a}_mm_s" for s in sides for a in "xyz"]
             return _columns(table, names, path), names
         return _derivative(_columns(table, positions, path), times_s), [f"d/dt {n}" for n in positions]
-    if feature == "ori":
-        return _orientation(table, modality, path)
-    return _grasper(table, modality, path)
+    if feature in ("ori", "angvel"):
+        rotations = _rotations(table, modality, path, sides)
+        if rotations is None:
+            return None
+        if feature == "angvel":
+            blocks = [angular_velocities(r, times_s) for r in rotations.values()]
+            return np.concatenate(blocks, axis=1), [f"{n}_w{a}_rad_s" for n in rotations for a in "xyz"]
+        return _orientation(table, modality, path, config, rotations)
+    return _grasper(table, modality, path, sides)
 
 
-def _position_columns(modality: str) -> list[str]:
+def _emht_sensors(sides: Sequence[str]) -> list[int]:
+    """EmHT sensor numbers worn on ``sides`` (HANDS), ascending."""
+    return sorted(n for side in sides for n in HANDS[side])
+
+
+def _position_columns(modality: str, sides: Sequence[str] = SIDES) -> list[str]:
     if modality == "emht":
-        return [f"emht.s{s}_{a}_mm" for s in range(1, 5) for a in "xyz"]
+        return [f"emht.s{s}_{a}_mm" for s in _emht_sensors(sides) for a in "xyz"]
     if modality == "handkp":
-        return [f"handkp.{h}_{kp}_{a}_mm" for h in SIDES for kp in ("thumb", "middle") for a in "xyz"]
-    return [f"{modality}.{s}_{a}_mm" for s in SIDES for a in "xyz"]
+        return [f"handkp.{h}_{kp}_{a}_mm" for h in sides for kp in ("thumb", "middle") for a in "xyz"]
+    return [f"{modality}.{s}_{a}_mm" for s in sides for a in "xyz"]
 
 
-def _orientation(table: AlignedTable, modality: str, path: Path) -> tuple[np.ndarray, list[str]] | None:
+def _emht_angles(sensor: int) -> list[str]:
+    return [f"emht.s{sensor}_{a}_deg" for a in ("azimuth", "elevation", "roll")]
+
+
+def _rotations(table: AlignedTable, modality: str, path: Path,
+               sides: Sequence[str]) -> dict[str, np.ndarray] | None:
+    """Orientation per sensor / arm as (N, 3, 3) matrices (NaN where missing), keyed by a name
+    prefix; None for HandKP (keypoints carry no orientation)."""
     if modality == "handkp":
         return None
     if modality == "emht":
-        names = [f"emht.s{s}_{a}_deg" for s in range(1, 5) for a in ("azimuth", "elevation", "roll")]
+        return {f"emht.s{n}": matrices_from_angles(_columns(table, _emht_angles(n), path))
+                for n in _emht_sensors(sides)}
+    return {f"{modality}.{s}": matrices_from_quaternions(_columns(table, [f"{modality}.{s}_q{a}" for a in "xyzw"], path))
+            for s in sides}
+
+
+def _orientation(table: AlignedTable, modality: str, path: Path, config: DatasetConfig,
+                 rotations: dict[str, np.ndarray]) -> tuple[np.ndarray, list[str]]:
+    """EmHT: sin and cos of the sensor angles. Robot arms: the rotation matrix (9, row-major, the
+    JIGSAWS layout) or the logged quaternion (4, xyzw), per ``config.rotation``."""
+    if modality == "emht":
+        names = [n for s in _emht_sensors(config.sides) for n in _emht_angles(s)]
         radians = np.radians(_columns(table, names, path))
         return (np.concatenate([np.sin(radians), np.cos(radians)], axis=1),
                 [f"sin {n}" for n in names] + [f"cos {n}" for n in names])
-    names = [f"{modality}.{s}_q{a}" for s in SIDES for a in "xyzw"]
+    if config.rotation == "matrix":
+        blocks = [r.reshape(len(r), 9) for r in rotations.values()]  # (N, 3, 3) -> (N, 9)
+        return np.concatenate(blocks, axis=1), [f"{n}_R{i}{j}" for n in rotations for i in range(3) for j in range(3)]
+    names = [f"{modality}.{s}_q{a}" for s in config.sides for a in "xyzw"]
     return _columns(table, names, path), names
 
 
-def _grasper(table: AlignedTable, modality: str, path: Path) -> tuple[np.ndarray, list[str]]:
+def _grasper(table: AlignedTable, modality: str, path: Path, sides: Sequence[str]) -> tuple[np.ndarray, list[str]]:
     if modality in ("mtm", "psm"):
-        names = [f"{modality}.{s}_grasper_deg" for s in SIDES]
+        names = [f"{modality}.{s}_grasper_deg" for s in sides]
         return _columns(table, names, path), names
-    points = _columns(table, _position_columns(modality), path).reshape(len(table.frame), 4, 3)  # (N, 12) -> (N, 4, 3)
-    if modality == "emht":
-        pairs = [(thumb - 1, middle - 1) for thumb, middle in HANDS.values()]
-    else:
-        pairs = [(0, 1), (2, 3)]  # handkp order: left thumb, left middle, right thumb, right middle
-    distance = [np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs]
-    return np.column_stack(distance), [f"{modality}.{h}_grasper_mm" for h in SIDES]
+    distance = []
+    for side in sides:
+        if modality == "emht":
+            thumb, middle = (_position_columns_of_sensor(n) for n in HANDS[side])
+        else:
+            thumb, middle = ([f"handkp.{side}_{kp}_{a}_mm" for a in "xyz"] for kp in ("thumb", "middle"))
+        distance.append(np.linalg.norm(_columns(table, thumb, path) - _columns(table, middle, path), axis=1))
+    return np.column_stack(distance), [f"{modality}.{h}_grasper_mm" for h in sides]
+
+
+def _position_columns_of_sensor(sensor: int) -> list[str]:
+    return [f"emht.s{sensor}_{a}_mm" for a in "xyz"]
 
 
 def _columns(table: AlignedTable, names: list[str], path: Path) -> np.ndarray:
