@@ -71,7 +71,7 @@ def test_mstcn_default_is_the_published_network_and_recipe():
 def test_transformer_has_refinement_stages_and_the_plain_variant_none():
     refined, cfg = build_model("transformer", {"a": 3}, 4, {})
     plain, plain_cfg = build_model("transformer-plain", {"a": 3}, 4, {})
-    assert cfg["refinement_stages"] == 3 and cfg["smoothing_weight"] == 0.15 and len(refined.refinements) == 3
+    assert cfg["refinement_stages"] == 1 and cfg["smoothing_weight"] == 0.15 and len(refined.refinements) == 1
     assert all(len(r.layers) == 10 for r in refined.refinements)
     assert plain_cfg["refinement_stages"] == 0 and plain_cfg["smoothing_weight"] == 0.0 and not len(plain.refinements)
     x, mask = torch.randn(2, 3, 40), torch.ones(2, 40, dtype=torch.bool)
@@ -80,7 +80,7 @@ def test_transformer_has_refinement_stages_and_the_plain_variant_none():
     plain.eval()
     with torch.no_grad():
         stages = refined(x, mask)
-        assert stages.shape == (4, 2, 4, 40) and plain(x, mask).shape == (1, 2, 4, 40)
+        assert stages.shape == (2, 2, 4, 40) and plain(x, mask).shape == (1, 2, 4, 40)
         ce = sum(torch.nn.functional.cross_entropy(s.transpose(1, 2).reshape(-1, 4), target.reshape(-1)) for s in stages)
         smooth = sum(smoothing_loss(s, mask, 4.0) for s in stages)
         assert float(refined.loss(stages, target, mask)) == pytest.approx(float(ce + 0.15 * smooth), rel=1e-5)
