@@ -8,7 +8,8 @@ with seed 0, 1.0 and 1.0 with seed 1; the control 0.23, chance about 1/8). The e
 epochs gave the same verdicts at about three times the cost.
 
 Issue 19: MS-TCN++ now trains with its published recipe (batch size 1, last epoch's weights) and the
-default transformer carries one MS-TCN++ refinement stage; both still pass at 8 epochs. (With three
+default transformer carries one MS-TCN++ refinement stage; both still pass at 8 epochs (seed 0: test
+accuracy 0.964 for MS-TCN++, its last epoch's weights, and 0.977 for the transformer). (With three
 refinement stages the transformer stalled near 0.78 here, even after 16 epochs: models/transformer.py.)"""
 
 from __future__ import annotations
