@@ -109,6 +109,30 @@ def quaternions_from_matrices(rotations: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def rotation_vectors_from_matrices(rotations: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) -> (N, 3) rotation vectors (axis x angle, radians, angle in [0, pi]), the log map;
+    exact near the identity (first order in the quaternion's vector part); NaN rows stay NaN."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = quaternions_from_matrices(rotations)
+        v, w = q[:, :3], q[:, 3]
+        norm = np.linalg.norm(v, axis=1)
+        small = norm < 1e-9
+        scale = np.where(small, 2.0 / np.where(small, w, 1.0), 2.0 * np.arctan2(norm, w) / np.where(small, 1.0, norm))
+    return v * scale[:, None]
+
+
+def angular_velocities(rotations: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) orientations sampled at ``times_s`` (N,) -> (N, 3) angular velocity (rad/s) in the
+    frame the rotations are expressed in (the base frame): central differences like ``np.gradient``,
+    the rotation vector of R(t+1) R(t-1)^T over the time between them; one-sided at the ends."""
+    n = len(rotations)
+    if n < 2:
+        return np.zeros((n, 3))
+    before, after = np.r_[0, np.arange(n - 1)], np.r_[np.arange(1, n), n - 1]
+    relative = rotations[after] @ np.swapaxes(rotations[before], 1, 2)  # (N, 3, 3)
+    return rotation_vectors_from_matrices(relative) / (times_s[after] - times_s[before])[:, None]
+
+
 def quaternions_from_angles(angles_deg: np.ndarray) -> np.ndarray:
     """(N, 3) azimuth, elevation, roll (Z, Y, X Euler, degrees) -> (N, 4) unit quaternions (x, y, z, w),
     straight from the half angles (the same rotation as ``matrices_from_angles``)."""

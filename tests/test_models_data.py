@@ -24,7 +24,7 @@ def sessions(tmp_path_factory) -> list[Path]:
 def test_features_per_modality_and_set(sessions):
     ds = build_dataset(sessions, DatasetConfig(("emht", "mtm", "image"), ("pos", "ori", "vel", "grasper", "clutch")))
     assert ds.classes == list(CLASSES)
-    assert ds.modality_dims == {"emht": 12 + 24 + 12 + 2 + 1, "mtm": 6 + 8 + 6 + 2 + 1, "image": 6}
+    assert ds.modality_dims == {"emht": 12 + 24 + 12 + 2 + 1, "mtm": 6 + 18 + 6 + 2 + 1, "image": 6}  # ori: 2 rotation matrices
     assert ds.feature_names["mtm"][-1] == "clutch"
     trial = ds.trials[0]
     assert trial.rate_hz == 30.0  # da Vinci: native rate

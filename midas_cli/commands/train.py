@@ -22,19 +22,34 @@ app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
                   no_args_is_help=True)
 
 MODALITIES_OPT = typer.Option("emht", "--modalities", help="Comma list of emht, handkp, mtm, psm, image.")
-FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, grasper, clutch.")
+FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, angvel, grasper, clutch.")
 SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto, louo or loso "
                          "(leave one trial / user / super-trial out).")
 VAL_OPT = typer.Option("none", "--val", help="loto/louo/loso model selection: none (fixed epochs, last-epoch model; "
                        "default, as in the papers) or inner (a seeded ~15% of the training trials validate).")
 BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", help="Cross-validation and ablation: also train the "
                             "per-frame logistic-regression baseline and add its row to every table.")
-EPOCHS_OPT = typer.Option(50, "--epochs", min=0, help="Training epochs.")
+EPOCHS_OPT = typer.Option(None, "--epochs", min=0, help="Training epochs (default: the model's recipe, "
+                          "mstcn 100, transformer 50).")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
 MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
                               "table at (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
+SIDES_OPT = typer.Option("both", "--sides", help="Arms / hands to use: left, right or both (left,right).")
+ROTATION_OPT = typer.Option("matrix", "--rotation", help="Robot orientation as a rotation matrix (9 per arm) or "
+                            "quat (the logged quaternion, 4).")
+NORMALISE_OPT = typer.Option("train", "--normalise", help="z-score fitted on the training split (train), per "
+                             "trial (trial), or none.")
+
+
+def data_config(modalities: str, features: str, exclude_clutch: bool, model_rate: Optional[float], sides: str,
+                rotation: str, normalise: str):
+    from midas_cli.models.data import SIDES, DatasetConfig
+
+    side_list = SIDES if sides.strip() == "both" else _split_list(sides)
+    return DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, model_rate,
+                         sides=side_list, rotation=rotation, normalise=normalise)
 
 
 def _parse_fold(text: str) -> int | None:
@@ -93,8 +108,9 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 @app.command()
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
-    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++), transformer (MTRSAP-style), baseline "
-                              "(per-frame logistic regression) or baseline-mlp."),
+    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++), transformer (MTRSAP-style with "
+                              "MS-TCN++ refinement stages), transformer-plain (without), baseline (per-frame "
+                              "logistic regression) or baseline-mlp."),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
     split: str = SPLIT_OPT,
@@ -108,6 +124,9 @@ def gestures(
     model_rate: Optional[float] = MODEL_RATE_OPT,
     rate: Optional[float] = renamed_option("--rate", "--model-rate"),
     exclude_clutch: bool = EXCLUDE_OPT,
+    sides: str = SIDES_OPT,
+    rotation: str = ROTATION_OPT,
+    normalise: str = NORMALISE_OPT,
     shuffle_labels: bool = typer.Option(False, "--shuffle-labels", help="Control run: permute training gesture classes."),
     out_dir: Path = typer.Option(..., "--out", help="New run folder (config, split, metrics, checkpoint, plots)."),
     eval_only: Optional[Path] = typer.Option(None, "--eval-only", help="Evaluate this checkpoint.pt on its test split."),
@@ -120,7 +139,6 @@ def gestures(
     Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
     """
     from midas_cli.models import cv
-    from midas_cli.models.data import DatasetConfig
     from midas_cli.models.splits import GROUP_SPLITS
     from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
 
@@ -133,7 +151,7 @@ def gestures(
         if eval_only is not None:
             result = evaluate_checkpoint(paths, eval_only, out_dir, device)
         else:
-            data = DatasetConfig(_split_list(modalities), _split_list(features), exclude_clutch, model_rate)
+            data = data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise)
             config = TrainConfig(model=model, split=split, fold=fold_index or 0, validation=val, epochs=epochs,
                                  seed=seed, device=device, shuffle_labels=shuffle_labels)
             if fold_index is None:

@@ -35,8 +35,8 @@ from midas_cli.session.outputs import out_folder, out_target, write_text
 
 log = logging.getLogger(__name__)
 
-MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++", "baseline": "Baseline (LR)",
-                "baseline-mlp": "Baseline (MLP)"}
+MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++", "transformer-plain": "MTRSAP (plain)",
+                "baseline": "Baseline (LR)", "baseline-mlp": "Baseline (MLP)"}
 MODALITY_TITLES = {"emht": "EmHT", "handkp": "HandKP", "mtm": "MTM", "psm": "PSM", "image": "Image"}
 FEATURE_TITLES = {"pos": "pos.", "ori": "ori.", "vel": "vel.", "grasper": "grasp.", "clutch": "clutch"}
 PAPER_GRID = (

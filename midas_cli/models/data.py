@@ -5,18 +5,8 @@ A separate step from training (the loop never parses session files). Per session
 ``clutch``), the frame labels ``labels/<label_set>.csv`` (frame = video ``seq``) and, for the ``image``
 modality, ``derived/<image_features>.npz`` (``frame`` (N,), ``features`` (N, D)).
 
-Feature sets per modality (columns of the aligned table; velocities are time derivatives of the
-positions on the frame clock, in mm/s, computed before resampling):
-
-========  =====================================  ===================  ==========================  ===========
-modality  pos                                    ori                  vel                         grasper
-========  =====================================  ===================  ==========================  ===========
-emht      ``emht.s{1-4}_{x,y,z}_mm`` (12)         sin, cos of the 12   d/dt of pos (12)            thumb-middle
-                                                 sensor angles (24)                               distance (2)
-handkp    ``handkp.{hand}_{kp}_{x,y,z}_mm`` (12)  --                   d/dt of pos (12)            as emht (2)
-mtm, psm  ``{side}_{x,y,z}_mm`` (6)               quaternion (8)       logged ``_v*_mm_s`` (6)     ``_grasper_deg``
-image     all ``features`` columns of the NPZ; feature sets do not apply
-========  =====================================  ===================  ==========================  ===========
+Feature sets per modality (``pos``, ``ori``, ``vel``, ``angvel``, ``grasper``, ``clutch``), the sides and
+the rotation representation: see ``models/features.py``.
 
 ``clutch`` adds the clutch state (aligned ``clutch`` column) as one feature. A feature set a modality
 does not have (HandKP orientation) is skipped and listed in ``GestureDataset.skipped``. Missing values
@@ -29,8 +19,11 @@ native 30 Hz). ``exclude_clutch`` drops frames with the clutch pressed (before t
 inference, as in the paper's appendix B). Frames without a label are kept inside a trial as class -1
 (ignored by losses and metrics) and trimmed at its ends. A session without the label set, or with no
 labelled frame left, is skipped with a warning and listed in ``GestureDataset.skipped_sessions``; only
-when no session remains is that an error. Normalisation (:class:`Normaliser`) is
-fitted on the training split only.
+when no session remains is that an error. Normalisation (``normalise``, applied in ``train.py``):
+``train`` (default) = per-feature z-score fitted on the training split only, so test data never shape
+it and a test trial is scaled like the trials the model learned from; ``trial`` = each trial scaled
+by its own mean and std (removes per-subject/per-setup offsets, e.g. where the robot's base frame
+sits, at the price of using a whole test trial's statistics); ``none``.
 """
 
 from __future__ import annotations
@@ -45,6 +38,7 @@ from typing import Sequence
 import numpy as np
 
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.models.features import SIDES, clutch, feature_block
 from midas_cli.session.derived import AlignedTable, read_aligned
 from midas_cli.session.labels import list_label_sets, read_frame_labels
 from midas_cli.session.reader import Session
@@ -52,16 +46,19 @@ from midas_cli.session.reader import Session
 log = logging.getLogger(__name__)
 
 MODALITIES = ("emht", "handkp", "mtm", "psm", "image")
-FEATURE_SETS = ("pos", "ori", "vel", "grasper", "clutch")
+FEATURE_SETS = ("pos", "ori", "vel", "angvel", "grasper", "clutch")
+ROTATIONS = ("matrix", "quat")
+NORMALISATIONS = ("train", "trial", "none")
+# What a checkpoint written before these options existed was built with.
+LEGACY_CONFIG = {"sides": ("left", "right"), "rotation": "quat", "normalise": "train"}
 PLATFORM_RATE_HZ = {"raven-ii": 10.0}  # the paper's resampling; everything else keeps 30 Hz
 DEFAULT_RATE_HZ = 30.0
-HANDS = {"left": (2, 1), "right": (3, 4)}  # EmHT (thumb, middle) sensor numbers
-SIDES = ("left", "right")
 
 
 @dataclass(frozen=True)
 class DatasetConfig:
-    """What to build: modalities and feature sets, clutch exclusion, rate (None = platform default)."""
+    """What to build: modalities and feature sets, clutch exclusion, rate (None = platform default),
+    which sides (arms / hands), the robot rotation representation and the normalisation."""
 
     modalities: tuple[str, ...]
     features: tuple[str, ...] = ("pos", "ori", "vel")
@@ -69,10 +66,21 @@ class DatasetConfig:
     rate_hz: float | None = None
     label_set: str = "gestures"
     image_features: str = "image_features"
+    sides: tuple[str, ...] = SIDES
+    rotation: str = "matrix"
+    normalise: str = "train"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "modalities", tuple(self.modalities))
         object.__setattr__(self, "features", tuple(self.features))
+        sides = tuple(self.sides)
+        object.__setattr__(self, "sides", tuple(s for s in SIDES if s in sides))  # canonical order
+        if not sides or len(sides) != len(set(sides)) or any(s not in SIDES for s in sides):
+            raise ConfigError(f"sides must be left, right or both, got {','.join(sides)!r}")
+        if self.rotation not in ROTATIONS:
+            raise ConfigError(f"rotation must be one of {', '.join(ROTATIONS)}, got {self.rotation!r}")
+        if self.normalise not in NORMALISATIONS:
+            raise ConfigError(f"normalise must be one of {', '.join(NORMALISATIONS)}, got {self.normalise!r}")
         for name, given, known in (("modality", self.modalities, MODALITIES), ("feature set", self.features, FEATURE_SETS)):
             bad = [g for g in given if g not in known]
             if bad or not given or len(set(given)) != len(given):
@@ -82,7 +90,13 @@ class DatasetConfig:
             raise ConfigError(f"rate must be in (0, 1000] Hz, got {self.rate_hz}")
 
     def to_json(self) -> dict:
-        return {**asdict(self), "modalities": list(self.modalities), "features": list(self.features)}
+        return {**asdict(self), "modalities": list(self.modalities), "features": list(self.features),
+                "sides": list(self.sides)}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "DatasetConfig":
+        """From ``to_json``; keys a run written before they existed take their old meaning."""
+        return cls(**{**LEGACY_CONFIG, **data})
 
 
 @dataclass
@@ -252,18 +266,9 @@ def _kept_rows(table: AlignedTable, session: Session, config: DatasetConfig) -> 
     bins = np.floor(t * rate / 1e9 + 1e-3).astype(np.int64)  # tolerance: frame times rounded to ns
     rows = np.flatnonzero(np.r_[True, np.diff(bins) > 0])
     if config.exclude_clutch:
-        clutch = _clutch(table, session.path)
-        rows = rows[~(clutch[rows] > 0.5)]
+        pressed = clutch(table, session.path)
+        rows = rows[~(pressed[rows] > 0.5)]
     return rows, float(rate)
-
-
-def _clutch(table: AlignedTable, path: Path) -> np.ndarray:
-    """(N,) clutch state 0/1 (NaN -> 0) from the aligned ``clutch`` column (or its sources)."""
-    for name in ("clutch", "mtm.clutch", "fps.ch5_pressed"):
-        if table.has(name):
-            return np.nan_to_num(table.column(name), nan=0.0)
-    raise SessionError(f"{path}: no clutch signal in the aligned table (needs an fps or mtm stream); "
-                       "drop --exclude-clutch or the clutch feature set")
 
 
 def _frame_labels(path: Path, frames: np.ndarray, label_set: str) -> np.ndarray:
@@ -280,79 +285,13 @@ def _modality_features(path: Path, table: AlignedTable, times_s: np.ndarray, mod
         return _image_features(path, table.frame, config.image_features)
     blocks, names = [], []
     for feature in config.features:
-        block = _feature_block(table, times_s, modality, feature, path)
+        block = feature_block(table, times_s, modality, feature, path, config.sides, config.rotation)
         if block is None:
             skipped.append(f"{modality}:{feature}")
             continue
         blocks.append(block[0])
         names += block[1]
     return (np.concatenate(blocks, axis=1) if blocks else np.zeros((len(table.frame), 0))), names
-
-
-def _feature_block(table: AlignedTable, times_s: np.ndarray, modality: str, feature: str,
-                   path: Path) -> tuple[np.ndarray, list[str]] | None:
-    """One feature set of one modality, or None where the modality does not have it."""
-    if feature == "clutch":
-        return _clutch(table, path)[:, None], ["clutch"]
-    positions = _position_columns(modality)
-    if feature == "pos":
-        return _columns(table, positions, path), positions
-    if feature == "vel":
-        if modality in ("mtm", "psm"):
-            names = [f"{modality}.{s}_v{a}_mm_s" for s in SIDES for a in "xyz"]
-            return _columns(table, names, path), names
-        return _derivative(_columns(table, positions, path), times_s), [f"d/dt {n}" for n in positions]
-    if feature == "ori":
-        return _orientation(table, modality, path)
-    return _grasper(table, modality, path)
-
-
-def _position_columns(modality: str) -> list[str]:
-    if modality == "emht":
-        return [f"emht.s{s}_{a}_mm" for s in range(1, 5) for a in "xyz"]
-    if modality == "handkp":
-        return [f"handkp.{h}_{kp}_{a}_mm" for h in SIDES for kp in ("thumb", "middle") for a in "xyz"]
-    return [f"{modality}.{s}_{a}_mm" for s in SIDES for a in "xyz"]
-
-
-def _orientation(table: AlignedTable, modality: str, path: Path) -> tuple[np.ndarray, list[str]] | None:
-    if modality == "handkp":
-        return None
-    if modality == "emht":
-        names = [f"emht.s{s}_{a}_deg" for s in range(1, 5) for a in ("azimuth", "elevation", "roll")]
-        radians = np.radians(_columns(table, names, path))
-        return (np.concatenate([np.sin(radians), np.cos(radians)], axis=1),
-                [f"sin {n}" for n in names] + [f"cos {n}" for n in names])
-    names = [f"{modality}.{s}_q{a}" for s in SIDES for a in "xyzw"]
-    return _columns(table, names, path), names
-
-
-def _grasper(table: AlignedTable, modality: str, path: Path) -> tuple[np.ndarray, list[str]]:
-    if modality in ("mtm", "psm"):
-        names = [f"{modality}.{s}_grasper_deg" for s in SIDES]
-        return _columns(table, names, path), names
-    points = _columns(table, _position_columns(modality), path).reshape(len(table.frame), 4, 3)  # (N, 12) -> (N, 4, 3)
-    if modality == "emht":
-        pairs = [(thumb - 1, middle - 1) for thumb, middle in HANDS.values()]
-    else:
-        pairs = [(0, 1), (2, 3)]  # handkp order: left thumb, left middle, right thumb, right middle
-    distance = [np.linalg.norm(points[:, a] - points[:, b], axis=1) for a, b in pairs]
-    return np.column_stack(distance), [f"{modality}.{h}_grasper_mm" for h in SIDES]
-
-
-def _columns(table: AlignedTable, names: list[str], path: Path) -> np.ndarray:
-    missing = [n for n in names if not table.has(n)]
-    if missing:
-        raise SessionError(f"{path}: the aligned table lacks {', '.join(missing[:4])}"
-                           f"{' ...' if len(missing) > 4 else ''}: is that stream recorded? (run `midas align`)")
-    return np.column_stack([table.column(n) for n in names])
-
-
-def _derivative(values: np.ndarray, times_s: np.ndarray) -> np.ndarray:
-    """d/dt per column (N, D) in units per second; NaN where a neighbour is missing."""
-    if len(times_s) < 2:
-        return np.zeros_like(values)
-    return np.gradient(values, times_s, axis=0)
 
 
 def _image_features(path: Path, frames: np.ndarray, name: str) -> tuple[np.ndarray, list[str]]:

@@ -8,6 +8,14 @@ of the previous stage, 64 feature maps. Loss per stage: cross-entropy + 0.15 x t
 the log-probabilities of consecutive frames (clamped at tau^2 with tau = 4, gradient stopped through
 the previous frame). Padding frames are masked (mask (B, 1, T), 1 = real frame) so batches of
 different lengths give the same result as one sequence at a time.
+
+Audited against the official code (sj-li/MS-TCN2 ``model.py``, ``main.py``, ``train.sh``): layer counts,
+dilations, dropout (``nn.Dropout()`` = 0.5), the 1x1 fusion, the softmax between stages and the loss
+are the same. The training recipe that goes with it (``train.py`` ``RECIPES["mstcn"]``): Adam lr 5e-4,
+batch size 1, 100 epochs, the last epoch's weights. Two deliberate differences, both neutral at batch
+size 1: the official model masks nothing (its batches of one have no padding) and its smoothing term
+is a mean over every position of the padded batch, padding included; here padding is masked and the
+mean is over the real frame pairs, so a batch of several sequences trains like the same sequences alone.
 """
 
 from __future__ import annotations
@@ -125,19 +133,35 @@ class MSTCN(nn.Module):
 
     def loss(self, stages: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Sum over stages of CE + smoothing_weight * truncated MSE. ``target`` (B, T) long, -1 = ignore."""
-        tau_sq = self.cfg.tau ** 2
-        pair_mask = (mask[:, 1:] & mask[:, :-1]).unsqueeze(1).float()  # (B, 1, T-1): both frames real
-        total = stages.new_zeros(())
-        for logits in stages:
-            ce = F.cross_entropy(logits.transpose(1, 2).reshape(-1, logits.shape[1]),  # (B*T, C)
-                                 target.reshape(-1), ignore_index=-1)
-            log_p = F.log_softmax(logits, dim=1)
-            mse = torch.clamp((log_p[:, :, 1:] - log_p.detach()[:, :, :-1]) ** 2, min=0, max=tau_sq)
-            smooth = (mse * pair_mask).sum() / (pair_mask.sum() * logits.shape[1]).clamp(min=1)
-            total = total + ce + self.cfg.smoothing_weight * smooth
-        return total
+        return segmentation_loss(stages, target, mask, self.cfg.smoothing_weight, self.cfg.tau)
 
     @staticmethod
     def frame_logits(stages: torch.Tensor) -> torch.Tensor:
         """The last stage's logits (B, C, T): the prediction."""
         return stages[-1]
+
+
+def smoothing_loss(logits: torch.Tensor, mask: torch.Tensor, tau: float) -> torch.Tensor:
+    """MS-TCN's truncated MSE over frame-to-frame log-probability changes of one stage.
+
+    ``logits`` (B, C, T), ``mask`` (B, T) bool. Per real frame pair (t-1, t) and class c:
+    min((log p_t,c - log p_t-1,c)^2, tau^2), the earlier frame's log-probability detached (gradient
+    only pulls frame t towards t-1, as in the official code); the mean over real pairs x classes.
+    """
+    pair_mask = (mask[:, 1:] & mask[:, :-1]).unsqueeze(1).to(logits.dtype)  # (B, 1, T-1): both frames real
+    log_p = F.log_softmax(logits, dim=1)
+    mse = torch.clamp((log_p[:, :, 1:] - log_p.detach()[:, :, :-1]) ** 2, min=0, max=tau ** 2)  # (B, C, T-1)
+    return (mse * pair_mask).sum() / (pair_mask.sum() * logits.shape[1]).clamp(min=1)
+
+
+def segmentation_loss(stages: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, smoothing_weight: float,
+                      tau: float) -> torch.Tensor:
+    """Sum over stages (S, B, C, T) of frame-wise cross-entropy (``target`` (B, T), -1 = ignore) plus
+    ``smoothing_weight`` x :func:`smoothing_loss` (MS-TCN++: 0.15, tau = 4)."""
+    total = stages.new_zeros(())
+    for logits in stages:
+        total = total + F.cross_entropy(logits.transpose(1, 2).reshape(-1, logits.shape[1]),  # (B*T, C)
+                                        target.reshape(-1), ignore_index=-1)
+        if smoothing_weight:
+            total = total + smoothing_weight * smoothing_loss(logits, mask, tau)
+    return total

@@ -2,7 +2,7 @@
 
 ``RUN_DIR/``
   ``run.json``        dataset + training + model configuration, split, data fingerprint, code version,
-                      classes, feature names, normaliser, per-epoch history, skipped feature sets
+                      classes, feature names, normaliser, recipe, per-epoch history, skipped feature sets
                       and skipped sessions (no labels)
   ``metrics.json``    test (and validation) metrics: summary, per-class report, confusion matrix
   ``checkpoint.pt``   weights + everything above needed to rebuild and re-evaluate the model, plain
@@ -10,9 +10,10 @@
   ``predictions/<trial>.csv``  frame, truth, prediction of every test frame
   ``plots/confusion.png``, ``plots/<trial>.png``  (truth / prediction ribbons)
 
-The loop: build arrays (models/data.py) -> split (models/splits.py) -> fit the normaliser on the
-training units -> train for ``epochs``, keeping the weights of the epoch with the best validation
-frame accuracy (the last epoch when there is no validation set) -> predict the test units -> metrics.
+The loop: build arrays (models/data.py) -> split (models/splits.py) -> normalise (default: fitted on
+the training units) -> train with the model's recipe (``RECIPES``: epochs, batch size, lr, and which
+epoch's weights are kept: the last, or with "best-val" the best validation frame accuracy's; the
+resolved recipe is in ``run.json`` ``recipe``) -> predict the test units -> metrics.
 Deterministic on CPU for a given ``seed`` (weights, batch order and dropout come from seeded
 generators).
 """
@@ -23,7 +24,7 @@ import hashlib
 import json
 import logging
 import subprocess
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -44,9 +45,24 @@ from midas_cli.session.outputs import out_folder, out_target, replacing, write_t
 
 log = logging.getLogger(__name__)
 
-MODELS = ("mstcn", "transformer", "baseline", "baseline-mlp")
+MODELS = ("mstcn", "transformer", "transformer-plain", "baseline", "baseline-mlp")
 CHECKPOINT_FORMAT = "midas-gesture-run/1"
-DEFAULT_LR = {"mstcn": 5e-4, "transformer": 1e-3, "baseline": 1e-2, "baseline-mlp": 1e-3}
+SELECTIONS = ("last", "best-val")
+# Training recipe per model, used where TrainConfig leaves a field None. MS-TCN++ as in the official
+# code (sj-li/MS-TCN2 main.py, train.sh): Adam lr 5e-4, batch size 1, 100 epochs, the last epoch's
+# weights (no model selection). The transformers keep midas's earlier recipe: lr 1e-3, batches of 4,
+# 50 epochs, the weights of the best validation epoch; so do the per-frame baselines (lr 1e-2 for the
+# logistic regression, 1e-3 for the MLP). Without a validation set (the default of the group splits)
+# "best-val" falls back to the last epoch.
+RECIPES = {
+    "mstcn": {"epochs": 100, "batch_size": 1, "lr": 5e-4, "selection": "last"},
+    "transformer": {"epochs": 50, "batch_size": 4, "lr": 1e-3, "selection": "best-val"},
+    "transformer-plain": {"epochs": 50, "batch_size": 4, "lr": 1e-3, "selection": "best-val"},
+    "baseline": {"epochs": 50, "batch_size": 4, "lr": 1e-2, "selection": "best-val"},
+    "baseline-mlp": {"epochs": 50, "batch_size": 4, "lr": 1e-3, "selection": "best-val"},
+}
+DEFAULT_LR = {name: recipe["lr"] for name, recipe in RECIPES.items()}
+PLAIN_TRANSFORMER = {"refinement_stages": 0, "smoothing_weight": 0.0}
 
 
 @dataclass
@@ -55,9 +71,10 @@ class TrainConfig:
     split: str = "gesture"
     fold: int = 0
     validation: str = "none"  # group splits: none (fixed epochs, last epoch) or inner (models/splits.py)
-    epochs: int = 50
-    batch_size: int = 4
-    lr: float | None = None  # None = the model's default (MS-TCN++ paper: 5e-4)
+    epochs: int | None = None  # None (here and below) = the model's recipe (RECIPES)
+    batch_size: int | None = None
+    lr: float | None = None
+    selection: str | None = None  # "last" epoch's weights or the "best-val" epoch's
     weight_decay: float = 0.0
     seed: int = 0
     device: str = "cpu"
@@ -67,10 +84,17 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ConfigError(f"--model {self.model!r} is unknown (expected one of {', '.join(MODELS)})")
-        if self.epochs < 0 or self.batch_size < 1:
+        if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
+        if self.selection is not None and self.selection not in SELECTIONS:
+            raise ConfigError(f"selection must be one of {', '.join(SELECTIONS)}, got {self.selection!r}")
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"--device must be cpu or cuda, got {self.device!r}")
+
+    def resolved(self) -> "TrainConfig":
+        """This config with every None taken from the model's recipe (what a run records)."""
+        recipe = RECIPES[self.model]
+        return replace(self, **{k: recipe[k] for k in recipe if getattr(self, k) is None})
 
 
 @dataclass
@@ -96,12 +120,12 @@ def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: Trai
               progress: ProgressFn | None = None) -> RunResult:
     """Build the data, train, evaluate on the test units and write the run folder."""
     out_dir = _new_run_dir(out_dir)
+    config = config.resolved()
     device = _device(config.device)
     dataset = build_dataset(sessions, data_config)
     split = make_split(dataset, config.split, config.seed, config.fold, config.validation)
     order = list(data_config.modalities)
-    normaliser = Normaliser.fit([dataset.trials[dataset.trial_index(n)].stacked(order)[a:b]
-                                 for n, a, b in split.units["train"]])
+    normaliser = fit_normaliser(dataset, split.units["train"], order)
     parts = {part: _sequences(dataset, split.units[part], normaliser, order) for part in PARTS}
     if not parts["train"].units or not parts["test"].units:
         raise SessionError(f"split {split.kind} left no training or no test units: more labelled data needed")
@@ -124,15 +148,18 @@ def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pat
     out_dir = _new_run_dir(out_dir)
     device = _device(device_name)
     saved = load_checkpoint(checkpoint)
-    data_config = DatasetConfig(**saved["dataset_config"])
+    data_config = DatasetConfig.from_json(saved["dataset_config"])
     dataset = build_dataset(sessions, data_config, classes=saved["classes"])
     if dataset.feature_names != saved["feature_names"]:
         raise SessionError(f"the sessions give features {dataset.modality_dims}, the checkpoint was trained on "
                            f"{ {m: len(v) for m, v in saved['feature_names'].items()} }")
     split = Split.from_json(saved["split"])
-    test = _sequences(dataset, split.units["test"], Normaliser.from_json(saved["normaliser"]),
-                      list(data_config.modalities))
-    model, _ = build_model(saved["model"], dataset.modality_dims, len(dataset.classes), saved["model_options"])
+    normaliser = Normaliser.from_json(saved["normaliser"]) if data_config.normalise == "train" else None
+    test = _sequences(dataset, split.units["test"], normaliser, list(data_config.modalities))
+    name = saved["model"]
+    if name == "transformer" and "refinement_stages" not in saved.get("model_config", {}):
+        name = "transformer-plain"  # a checkpoint from before the refinement stages existed
+    model, _ = build_model(name, dataset.modality_dims, len(dataset.classes), saved["model_options"])
     model.load_state_dict(saved["state_dict"])
     model.to(device)
     result = {"test": _evaluate(model, test, dataset.classes, device)}
@@ -151,7 +178,8 @@ def build_model(name: str, modality_dims: dict[str, int], n_classes: int, option
         cfg = BaselineConfig(sum(modality_dims.values()), n_classes, hidden=64 if name == "baseline-mlp" else 0)
         model_cls = FrameBaseline
     else:
-        cfg = TransformerConfig(modality_dims=dict(modality_dims), n_classes=n_classes)
+        cfg = TransformerConfig(modality_dims=dict(modality_dims), n_classes=n_classes,
+                                **(PLAIN_TRANSFORMER if name == "transformer-plain" else {}))
         model_cls = GestureTransformer
     unknown = set(options) - set(asdict(cfg))
     if unknown:
@@ -163,9 +191,10 @@ def build_model(name: str, modality_dims: dict[str, int], n_classes: int, option
 
 def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
         progress: ProgressFn | None = None) -> list[dict]:
-    """Adam on the training units for ``config.epochs``; restores the best-validation weights."""
-    lr = config.lr if config.lr is not None else DEFAULT_LR[config.model]
-    optimiser = torch.optim.Adam(model.parameters(), lr=lr, weight_decay=config.weight_decay)
+    """Adam on the training units for ``config.epochs`` (None fields: the model's recipe); keeps the
+    last epoch's weights, or with selection "best-val" restores the best validation epoch's."""
+    config = config.resolved()
+    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     rng = np.random.default_rng(config.seed)
     history, best = [], (-1.0, None)
     for epoch in range(1, config.epochs + 1):
@@ -180,7 +209,7 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
             losses.append(float(loss.detach()))
         val_acc = _accuracy(model, val, device) if val.units else None
         history.append({"epoch": epoch, "loss": float(np.mean(losses)), "val_accuracy": val_acc})
-        if val_acc is not None and val_acc > best[0]:
+        if config.selection == "best-val" and val_acc is not None and val_acc > best[0]:
             best = (val_acc, {k: v.detach().clone() for k, v in model.state_dict().items()})
         if progress:
             progress(epoch, config.epochs, history[-1])
@@ -234,12 +263,28 @@ def code_version() -> dict:
             "torch": str(torch.__version__)}
 
 
-def _sequences(dataset: GestureDataset, units: list[tuple[str, int, int]], normaliser: Normaliser,
+def fit_normaliser(dataset: GestureDataset, train_units: list[tuple[str, int, int]],
+                   order: list[str]) -> Normaliser | None:
+    """The training-set normaliser for ``normalise == "train"``; None otherwise (per trial or none)."""
+    if dataset.config.normalise != "train":
+        return None
+    return Normaliser.fit([dataset.trials[dataset.trial_index(n)].stacked(order)[a:b] for n, a, b in train_units])
+
+
+def _sequences(dataset: GestureDataset, units: list[tuple[str, int, int]], normaliser: Normaliser | None,
                order: list[str]) -> Sequences:
+    """Units as arrays, normalised per ``dataset.config.normalise``: with the training-set
+    ``normaliser``, with each whole trial's own mean and std ("trial"), or not at all ("none")."""
     xs, ys = [], []
     for name, start, stop in units:
         trial = dataset.trials[dataset.trial_index(name)]
-        xs.append(normaliser.apply(trial.stacked(order)[start:stop]))
+        x = trial.stacked(order)
+        if dataset.config.normalise == "trial":
+            xs.append(Normaliser.fit([x]).apply(x[start:stop]))
+        elif normaliser is None:
+            xs.append(x[start:stop].astype(np.float32))
+        else:
+            xs.append(normaliser.apply(x[start:stop]))
         ys.append(trial.labels[start:stop])
     return Sequences(list(units), xs, ys)
 
@@ -274,7 +319,7 @@ def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], devic
     return {**M.evaluate(preds, seqs.y, classes), "predictions": preds}
 
 
-def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser, config: TrainConfig,
+def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | None, config: TrainConfig,
                 model_cfg: dict, history: list[dict]) -> dict:
     return {"format": CHECKPOINT_FORMAT, "model": config.model, "model_config": model_cfg,
             "model_options": dict(config.model_options), "train_config": asdict(config),
@@ -284,7 +329,9 @@ def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser, c
             "trials": [{"name": t.name, "subject": t.subject, "trial": t.trial, "platform": t.platform,
                         "frames": int(len(t.labels)), "rate_hz": t.rate_hz, "filled": t.filled}
                        for t in dataset.trials],
-            "split": split.to_json(), "normaliser": normaliser.to_json(),
+            "split": split.to_json(), "normalise": dataset.config.normalise,
+            "normaliser": normaliser.to_json() if normaliser is not None else None,
+            "recipe": {k: getattr(config, k) for k in RECIPES[config.model]},
             "data_fingerprint": dataset.fingerprint(), "code": code_version(), "history": history}
 
 
