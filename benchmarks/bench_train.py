@@ -17,7 +17,7 @@ thread, ``torch.no_grad``, 100 calls. Sizes 5, 10 and 15 trials give the slope p
     .venv/bin/python benchmarks/bench_train.py --louo     # JIGSAWS-sized LOUO fold -> results/train_louo.json
 
 LOUO (``--louo``): a JIGSAWS-sized dataset, 8 subjects x 5 trials of ~100 s at 30 Hz (``midas simulate
-dataset --platform raven-ii --trials 40 --subjects 8``, ``--difficulty real``), 76 input columns (mtm 22
+dataset --platform raven-ii --trials 40 --subjects 8 --max-seconds 100``, ``--difficulty real``), 76 input columns (mtm 22
 + psm 22 + image 32: pos, ori, vel, grasper at ``--model-rate 30``, as JIGSAWS's 76 kinematic columns).
 One LOUO fold of MS-TCN++ (fold 0: 6 subjects train, 1 validation, 1 test; the split of ``--split louo``)
 through the real loop (``models.train.fit`` with validation every epoch): a warm-up epoch, then
@@ -45,7 +45,7 @@ MODALITIES = ("emht", "mtm", "psm", "image")
 FEATURES = ("pos", "ori", "vel", "grasper")
 ONLINE_CONTEXT = {"mstcn": 1024, "transformer": 64}
 LOUO_SUBJECTS, LOUO_TRIALS_PER_SUBJECT, LOUO_EPOCHS, LOUO_FOLD_EPOCHS = 8, 5, 2, 50
-LOUO_MODALITIES, LOUO_RATE_HZ = ("mtm", "psm", "image"), 30.0
+LOUO_MODALITIES, LOUO_RATE_HZ, LOUO_MAX_SECONDS = ("mtm", "psm", "image"), 30.0, 100.0
 
 
 def prepare_dataset(folder: Path, trials: int, max_seconds: float | None, subjects: int = 1) -> dict:
@@ -202,7 +202,8 @@ def run_louo() -> None:
         trials = LOUO_SUBJECTS * LOUO_TRIALS_PER_SUBJECT
         print(f"train: simulating and aligning {trials} {PLATFORM} trials ({LOUO_SUBJECTS} subjects) ...", file=sys.stderr)
         load = load_average()
-        data = {**prepare_dataset(Path(tmp), trials, None, LOUO_SUBJECTS), "load_average_before_after": [load, load_average()]}
+        data = {**prepare_dataset(Path(tmp), trials, LOUO_MAX_SECONDS, LOUO_SUBJECTS),
+                "load_average_before_after": [load, load_average()]}
         runs = []
         for device in devices:
             print(f"train: LOUO fold 0, mstcn on {device} ...", file=sys.stderr)

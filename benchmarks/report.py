@@ -229,9 +229,10 @@ def train_section(t: dict) -> list[str]:
 
 def train_louo_section(t: dict) -> list[str]:
     d, m = t["data"], t["machine"]
+    cut = f" --max-seconds {d['max_seconds_per_trial']:g}" if d["max_seconds_per_trial"] else ""
     out = ["### One LOUO fold, JIGSAWS-sized (`bench_train.py --louo`)", "",
            f"Data: `midas simulate dataset --platform {d['platform']} --trials {d['trials']} --subjects {d['subjects']} "
-           f"--seed {d['seed']}` (default `--difficulty real`; {d['video_frames_total']} video frames, "
+           f"--seed {d['seed']}{cut}` (default `--difficulty real`; {d['video_frames_total']} video frames, "
            f"{d['dataset_mb']:g} MB) took {d['simulate_s']:g} s, `midas align` {d['align_s']:g} s (`--jobs {d['jobs']}`). "
            "The fold: MS-TCN++ on mtm + psm + image (pos, ori, vel, grasper) at 30 Hz, LOUO fold 0 (6 subjects "
            "train, 1 validation, 1 test), the real loop (`models.train.fit`, validation every epoch); a warm-up "
