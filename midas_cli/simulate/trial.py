@@ -7,6 +7,9 @@ and ``psm`` (100 Hz robot kinematics, ``kinematics_spec``). Plus ``labels/gestur
 ``calib/ground_truth.json``, ``derived/image_features.npz`` and, on the da Vinci, ``derived/pedals_gt.csv``.
 Host times: the session starts at a fixed, seed-independent epoch plus one hour per trial, so a dataset
 is byte-for-byte reproducible from its seed.
+Difficulty (``TrialConfig.difficulty``, simulate/style.py): ``easy`` moves every subject alike; ``real``
+adds the subject's style, pauses, unlabelled stretches, motion that leads or lags its labels and the
+session's sensor placement (recorded under ``difficulty`` in ``calib/ground_truth.json``).
 """
 
 from __future__ import annotations

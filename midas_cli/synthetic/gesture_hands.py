@@ -9,6 +9,11 @@ hands move back towards home. Hand geometry (grip levers, sensor pads, wrist neu
 position) is the simulated rig's (midas_cli.synthetic.hands), so sensors sit where the live
 simulator puts them.
 
+A subject style (optional, from simulate/style.py, duck-typed: this package never imports simulate/)
+scales and biases each plan, may swap the hands' roles (left-handed, mirrored), sets move speed, tremor
+and fine-motion scale, and starts each move towards the next gesture before the segment ends
+(blending); a sensor placement (optional) offsets each sensor on its pad.
+
 Clock: ``t`` is seconds since the trial started (true time, before any sensor latency).
 """
 
