@@ -14,6 +14,15 @@ thread, ``torch.no_grad``, 100 calls. Sizes 5, 10 and 15 trials give the slope p
 
     .venv/bin/python benchmarks/bench_train.py            # 15 trials; 5, 10, 15 -> results/train.json
     .venv/bin/python benchmarks/bench_train.py --quick    # 3 trials cut to 40 s; 2 and 3
+    .venv/bin/python benchmarks/bench_train.py --louo     # JIGSAWS-sized LOUO fold -> results/train_louo.json
+
+LOUO (``--louo``): a JIGSAWS-sized dataset, 8 subjects x 5 trials of ~100 s at 30 Hz (``midas simulate
+dataset --platform raven-ii --trials 40 --subjects 8 --max-seconds 100``, ``--difficulty real``), 76 input columns (mtm 22
++ psm 22 + image 32: pos, ori, vel, grasper at ``--model-rate 30``, as JIGSAWS's 76 kinematic columns).
+One LOUO fold of MS-TCN++ (fold 0: 6 subjects train, 1 validation, 1 test; the split of ``--split louo``)
+through the real loop (``models.train.fit`` with validation every epoch): a warm-up epoch, then
+``LOUO_EPOCHS`` timed epochs; a 50-epoch fold is extrapolated (50 x epoch + test evaluation) and said so.
+CPU only here; a GPU run is recorded only where ``torch.cuda.is_available()``.
 """
 
 from __future__ import annotations
@@ -35,21 +44,24 @@ PLATFORM, SEED = "raven-ii", 1
 MODALITIES = ("emht", "mtm", "psm", "image")
 FEATURES = ("pos", "ori", "vel", "grasper")
 ONLINE_CONTEXT = {"mstcn": 1024, "transformer": 64}
+LOUO_SUBJECTS, LOUO_TRIALS_PER_SUBJECT, LOUO_EPOCHS, LOUO_FOLD_EPOCHS = 8, 5, 2, 50
+LOUO_MODALITIES, LOUO_RATE_HZ, LOUO_MAX_SECONDS = ("mtm", "psm", "image"), 30.0, 100.0
 
 
-def prepare_dataset(folder: Path, trials: int, max_seconds: float | None) -> dict:
+def prepare_dataset(folder: Path, trials: int, max_seconds: float | None, subjects: int = 1) -> dict:
     """Simulate and align ``trials`` sessions into ``folder`` through the CLI; wall times and sizes."""
     limit = ["--max-seconds", str(max_seconds)] if max_seconds else []
     t0 = time.monotonic()
     made = _cli("simulate", "dataset", "--platform", PLATFORM, "--trials", str(trials), "--seed", str(SEED),
-                "--out", str(folder), "--jobs", "2", "--json", *limit)
+                "--subjects", str(subjects), "--out", str(folder), "--jobs", "2", "--json", *limit)
     simulate_s = time.monotonic() - t0
     sessions = [r["path"] for r in json.loads(made)]
     t0 = time.monotonic()
     aligned = json.loads(_cli("align", *sessions, "--jobs", "2", "--json"))
     align_s = time.monotonic() - t0
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
-    return {"platform": PLATFORM, "seed": SEED, "trials": trials, "max_seconds_per_trial": max_seconds,
+    return {"platform": PLATFORM, "seed": SEED, "trials": trials, "subjects": subjects,
+            "max_seconds_per_trial": max_seconds,
             "simulate_s": round(simulate_s, 2), "align_s": round(align_s, 2), "jobs": 2,
             "video_frames_total": int(sum(a["frames"] for a in aligned)), "dataset_mb": round(size / 1e6, 1)}
 
@@ -143,11 +155,82 @@ def slopes(runs: list[dict]) -> dict:
     return out
 
 
+def louo_case(folder: Path, device_name: str) -> dict:
+    """Runs inside the child: one LOUO fold of MS-TCN++ on ``device_name`` (see the module docstring)."""
+    import torch
+
+    from midas_cli.models.data import DatasetConfig, Normaliser, build_dataset
+    from midas_cli.models.splits import make_split
+    from midas_cli.models.train import Sequences, TrainConfig, build_model, fit, predict
+
+    torch.manual_seed(0)
+    device = torch.device(device_name)
+    t0 = time.monotonic()
+    dataset = build_dataset(sessions_in(folder), DatasetConfig(LOUO_MODALITIES, FEATURES, rate_hz=LOUO_RATE_HZ))
+    build_s = time.monotonic() - t0
+    split = make_split(dataset, "louo", 0, 0)
+    order = list(dataset.config.modalities)
+    blocks = {t.name: t.stacked(order) for t in dataset.trials}
+    normaliser = Normaliser.fit([blocks[n][a:b] for n, a, b in split.units["train"]])
+    parts = {part: Sequences(list(units), [normaliser.apply(blocks[n][a:b]) for n, a, b in units],
+                             [dataset.trials[dataset.trial_index(n)].labels[a:b] for n, a, b in units])
+             for part, units in split.units.items()}
+    model, _ = build_model("mstcn", dataset.modality_dims, len(dataset.classes), {})
+    model.to(device)
+    fit(model, parts["train"], parts["val"], TrainConfig(model="mstcn", epochs=1), device)  # warm-up
+    t0 = time.monotonic()
+    fit(model, parts["train"], parts["val"], TrainConfig(model="mstcn", epochs=LOUO_EPOCHS), device)
+    epoch_s = (time.monotonic() - t0) / LOUO_EPOCHS
+    t0 = time.monotonic()
+    predict(model, parts["test"], device)
+    test_s = time.monotonic() - t0
+    frames = {part: int(sum(len(y) for y in seqs.y)) for part, seqs in parts.items()}
+    return {"device": device_name, "torch_threads": torch.get_num_threads(), "columns": sum(dataset.modality_dims.values()),
+            "modality_dims": dataset.modality_dims, "rate_hz": LOUO_RATE_HZ, "classes": len(dataset.classes),
+            "trials": {part: len(units) for part, units in split.units.items()}, "frames": frames,
+            "frames_per_trial_mean": round(float(np.mean([len(t.labels) for t in dataset.trials])), 1),
+            "dataset_build_s": round(build_s, 2), "timed_epochs": LOUO_EPOCHS, "epoch_s": round(epoch_s, 2),
+            "test_predict_s": round(test_s, 2), "fold_epochs": LOUO_FOLD_EPOCHS,
+            "fold_s_extrapolated": round(LOUO_FOLD_EPOCHS * epoch_s + test_s, 1)}
+
+
+def run_louo() -> None:
+    import torch
+
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    with tempfile.TemporaryDirectory(prefix="midas-bench-louo-") as tmp:
+        trials = LOUO_SUBJECTS * LOUO_TRIALS_PER_SUBJECT
+        print(f"train: simulating and aligning {trials} {PLATFORM} trials ({LOUO_SUBJECTS} subjects) ...", file=sys.stderr)
+        load = load_average()
+        data = {**prepare_dataset(Path(tmp), trials, LOUO_MAX_SECONDS, LOUO_SUBJECTS),
+                "load_average_before_after": [load, load_average()]}
+        runs = []
+        for device in devices:
+            print(f"train: LOUO fold 0, mstcn on {device} ...", file=sys.stderr)
+            load = load_average()
+            proc = subprocess.run([sys.executable, __file__, "--louo-case", tmp, device], capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"LOUO case on {device} failed: {proc.stderr[-2000:]}")
+            runs.append({"load_average_before_after": [load, load_average()],
+                         **json.loads(proc.stdout.strip().splitlines()[-1])})
+    write_result("train_louo", {"machine": machine_info(), "data": data, "gpu_available": len(devices) > 1,
+                                "dataset_config": {"modalities": list(LOUO_MODALITIES), "features": list(FEATURES)},
+                                "runs": runs})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 trials cut to 40 s; sizes 2 and 3")
+    parser.add_argument("--louo", action="store_true", help="JIGSAWS-sized LOUO fold timing -> results/train_louo.json")
     parser.add_argument("--case", nargs=4, help=argparse.SUPPRESS)
+    parser.add_argument("--louo-case", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.louo_case:
+        print(json.dumps(louo_case(Path(args.louo_case[0]), args.louo_case[1])))
+        return
+    if args.louo:
+        run_louo()
+        return
     if args.case:
         result = case(args.case[0], Path(args.case[1]), int(args.case[2]), int(args.case[3]))
         hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM:")][0].split()[1]

@@ -39,6 +39,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_align.py      # align vs merge_asof, 10, 30 and 60 min sessions",
             ".venv/bin/python benchmarks/bench_pedal_gt.py --duration 10   # pedal ground truth from video",
             ".venv/bin/python benchmarks/bench_train.py      # simulate + align 15 trials; MS-TCN++ / transformer",
+            ".venv/bin/python benchmarks/bench_train.py --louo   # one JIGSAWS-sized LOUO fold of MS-TCN++",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -226,6 +227,33 @@ def train_section(t: dict) -> list[str]:
                   "trial run; compare at similar load, and keep online inference at one thread.", ""]
 
 
+def train_louo_section(t: dict) -> list[str]:
+    d, m = t["data"], t["machine"]
+    cut = f" --max-seconds {d['max_seconds_per_trial']:g}" if d["max_seconds_per_trial"] else ""
+    out = ["### One LOUO fold, JIGSAWS-sized (`bench_train.py --louo`)", "",
+           f"Data: `midas simulate dataset --platform {d['platform']} --trials {d['trials']} --subjects {d['subjects']} "
+           f"--seed {d['seed']}{cut}` (default `--difficulty real`; {d['video_frames_total']} video frames, "
+           f"{d['dataset_mb']:g} MB) took {d['simulate_s']:g} s, `midas align` {d['align_s']:g} s (`--jobs {d['jobs']}`). "
+           "The fold: MS-TCN++ on mtm + psm + image (pos, ori, vel, grasper) at 30 Hz, LOUO fold 0 (6 subjects "
+           "train, 1 validation, 1 test), the real loop (`models.train.fit`, validation every epoch); a warm-up "
+           "epoch, then the timed epochs; **the 50-epoch fold time is extrapolated** (50 x epoch + test "
+           f"prediction), not measured. Machine: {m['cpu_model']}, {m['affinity_cpus']} usable CPUs "
+           f"of {m['cpus']}, {m['date_utc']}.", "",
+           "| device | columns | trials train/val/test | frames train/val/test | frames per trial | load 1 min | "
+           "epoch s (timed epochs) | test predict s | 50-epoch fold s (extrapolated) |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in t["runs"]:
+        load = "–".join(f"{x:g}" for x in r["load_average_before_after"])
+        trials = "/".join(str(r["trials"][p]) for p in ("train", "val", "test"))
+        frames = "/".join(str(r["frames"][p]) for p in ("train", "val", "test"))
+        out.append(f"| {r['device']} ({r['torch_threads']} torch threads) | {r['columns']} | {trials} | {frames} | "
+                   f"{r['frames_per_trial_mean']:g} | {load} | {r['epoch_s']:g} ({r['timed_epochs']}) | "
+                   f"{r['test_predict_s']:g} | {r['fold_s_extrapolated']:g} |")
+    if not t.get("gpu_available"):
+        out.append("| GPU | — | — | — | — | — | not measured: no GPU on this machine | — | — |")
+    return out + [""]
+
+
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
@@ -236,6 +264,8 @@ def main() -> None:
                           ("train", train_section)):
         result = load(name)
         lines += section(result) if result else [f"## {name}: no results yet (run its script)", ""]
+        if name == "train" and load("train_louo"):
+            lines += train_louo_section(load("train_louo"))
     lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")

@@ -100,7 +100,7 @@ def test_refinement_flickers_less_than_the_plain_transformer_on_a_noisy_toy_task
         x = torch.nn.functional.one_hot(y, 3).transpose(1, 2).float() + 3.0 * torch.randn(n, 3, length, generator=gen)
         return x, y
 
-    (x, y), (x_test, y_test) = data(), data()
+    (x, y), (x_test, _) = data(), data()
     mask = torch.ones(y.shape, dtype=torch.bool)
     segments = {}
     threads = torch.get_num_threads()

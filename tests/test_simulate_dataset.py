@@ -180,3 +180,51 @@ def test_kinematics_spec_layout() -> None:
     names = kinematics_spec("psm").column_names
     assert names[:3] == ["seq", "t_host_ns", "t_device_s"] and names[-1] == "clutch"
     assert names[3:14] == side_columns("left") and len(names) == 26
+
+
+def _drawn(difficulty: str, trial: int, subjects: int = 2, platform: str = "davinci-xi"):  # noqa: ANN202
+    from midas_cli.simulate.dataset import trial_configs
+    from midas_cli.simulate.trial import draw_trial
+    configs = trial_configs(platform, 4, 7, Path("unused"), subjects, max_seconds=120, difficulty=difficulty)
+    return draw_trial(configs[trial - 1])
+
+
+def test_real_difficulty_draws_one_style_per_subject() -> None:
+    first, third, second = _drawn("real", 1), _drawn("real", 3), _drawn("real", 2)
+    assert first.config.subject == third.config.subject == "1" and second.config.subject == "2"
+    assert first.style.to_json() == third.style.to_json() != second.style.to_json()
+    assert not np.allclose(first.hands.placement.angles_deg, third.hands.placement.angles_deg)  # per session
+
+
+def test_real_difficulty_blends_pauses_and_leaves_stretches_unlabelled() -> None:
+    trials = [_drawn("real", i, subjects=4) for i in (1, 2, 3, 4)]
+    labels = [label for t in trials for label, _, _ in t.segments]
+    assert "" in labels  # suturing has no Idle class: pauses are unlabelled
+    assert sum(len(t.blank) for t in trials) >= 1
+    for t in trials:
+        label_bounds = np.array([s[1] for s in t.segments])
+        motion_bounds = np.array([s[1] for s in t.hands.segments])
+        assert len(label_bounds) == len(motion_bounds) and np.all(np.diff(motion_bounds) > 0)
+        assert np.abs(label_bounds - motion_bounds)[1:].mean() > 0.05  # motion does not switch with the label
+    frame_s = np.arange(int(trials[0].duration_s * 30)) / 30.0
+    from midas_cli.simulate.trial import _frame_labels
+    marked = _frame_labels(trials[0], frame_s)
+    for begin, end in trials[0].blank:
+        assert set(marked[(frame_s >= begin) & (frame_s < end)]) == {""}
+
+
+def test_easy_difficulty_is_the_uniform_simulator() -> None:
+    easy = _drawn("easy", 1, platform="raven-ii")
+    assert easy.style is None and easy.hands.placement is None and len(easy.blank) == 0
+    assert all(label for label, _, _ in easy.segments) and easy.hands.segments == easy.segments
+
+
+def test_difficulty_option_is_checked_and_changes_the_data(tmp_path: Path) -> None:
+    bad = midas("simulate", "dataset", "--difficulty", "nightmare", "--trials", "1", "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "easy" in bad.stderr
+    easy = _simulate(tmp_path / "e", "raven-ii", 1, 9, "--difficulty", "easy", seconds=5)[0]
+    real = _simulate(tmp_path / "r", "raven-ii", 1, 9, seconds=5)[0]
+    truth = _truth(real)
+    assert "difficulty" not in _truth(easy) and truth["difficulty"]["level"] == "real"
+    assert len(truth["difficulty"]["sensor_placement"]["angles_deg"]) == 4
+    assert Session.open(easy).manifest["streams"]["emht"]["sha256"] != Session.open(real).manifest["streams"]["emht"]["sha256"]

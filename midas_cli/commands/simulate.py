@@ -29,6 +29,9 @@ def dataset(
     distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative, help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
     max_seconds: Optional[float] = typer.Option(None, "--max-seconds", callback=positive, help="Cut each trial to this length (s)."),
     jobs: int = typer.Option(1, "--jobs", "-j", help="Trials generated in parallel (worker processes)."),
+    difficulty: str = typer.Option("real", "--difficulty", help="real (subjects differ in speed, style and "
+                                   "handedness; blended gestures, pauses, unlabelled stretches, sensor placement) "
+                                   "or easy (every subject moves alike)."),
     as_json: bool = JSON_OPTION,
 ) -> None:
     """Write a simulated dataset with known ground truth, one session per trial.
@@ -38,7 +41,8 @@ def dataset(
 
     Example: midas simulate dataset --out sessions --platform davinci-xi --trials 4 --seed 1
     """
-    configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds)
+    configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
+                           difficulty)
 
     def report(result: dict[str, Any]) -> None:
         err.print(f"midas: simulated {result['path']} ({result['duration_s']:.1f} s)", markup=False)

@@ -13,14 +13,15 @@ from pathlib import Path
 from typing import Any, Callable
 
 from midas_cli.errors import ConfigError
+from midas_cli.simulate.style import DEFAULT_DIFFICULTY, check_difficulty
 from midas_cli.simulate.trial import TASKS, TrialConfig, write_trial
 
 log = logging.getLogger(__name__)
 
 
 def trial_configs(platform: str, trials: int, seed: int, out: Path, subjects: int = 1,
-                  latency_ms: float = 40.0, distortion_mm: float = 1.0, max_seconds: float | None = None
-                  ) -> list[TrialConfig]:
+                  latency_ms: float = 40.0, distortion_mm: float = 1.0, max_seconds: float | None = None,
+                  difficulty: str = DEFAULT_DIFFICULTY) -> list[TrialConfig]:
     """Validated per-trial settings; raises ConfigError naming the bad value."""
     if platform not in TASKS:
         raise ConfigError(f"--platform {platform!r} unknown (expected {' or '.join(TASKS)})")
@@ -32,7 +33,8 @@ def trial_configs(platform: str, trials: int, seed: int, out: Path, subjects: in
     for ok, message in checks:
         if not ok:
             raise ConfigError(message)
-    base = TrialConfig(platform, 1, "1", seed, Path(out), latency_ms, distortion_mm, max_seconds)
+    base = TrialConfig(platform, 1, "1", seed, Path(out), latency_ms, distortion_mm, max_seconds,
+                       check_difficulty(difficulty))
     return [replace(base, trial=i, subject=str(1 + (i - 1) % subjects)) for i in range(1, trials + 1)]
 
 

@@ -7,6 +7,9 @@ and ``psm`` (100 Hz robot kinematics, ``kinematics_spec``). Plus ``labels/gestur
 ``calib/ground_truth.json``, ``derived/image_features.npz`` and, on the da Vinci, ``derived/pedals_gt.csv``.
 Host times: the session starts at a fixed, seed-independent epoch plus one hour per trial, so a dataset
 is byte-for-byte reproducible from its seed.
+Difficulty (``TrialConfig.difficulty``, simulate/style.py): ``easy`` moves every subject alike; ``real``
+adds the subject's style, pauses, unlabelled stretches, motion that leads or lags its labels and the
+session's sensor placement (recorded under ``difficulty`` in ``calib/ground_truth.json``).
 """
 
 from __future__ import annotations
@@ -29,10 +32,10 @@ from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.pedals_gt import pedals_gt_path, write_pedals_gt
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from midas_cli.simulate import gestures
+from midas_cli.simulate import gestures, style as difficulty_style
 from midas_cli.simulate.truth import GroundTruth, psm_positions
 from midas_cli.synthetic import trial_pedals
-from midas_cli.synthetic.gesture_hands import GestureHands
+from midas_cli.synthetic.gesture_hands import PAUSE, GestureHands
 
 log = logging.getLogger(__name__)
 
@@ -59,11 +62,13 @@ class TrialConfig:
     latency_ms: float = 40.0
     distortion_mm: float = 1.0
     max_seconds: float | None = None
+    difficulty: str = difficulty_style.DEFAULT_DIFFICULTY
 
 
 @dataclass
 class _Trial:
-    """Everything drawn for one trial (times in s since the session start, true clock)."""
+    """Everything drawn for one trial (times in s since the session start, true clock). ``segments`` are
+    the labels ('' = an unlabelled pause), ``blank`` (M, 2) s the stretches left unlabelled."""
 
     config: TrialConfig
     segments: list[tuple[str, float, float]]
@@ -72,20 +77,40 @@ class _Trial:
     truth: GroundTruth
     duration_s: float
     start_ns: int
+    blank: np.ndarray
+    style: difficulty_style.SubjectStyle | None = None
 
 
 def draw_trial(config: TrialConfig) -> _Trial:
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, config.trial]))
     taxonomy = gestures.taxonomy_for(config.platform)
-    drawn = gestures.sample_segments(rng, taxonomy, config.max_seconds)
-    bounds = np.concatenate([[0.0], np.cumsum([d for _, d in drawn])])
-    segments = [(label, float(bounds[i]), float(bounds[i + 1])) for i, (label, _) in enumerate(drawn)]
-    clutches = trial_pedals.clutch_intervals(rng, config.platform, segments)
-    schedule = trial_pedals.pedal_schedule(rng, config.platform, clutches, float(bounds[-1]))
-    hands = GestureHands(segments, clutches, config.seed * 1000 + config.trial)
-    truth = GroundTruth.build(config.distortion_mm, config.latency_ms)
+    easy = difficulty_style.check_difficulty(config.difficulty) == "easy"
+    style = None if easy else difficulty_style.subject_style(config.seed, config.subject, len(taxonomy.labels))
+    limit = config.max_seconds if style is None or config.max_seconds is None else config.max_seconds * style.speed
+    drawn = gestures.sample_segments(rng, taxonomy, limit)  # real: durations / speed below, so the cut scales
+    seed = config.seed * 1000 + config.trial
     start_ns = EPOCH_NS + config.trial * 3_600_000_000_000
-    return _Trial(config, segments, schedule, hands, truth, float(bounds[-1]), start_ns)
+    truth = GroundTruth.build(config.distortion_mm, config.latency_ms)
+    if style is None:
+        bounds = np.concatenate([[0.0], np.cumsum([d for _, d in drawn])])
+        segments = [(label, float(bounds[i]), float(bounds[i + 1])) for i, (label, _) in enumerate(drawn)]
+        clutches = trial_pedals.clutch_intervals(rng, config.platform, segments)
+        schedule = trial_pedals.pedal_schedule(rng, config.platform, clutches, float(bounds[-1]))
+        hands = GestureHands(segments, clutches, seed)
+        return _Trial(config, segments, schedule, hands, truth, float(bounds[-1]), start_ns, np.zeros((0, 2)))
+    hard = difficulty_style.trial_rng(config.seed, config.trial)
+    pause_label = gestures.IDLE if gestures.IDLE in taxonomy.labels else ""
+    parts = difficulty_style.add_pauses(hard, style, drawn, pause_label, PAUSE)
+    bounds = np.concatenate([[0.0], np.cumsum([d for _, _, d in parts])])
+    moving = difficulty_style.motion_bounds(hard, style, bounds)
+    segments = [(label, float(bounds[i]), float(bounds[i + 1])) for i, (label, _, _) in enumerate(parts)]
+    motion = [(key, float(moving[i]), float(moving[i + 1])) for i, (_, key, _) in enumerate(parts)]
+    clutches = trial_pedals.clutch_intervals(rng, config.platform, motion)
+    schedule = trial_pedals.pedal_schedule(rng, config.platform, clutches, float(bounds[-1]))
+    hands = GestureHands(motion, clutches, seed, style, difficulty_style.Placement.draw(config.seed, config.trial),
+                         {label: k for k, label in enumerate(taxonomy.labels)})
+    blank = difficulty_style.unlabelled_stretches(hard, style, float(bounds[-1]))
+    return _Trial(config, segments, schedule, hands, truth, float(bounds[-1]), start_ns, blank, style)
 
 
 def write_trial(config: TrialConfig) -> dict[str, Any]:
@@ -129,6 +154,7 @@ def _device_specs(platform: str) -> tuple[dict[str, StreamSpec], dict[str, dict[
 def _rig(config: TrialConfig) -> dict[str, Any]:
     return {"simulated": True, "generator": "midas simulate dataset", "seed": config.seed,
             "platform": config.platform, "latency_ms": config.latency_ms, "distortion_mm": config.distortion_mm,
+            "difficulty": config.difficulty,
             "notes": ["every stream is synthetic: generated from a gesture-driven hand/foot model",
                       "ground truth: calib/ground_truth.json; gesture labels: labels/gestures.csv",
                       "derived/image_features.npz holds SYNTHETIC image features (no video exists), "
@@ -219,8 +245,13 @@ def _write_derived(folder: Path, trial: _Trial, frames: np.ndarray) -> None:
     write_frame_labels(folder, frames, labels, {
         "taxonomy": taxonomy.name, "source": "simulated (midas simulate dataset): exact generator labels",
         "classes": list(taxonomy.labels)})
-    artifacts.write_json(folder, "calib/ground_truth.json",
-                         trial.truth.to_json(trial.hands.rig.camera_from_transmitter()))
+    truth = trial.truth.to_json(trial.hands.rig.camera_from_transmitter())
+    if trial.style is not None:
+        truth["difficulty"] = {"level": trial.config.difficulty, "subject_style": trial.style.to_json(),
+                               "sensor_placement": trial.hands.placement.to_json(),
+                               "unlabelled_stretches_s": np.round(trial.blank, 3).tolist(),
+                               "note": "simulate/style.py: subject style, pauses, unlabelled stretches, placement"}
+    artifacts.write_json(folder, "calib/ground_truth.json", truth)
     features = _image_features(trial, labels, taxonomy.labels)
     artifacts.write_npz(folder, "derived/image_features.npz", frame=frames.astype(np.int64), features=features,
                         note=np.array("SYNTHETIC image features (no video was rendered): class embedding of the "
@@ -235,16 +266,26 @@ def _write_derived(folder: Path, trial: _Trial, frames: np.ndarray) -> None:
 def _frame_labels(trial: _Trial, frame_s: np.ndarray) -> np.ndarray:
     starts = np.array([s[1] for s in trial.segments])
     index = np.clip(np.searchsorted(starts, frame_s, side="right") - 1, 0, len(starts) - 1)
-    return np.array([s[0] for s in trial.segments], dtype=object)[index]
+    labels = np.array([s[0] for s in trial.segments], dtype=object)[index]
+    for begin, end in trial.blank:
+        labels[(frame_s >= begin) & (frame_s < end)] = ""
+    return labels
 
 
 def _image_features(trial: _Trial, labels: np.ndarray, classes: tuple[str, ...]) -> np.ndarray:
     """(N, FEATURE_DIM) float32: class embedding (shared by the dataset's trials) of the frame's gesture, or of
-    a random gesture for 30% of segments, plus AR(1) noise (coefficient 0.95 per frame, unit variance)."""
-    embedding = np.random.default_rng([trial.config.seed, 4242]).normal(0.0, 1.0, (len(classes), FEATURE_DIM))
+    a random gesture for 30% of segments, plus AR(1) noise (coefficient 0.95 per frame, unit variance).
+    ``real`` difficulty: each subject's embedding departs from the shared one (what a camera sees differs
+    by subject), 40% of segments confused; an unlabelled pause has its own embedding."""
+    embedding = np.random.default_rng([trial.config.seed, 4242]).normal(0.0, 1.0, (len(classes) + 1, FEATURE_DIM))
+    confusion = 0.3
+    if trial.style is not None:
+        subject = np.random.default_rng([trial.config.seed, 4244, difficulty_style.subject_key(trial.config.subject)])
+        embedding = embedding + 0.8 * subject.normal(0.0, 1.0, embedding.shape)
+        confusion = 0.4
     rng = np.random.default_rng([trial.config.seed, trial.config.trial, 4243])
-    true_class = np.array([classes.index(label) for label, _, _ in trial.segments])
-    confused = rng.random(len(true_class)) < 0.3
+    true_class = np.array([classes.index(label) if label else len(classes) for label, _, _ in trial.segments])
+    confused = rng.random(len(true_class)) < confusion
     shown = np.where(confused, rng.integers(0, len(classes), len(true_class)), true_class)
     starts = np.array([s[1] for s in trial.segments])
     segment = np.clip(np.searchsorted(starts, np.arange(len(labels)) / 30.0, side="right") - 1, 0, len(starts) - 1)

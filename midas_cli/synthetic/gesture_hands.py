@@ -9,12 +9,18 @@ hands move back towards home. Hand geometry (grip levers, sensor pads, wrist neu
 position) is the simulated rig's (midas_cli.synthetic.hands), so sensors sit where the live
 simulator puts them.
 
+A subject style (optional, from simulate/style.py, duck-typed: this package never imports simulate/)
+scales and biases each plan, may swap the hands' roles (left-handed, mirrored), sets move speed, tremor
+and fine-motion scale, and starts each move towards the next gesture before the segment ends
+(blending); a sensor placement (optional) offsets each sensor on its pad.
+
 Clock: ``t`` is seconds since the trial started (true time, before any sensor latency).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -72,6 +78,10 @@ GESTURE_PLANS: dict[str, tuple[HandPlan, HandPlan]] = {
 }
 
 
+PAUSE = "__pause__"  # motion key of a mid-trial pause: the hands stay where they are, almost still
+PAUSE_PLAN = (HandPlan(spread_mm=0.0, fine_mm=0.3), HandPlan(spread_mm=0.0, fine_mm=0.3))
+
+
 def knot_curve(times: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Minimum-jerk interpolation through knots (times (K,) increasing, values (K, D)) at t (N,) -> (N, D);
     constant before the first and after the last knot."""
@@ -106,39 +116,72 @@ class _HandKnots:
 class GestureHands:
     """Both hands of one simulated trial, built from (label, start s, end s) segments and clutch intervals."""
 
-    def __init__(self, segments: list[tuple[str, float, float]], clutches: np.ndarray, seed: int) -> None:
+    def __init__(self, segments: list[tuple[str, float, float]], clutches: np.ndarray, seed: int,
+                 style: Any = None, placement: Any = None, gesture_index: dict[str, int] | None = None) -> None:
+        """``style`` (a subject style, simulate/style.py) and ``placement`` (sensor placement) are None
+        for the easy simulator; ``gesture_index`` maps a gesture label to its row in the style's biases."""
         self.rig = SurgeonMotion(MotionConfig(seed=seed))
         self.lever_mm = self.rig.config.grip_lever_mm
         rng = np.random.default_rng(np.random.SeedSequence([seed, 7001]))
+        self.style, self.placement, self._gesture_index = style, placement, gesture_index or {}
         self.home = [self.rig.hands.neutral_grip_point(h) for h in range(2)]
         self.wrist_base = [self.rig.hands.wrist_base_deg(h) for h in range(2)]
         self.segments = segments
         self._bounds = np.array([s[1] for s in segments] + [segments[-1][2]])
         self._knots = [self._plan_hand(h, rng, clutches) for h in range(2)]
-        self._circle = np.array([[GESTURE_PLANS[s[0]][h].circle_mm for h in range(2)] for s in segments])
-        self._fine = np.array([[GESTURE_PLANS[s[0]][h].fine_mm for h in range(2)] for s in segments])
-        self._slow = [SinusoidBank.draw(rng, (0.2, 1.2), np.full((3, 3), 1.0)) for _ in range(2)]
-        self._tremor = [SinusoidBank.draw(rng, (8.0, 12.0), np.full((3, 2), TREMOR_MM)) for _ in range(2)]
+        self._circle = np.array([[self.plan(s[0], h).circle_mm for h in range(2)] for s in segments])
+        self._fine = np.array([[self.plan(s[0], h).fine_mm for h in range(2)] for s in segments])
+        tremor, fine = (1.0, 1.0) if style is None else (style.tremor, style.fine)
+        self._slow = [SinusoidBank.draw(rng, (0.2, 1.2), np.full((3, 3), fine)) for _ in range(2)]
+        self._tremor = [SinusoidBank.draw(rng, (8.0, 12.0), np.full((3, 2), TREMOR_MM * tremor)) for _ in range(2)]
+
+    def plan(self, label: str, hand: int) -> HandPlan:
+        """The plan of ``hand`` in gesture ``label``: a left-handed subject does the other hand's part,
+        mirrored (lateral offset, azimuth and roll negated); the subject's amplitude and bias applied."""
+        if label == PAUSE:
+            return PAUSE_PLAN[hand]
+        style = self.style
+        if style is None:
+            return GESTURE_PLANS[label][hand]
+        plan = GESTURE_PLANS[label][1 - hand if style.left_handed else hand]
+        mirror = np.array([1.0, -1.0, 1.0]) if style.left_handed else np.ones(3)
+        bias = self._gesture_index.get(label)
+        wrist = np.asarray(plan.wrist_deg) * np.array([mirror[1], 1.0, mirror[1]])
+        offset = plan.offset_mm
+        if offset is not None:
+            offset = tuple(np.asarray(offset) * mirror * style.amplitude
+                           + (style.bias_mm[bias, hand] if bias is not None else 0.0))
+            wrist = wrist + (style.bias_deg[bias, hand] if bias is not None else 0.0)
+        return replace(plan, offset_mm=offset, wrist_deg=tuple(wrist), spread_mm=plan.spread_mm * style.consistency,
+                       roll_sweep_deg=plan.roll_sweep_deg * mirror[1] * style.amplitude,
+                       circle_mm=plan.circle_mm * style.amplitude)
 
     def _plan_hand(self, hand: int, rng: np.random.Generator, clutches: np.ndarray) -> _HandKnots:
         t_start = self.segments[0][1]
         aperture = float(rng.uniform(*APERTURE_OPEN_MM))
         knots = _HandKnots([t_start], [np.zeros(6)], [t_start], [aperture])
-        for label, t0, t1 in self.segments:
-            plan = GESTURE_PLANS[label][hand]
+        speed = MOVE_SPEED_MM_S * (1.0 if self.style is None else self.style.speed)
+        for i, (label, t0, t1) in enumerate(self.segments):
+            plan = self.plan(label, hand)
             begin = self._clutch_recentre(knots, clutches, t0, t1)
             current = knots.pose_v[-1]
             target = current.copy()
             if plan.offset_mm is not None:
                 target[:3] = np.asarray(plan.offset_mm) + rng.normal(0.0, plan.spread_mm, 3)
                 target[3:] = np.asarray(plan.wrist_deg) + rng.normal(0.0, 3.0, 3)
-            move = min(0.5 * (t1 - begin), MOVE_BASE_S + np.linalg.norm(target[:3] - current[:3]) / MOVE_SPEED_MM_S)
+            move = min(0.5 * (t1 - begin), MOVE_BASE_S + np.linalg.norm(target[:3] - current[:3]) / speed)
             knots.add_pose(begin + move, target)
             swept = target + np.array([0, 0, 0, 0, 0, plan.roll_sweep_deg])
-            knots.add_pose(t1, swept)
+            knots.add_pose(t1 - self._blend(i, t0, t1), swept)
             for fraction, state in plan.grasp:
                 self._grasp(knots, rng, t0 + fraction * (t1 - t0), state, t1)
         return knots
+
+    def _blend(self, index: int, t0: float, t1: float) -> float:
+        """How long before the segment's end the move towards the next gesture starts (0: at the end)."""
+        if self.style is None or index == len(self.segments) - 1:
+            return 0.0
+        return min(self.style.blend_s, 0.3 * (t1 - t0))
 
     def _clutch_recentre(self, knots: _HandKnots, clutches: np.ndarray, t0: float, t1: float) -> float:
         """If a clutch press starts in this segment, move towards home while it is held; returns the
@@ -182,7 +225,8 @@ class GestureHands:
 
     def sensors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[HandState]]:
         """Sensor positions (N, 4, 3) mm and rotations (N, 4, 3, 3), order 1 left middle, 2 left thumb,
-        3 right thumb, 4 right middle (transmitter frame), and the hand states they came from."""
+        3 right thumb, 4 right middle (transmitter frame; as placed on the fingers in this session), and the
+        hand states they came from."""
         states = self.states(t)
         positions, rotations = np.empty((len(t), 4, 3)), np.empty((len(t), 4, 3, 3))
         for hand, state in enumerate(states):
@@ -190,4 +234,6 @@ class GestureHands:
             for sensor, side in ((thumb, THUMB_SIDE[hand]), (middle, -THUMB_SIDE[hand])):
                 positions[:, sensor] = self.rig.hands.pad_position(state, side)
                 rotations[:, sensor] = pad_rotation(state, side)
+        if self.placement is not None:
+            positions, rotations = self.placement.apply(positions, rotations)
         return positions, rotations, states
