@@ -141,3 +141,28 @@ def test_transformer_attends_over_time_within_a_window():
     with torch.no_grad():
         delta = (model(x, mask) - model(changed, mask))[0, 0, :, 0].abs().max()
     assert delta > 1e-4
+
+
+def test_auto_modalities_take_the_emht_where_every_session_has_it_else_the_robot_arms(sessions, monkeypatch):
+    """`--modalities auto --features auto` (the defaults): MiDAS sessions train on the EmHT with the
+    paper's pos/ori/vel; sessions without it (JIGSAWS-style kinematics) on mtm + psm with the grasper."""
+    import midas_cli.models.data as data
+
+    midas_style = build_dataset(sessions, DatasetConfig(("auto",), ("auto",)))
+    assert midas_style.config.modalities == ("emht",) and midas_style.config.features == ("pos", "ori", "vel")
+    assert data.resolve_auto(DatasetConfig(("mtm",), ("auto",)), sessions).features == ("pos", "ori", "vel",
+                                                                                         "grasper")
+    real = data.read_aligned
+
+    class Jigsaws:  # the same sessions as JIGSAWS gives them: both robot arms, no EmHT
+        def __init__(self, path):
+            self.columns = [c for c in real(path).columns if not c.startswith("emht.")] + ["psm.left_x_mm"]
+
+    monkeypatch.setattr(data, "read_aligned", Jigsaws)
+    jigsaws = data.resolve_auto(DatasetConfig(("auto",), ("auto",)), sessions)
+    assert jigsaws.modalities == ("mtm", "psm") and jigsaws.features == ("pos", "ori", "vel", "grasper")
+    monkeypatch.setattr(data, "read_aligned", lambda path: type("T", (), {"columns": ["video.seq", "mtm.left_x_mm"]})())
+    assert data.resolve_auto(DatasetConfig(("auto",), ("auto",)), sessions).modalities == ("mtm",)
+    monkeypatch.setattr(data, "read_aligned", lambda path: type("T", (), {"columns": ["video.seq"]})())
+    with pytest.raises(ConfigError, match="no kinematic stream in common"):
+        data.resolve_auto(DatasetConfig(("auto",), ("auto",)), sessions)

@@ -21,8 +21,10 @@ app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
                        "Models train on aligned, labelled sessions.",
                   no_args_is_help=True)
 
-MODALITIES_OPT = typer.Option("emht", "--modalities", help="Comma list of emht, handkp, mtm, psm, image.")
-FEATURES_OPT = typer.Option("pos,ori,vel", "--features", help="Comma list of pos, ori, vel, angvel, grasper, clutch.")
+MODALITIES_OPT = typer.Option("auto", "--modalities", help="Comma list of emht, handkp, mtm, psm, image; auto "
+                               "(default): emht where every session has it (MiDAS), else mtm,psm (JIGSAWS-style).")
+FEATURES_OPT = typer.Option("auto", "--features", help="Comma list of pos, ori, vel, angvel, grasper, clutch; "
+                             "auto (default): pos,ori,vel for emht (the paper), pos,ori,vel,grasper for robot arms.")
 SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto, louo or loso "
                          "(leave one trial / user / super-trial out).")
 VAL_OPT = typer.Option("none", "--val", help="loto/louo/loso model selection: none (fixed epochs, last-epoch model; "

@@ -31,7 +31,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import zipfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -53,6 +53,13 @@ NORMALISATIONS = ("train", "trial", "none")
 LEGACY_CONFIG = {"sides": ("left", "right"), "rotation": "quat", "normalise": "train"}
 PLATFORM_RATE_HZ = {"raven-ii": 10.0}  # the paper's resampling; everything else keeps 30 Hz
 DEFAULT_RATE_HZ = 30.0
+AUTO = "auto"
+# ``--modalities auto`` / ``--features auto``: the EmHT where every session has it (MiDAS sessions: the
+# paper's input, with the paper's pos, ori, vel), otherwise the robot arms every session has (JIGSAWS-
+# style kinematics: mtm and psm, with pos, ori, vel and the grasper angle, the variables of the
+# literature's kinematics-only models that the import keeps; angular velocity is left to --features).
+AUTO_CHOICES = ((("emht",), ("pos", "ori", "vel")), (("mtm", "psm"), ("pos", "ori", "vel", "grasper")),
+                (("psm",), ("pos", "ori", "vel", "grasper")), (("mtm",), ("pos", "ori", "vel", "grasper")))
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,8 @@ class DatasetConfig:
         if self.normalise not in NORMALISATIONS:
             raise ConfigError(f"normalise must be one of {', '.join(NORMALISATIONS)}, got {self.normalise!r}")
         for name, given, known in (("modality", self.modalities, MODALITIES), ("feature set", self.features, FEATURE_SETS)):
+            if given == (AUTO,):
+                continue  # chosen from the sessions by ``resolve_auto``
             bad = [g for g in given if g not in known]
             if bad or not given or len(set(given)) != len(given):
                 raise ConfigError(f"{name} list {','.join(given)!r} is invalid (choose distinct values from "
@@ -199,6 +208,7 @@ def build_dataset(sessions: Sequence[Path], config: DatasetConfig, classes: Sequ
         raise SessionError(f"none of the {len(sessions)} sessions has label set {config.label_set!r} "
                            f"(labels/{config.label_set}.csv): import labels first "
                            "(`midas labels import-via|import-transcription`)")
+    config = resolve_auto(config, labelled)
     if unlabelled:
         log.warning("%d of %d sessions skipped: no label set %r: %s", len(unlabelled), len(sessions),
                     config.label_set, ", ".join(unlabelled))
@@ -227,6 +237,24 @@ def build_dataset(sessions: Sequence[Path], config: DatasetConfig, classes: Sequ
     return GestureDataset(trials, names, raws[0].names, config, skipped,
                           {**{p: f"no label set {config.label_set!r}" for p in unlabelled},
                            **{p: "no labelled frame after resampling and clutch exclusion" for p in empty}})
+
+
+def resolve_auto(config: DatasetConfig, sessions: Sequence[Path]) -> DatasetConfig:
+    """``config`` with ``auto`` modalities / features replaced by the first of ``AUTO_CHOICES`` whose
+    streams every session's aligned table holds; ConfigError naming what they have when none fits."""
+    if AUTO not in (config.modalities + config.features):
+        return config
+    held = [{column.split(".", 1)[0] for column in read_aligned(p).columns} for p in sessions]
+    common = set.intersection(*held) if held else set()
+    for modalities, features in AUTO_CHOICES:
+        if (config.modalities != (AUTO,) and modalities != config.modalities) or not set(modalities) <= common:
+            continue
+        return replace(config, modalities=modalities if config.modalities == (AUTO,) else config.modalities,
+                       features=features if config.features == (AUTO,) else config.features)
+    if config.modalities != (AUTO,):  # modalities given, features auto: the sets of the first choice that fits
+        return replace(config, features=("pos", "ori", "vel"))
+    raise ConfigError(f"--modalities auto: the sessions have no kinematic stream in common (emht, or mtm/psm); "
+                      f"common streams: {', '.join(sorted(common)) or 'none'}: name --modalities")
 
 
 def _read_session(path: Path, config: DatasetConfig) -> _RawTrial:

@@ -123,6 +123,7 @@ def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: Trai
     config = config.resolved()
     device = _device(config.device)
     dataset = build_dataset(sessions, data_config)
+    data_config = dataset.config  # "auto" modalities / features resolved from the sessions
     split = make_split(dataset, config.split, config.seed, config.fold, config.validation)
     order = list(data_config.modalities)
     normaliser = fit_normaliser(dataset, split.units["train"], order)
