@@ -16,6 +16,11 @@ def _interrupted(_signum, _frame) -> None:
 
 def main() -> None:
     signal.signal(signal.SIGINT, _interrupted)
+    from midas_cli.commands.root import answer_without_typer
+
+    status = answer_without_typer(sys.argv[1:])  # --version and the root help need no command module
+    if status is not None:
+        sys.exit(status)
     from midas_cli.commands.main import run
 
     run()

@@ -15,7 +15,6 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 
 STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan", "opening": "cyan",
@@ -150,6 +149,8 @@ def _pedal_bars(latest: dict[str, Any], labels: dict[str, str], stale: bool = Fa
     table.add_column(no_wrap=True, min_width=BAR_WIDTH)
     table.add_column(no_wrap=True, justify="right")
     table.add_column(no_wrap=True, min_width=7)
+    from midas_cli.devices.pedals import adc_to_volts  # numpy: here, so `midas session ...` never loads it
+
     channel = 1
     while f"ch{channel}_adc" in latest:
         volts = float(adc_to_volts(latest[f"ch{channel}_adc"]))

@@ -13,6 +13,7 @@ _BENCH_PEDAL_S := $(if $(BENCH_QUICK),3,10)
 .PHONY: bench soak
 
 bench: install
+	$(BIN)/python benchmarks/bench_startup.py $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_record.py $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_soak.py --minutes $(or $(SOAK_MIN),5) --name soak-short $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_align.py $(_BENCH_FLAG) > /dev/null

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
-import numpy as np
 import typer
 from rich.live import Live
 from rich.table import Table
@@ -15,12 +14,12 @@ from rich.text import Text
 from midas_cli.commands import calibrate_analysis
 from midas_cli.commands.common import err, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.devices.fps.calibration import (
-    FpsCalibration, LiveCalibration, calibrate_from_session, calibrate_live,
-)
-from midas_cli.devices.fps.rigfile import FpsTarget, load_target, write_target
-from midas_cli.devices.pedals import VCC
 from midas_cli.errors import ConfigError
+
+if TYPE_CHECKING:
+    from midas_cli.devices.fps.calibration import FpsCalibration, LiveCalibration
+    from midas_cli.devices.fps.rigfile import FpsTarget
+    import numpy as np
 
 app = typer.Typer(help="Calibrate devices and write the results into a rig file.", no_args_is_help=True)
 
@@ -51,6 +50,9 @@ def fps(
 
     Example: midas calibrate fps --rig sessions_template/rigs/davinci-xi.toml --url fps:///dev/ttyACM0
     """
+    from midas_cli.devices.fps.calibration import calibrate_from_session
+    from midas_cli.devices.fps.rigfile import load_target, write_target
+
     if min(rest_s, press_s) <= 0:
         raise ConfigError(f"--rest-s and --press-s must be positive, got {rest_s} and {press_s}")
     target = load_target(rig, device, url)
@@ -69,6 +71,8 @@ def fps(
 
 def _interactive(target: FpsTarget, rest_s: float, press_s: float) -> FpsCalibration:
     """The prompted procedure: rest, then each mapped pedal pressed and held."""
+    from midas_cli.devices.fps.calibration import calibrate_live, LiveCalibration
+
     live = LiveCalibration(target.url, target.device)
     info = live.open()
     err.print(f"connected: {info['port']}, MIDAS-FPS firmware {info['firmware']}, {live.channels} channels",
@@ -94,6 +98,8 @@ def _ask(prompt: str) -> None:
 
 def _measure(live: LiveCalibration, target: FpsTarget, seconds: float, what: str, channel: int | None) -> np.ndarray:
     """Measure with live bars on a terminal, or a plain line per second otherwise."""
+    import numpy as np
+
     if not err.is_terminal:
         last = [0.0]
 
@@ -109,6 +115,8 @@ def _measure(live: LiveCalibration, target: FpsTarget, seconds: float, what: str
 
 def _bars(target: FpsTarget, volts: np.ndarray, done: float, what: str, active: int | None) -> Table:
     """One bar per channel (0..Vcc), the channel being pressed highlighted, and the elapsed fraction."""
+    from midas_cli.devices.pedals import VCC
+
     table = Table.grid(padding=(0, 1))
     table.add_row(Text(f"{what}: "), Text("█" * int(done * BAR_WIDTH) + "·" * (BAR_WIDTH - int(done * BAR_WIDTH))))
     for c, value in enumerate(volts, start=1):

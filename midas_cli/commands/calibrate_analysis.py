@@ -4,18 +4,18 @@ are registered on the `calibrate` sub-app defined in calibrate.py)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import typer
 from rich.table import Table
 
 from midas_cli.analysis.calibration import TARGETS
-from midas_cli.analysis.eval_runs import optimise_pedals
-from midas_cli.analysis.fit_calibration import CalibrationOptions, calibrate_sessions
 from midas_cli.commands.common import err, error_line, non_negative, out, print_json
 from midas_cli.commands.options import JSON_OPTION, KINEMATIC_SESSIONS_ARG
 from midas_cli.errors import ConfigError
-from midas_cli.models.mlp_config import MLPConfig
+
+if TYPE_CHECKING:
+    from midas_cli.analysis.fit_calibration import CalibrationOptions
 
 TARGET_OPTION = typer.Option("mtm", "--target", help=f"Robot frame to map into: {' or '.join(TARGETS)}.")
 OUT_OPTION = typer.Option(None, "--out", help="Also write the model fitted on ALL sessions to this .json "
@@ -25,6 +25,9 @@ DECAY_OPTION = typer.Option(1.5, "--weight-decay", callback=non_negative, help="
 
 
 def _options(target: str, rigid_only: bool, epochs: int, weight_decay: float) -> CalibrationOptions:
+    from midas_cli.analysis.fit_calibration import CalibrationOptions
+    from midas_cli.models.mlp_config import MLPConfig
+
     if target not in TARGETS:
         raise ConfigError(f"--target {target!r} is unknown (expected one of {', '.join(TARGETS)})")
     if epochs < 1:
@@ -50,6 +53,8 @@ def emht(
 
     Example: midas calibrate emht data/raven/*/ --target mtm --out results/emht_to_mtm.json
     """
+    from midas_cli.analysis.fit_calibration import calibrate_sessions
+
     options = _options(target, rigid_only, epochs, weight_decay)
     report = calibrate_sessions(sessions, "emht", target, options, out_file, lambda m: err.print(m, markup=False))
     _render(report, as_json)
@@ -71,6 +76,8 @@ def handkp(
 
     Example: midas calibrate handkp data/raven/*/ --target mtm
     """
+    from midas_cli.analysis.fit_calibration import calibrate_sessions
+
     options = _options(target, rigid_only, epochs, weight_decay)
     report = calibrate_sessions(sessions, "handkp", target, options, out_file, lambda m: err.print(m, markup=False))
     _render(report, as_json)
@@ -128,6 +135,8 @@ def fps_optimize(
 
     Example: midas calibrate fps-optimize data/davinci/*/ && midas eval pedals data/davinci/*/ --optimized --out results/pedals
     """
+    from midas_cli.analysis.eval_runs import optimise_pedals
+
     report = optimise_pedals(sessions, out_file)
     if as_json:
         print_json(report)

@@ -7,18 +7,17 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
 from midas_cli.commands.common import err, finite, non_negative, positive, print_json, probability
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
-from midas_cli.devices.pty_emulator import Faults, PtyEmulator
-from midas_cli.devices.raven.device import parse_address
-from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
-from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
 from midas_cli.errors import ConfigError
+
+if TYPE_CHECKING:
+    from midas_cli.devices.fps.emulator import FpsEmulator
+    from midas_cli.devices.pty_emulator import PtyEmulator
 
 app = typer.Typer(help="Serve emulated serial devices on pseudo-terminals.", no_args_is_help=True)
 
@@ -52,6 +51,9 @@ def trakstar(
 
     Example: midas emulate trakstar --link /tmp/trakstar --summary /tmp/trakstar.json --corrupt 0.01
     """
+    from midas_cli.devices.pty_emulator import Faults
+    from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
+
     faults = Faults(corrupt, drop, stall_at, stall_for, unplug_at, unplug_for)
     emulator = TrakstarEmulator(EmulatorConfig(sensors, baud, seed, faults, str(link) if link else None))
     result = _serve(emulator, duration, summary)
@@ -112,6 +114,9 @@ def fps(
 
     Example: midas emulate fps --link /tmp/fps --summary /tmp/fps.json --corrupt 0.01
     """
+    from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
+    from midas_cli.devices.pty_emulator import Faults
+
     faults = Faults(corrupt, drop, stall_at, stall_for, unplug_at, unplug_for)
     config = FpsEmulatorConfig(channels, rate, baud, seed, pedals, faults=faults, link=link,
                                keep_samples=summary is not None)
@@ -154,6 +159,9 @@ def raven(
 
     Example: midas emulate raven --to 127.0.0.1:36000 --rate 1000 --duration 10
     """
+    from midas_cli.devices.raven.device import parse_address
+    from midas_cli.devices.raven.emulator import RavenEmulator, RavenEmulatorConfig
+
     host, port = parse_address(to, "--to")
     emulator = RavenEmulator(RavenEmulatorConfig(host, port, rate, seed, corrupt_every, source),
                              keep_sent=False).start()

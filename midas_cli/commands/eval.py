@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
-import pandas as pd
 import typer
 from rich.table import Table
 
-from midas_cli.analysis.eval_runs import EvalResult, run_correlation, run_pedals
-from midas_cli.analysis.report import format_cell, json_safe
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import ALIGNED_SESSIONS_ARG, JSON_OPTION
+
+if TYPE_CHECKING:
+    from midas_cli.analysis.eval_runs import EvalResult
+    import pandas as pd
 
 app = typer.Typer(help="Validate sensing modalities against robot ground truth (paper tables).",
                   no_args_is_help=True)
@@ -38,6 +39,8 @@ def correlation(sessions: list[Path] = ALIGNED_SESSIONS_ARG, out_dir: Optional[P
 
     Example: midas eval correlation data/raven/*/ --out results/raven-ii
     """
+    from midas_cli.analysis.eval_runs import run_correlation
+
     _render(run_correlation(sessions, out_dir, plots, lambda m: err.print(f"evaluating {m}", markup=False), model),
             as_json)
 
@@ -55,11 +58,15 @@ def pedals(sessions: list[Path] = ALIGNED_SESSIONS_ARG, out_dir: Optional[Path] 
 
     Example: midas eval pedals data/davinci/*/ --out results/davinci-xi
     """
+    from midas_cli.analysis.eval_runs import run_pedals
+
     _render(run_pedals(sessions, out_dir, plots, optimized, lambda m: err.print(f"evaluating {m}", markup=False)),
             as_json)
 
 
 def _render(result: EvalResult, as_json: bool) -> None:
+    from midas_cli.analysis.report import json_safe
+
     if as_json:
         print_json(json_safe({"provenance": result.provenance, "files": [str(f) for f in result.files],
                               "tables": {k: t.to_dict("records") for k, (t, _) in result.tables.items()}}))
@@ -72,6 +79,8 @@ def _render(result: EvalResult, as_json: bool) -> None:
 
 
 def _rich(frame: pd.DataFrame, title: str) -> Table:
+    from midas_cli.analysis.report import format_cell
+
     table = Table(*map(str, frame.columns), title=title, header_style="bold")
     for row in frame.itertuples(index=False):
         table.add_row(*(format_cell(v) for v in row))

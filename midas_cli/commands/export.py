@@ -8,7 +8,6 @@ import typer
 
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.interop.export import export_session, parse_formats
 
 
 def export(sessions: list[Path] = typer.Argument(..., help="Session folder(s)."),
@@ -25,6 +24,8 @@ def export(sessions: list[Path] = typer.Argument(..., help="Session folder(s).")
 
     Example: midas export sessions/suturing_S1_T1_20240703T104640Z --format mcap,parquet,xdf --out exported
     """
+    from midas_cli.interop.export import export_session, parse_formats
+
     wanted = parse_formats(formats)
     results = []
     for path in sessions:

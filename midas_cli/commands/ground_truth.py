@@ -3,20 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from midas_cli.analysis.pedal_video.ground_truth import (GroundTruthRequest, GroundTruthResult, JobFailure,
-                                                         resolve_input, result_dict, run_many)
-from midas_cli.analysis.pedal_video.layout import load_layout
-from midas_cli.analysis.pedal_video.preview import preview_frame, write_png
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
+
+if TYPE_CHECKING:
+    from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest, GroundTruthResult, JobFailure
 
 app = typer.Typer(help="Ground truth read from recordings (pedal states from the console video).",
                   no_args_is_help=True)
@@ -45,6 +44,11 @@ def pedals(
 
     Example: midas ground-truth pedals sessions/suturing_S1_T1_20260101T120000Z --min-duration 2
     """
+    from midas_cli.analysis.pedal_video.ground_truth import (
+        GroundTruthRequest, GroundTruthResult, JobFailure, result_dict,
+    )
+    from midas_cli.analysis.pedal_video.layout import load_layout
+
     if preview is not None:
         _preview(inputs, layout, view, preview, out_path, as_json)
         return
@@ -65,6 +69,10 @@ def pedals(
 
 
 def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: Optional[Path], as_json: bool) -> None:
+    from midas_cli.analysis.pedal_video.ground_truth import resolve_input
+    from midas_cli.analysis.pedal_video.layout import load_layout
+    from midas_cli.analysis.pedal_video.preview import preview_frame, write_png
+
     if len(inputs) != 1 or out_path is None:
         raise ConfigError("--preview needs exactly one session or video and --out FILE.png")
     video, _, _ = resolve_input(inputs[0], None)
@@ -80,6 +88,8 @@ def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: O
 
 
 def _run_with_progress(requests: list[GroundTruthRequest], jobs: int) -> list[GroundTruthResult | JobFailure]:
+    from midas_cli.analysis.pedal_video.ground_truth import GroundTruthResult, run_many
+
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with progress_display(*columns) as progress:
         tasks = [progress.add_task(r.input.name, total=None) for r in requests]

@@ -9,8 +9,6 @@ import typer
 
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.importers.midas_dcs import import_midas_dcs
-from midas_cli.importers.surgical import import_surgical
 
 app = typer.Typer(help="Import sessions from other formats.\n\n"
                        "Formats: original MiDAS folders, JIGSAWS, COMPASS.",
@@ -59,6 +57,8 @@ def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
 
     Example: midas import midas-dcs ../shared/data/midas-dcs-sample/trakt_Strakt_T1_2024-07-05 --out sessions
     """
+    from midas_cli.importers.midas_dcs import import_midas_dcs
+
     _render(import_midas_dcs(folder, out_dir, platform, split), as_json)
 
 
@@ -70,6 +70,8 @@ def jigsaws(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool
 
     Example: midas import jigsaws JIGSAWS/Suturing --out sessions/jigsaws
     """
+    from midas_cli.importers.surgical import import_surgical
+
     _render(import_surgical(folder, out_dir, "jigsaws"), as_json)
 
 
@@ -81,4 +83,6 @@ def compass(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION, as_json: bool
 
     Example: midas import compass COMPASS/Datasets/dV/Suturing --out sessions/compass
     """
+    from midas_cli.importers.surgical import import_surgical
+
     _render(import_surgical(folder, out_dir, "compass"), as_json)

@@ -1,7 +1,8 @@
 """The `midas` entry point: command registration and the error -> exit code mapping.
 
-Commands are registered from a table and only the module of the command being run is imported
-(``midas record`` never loads torch or OpenCV); ``midas --help`` imports them all to list them.
+Commands are registered from a table (``root.COMMANDS``) and only the module of the command being run is
+imported (``midas record`` never loads torch or OpenCV). ``midas --version`` and ``midas --help`` never
+get here: ``root.answer_without_typer`` answers them from a static table, without importing typer.
 """
 
 from __future__ import annotations
@@ -16,28 +17,8 @@ import typer
 
 from midas_cli import __version__
 from midas_cli.commands.common import STDERR_LOG, error_line
+from midas_cli.commands.root import COMMANDS, ROOT_HELP
 from midas_cli.errors import MidasError, SessionError
-
-# name -> (module under midas_cli.commands, attribute, "command" | "group")
-COMMANDS: dict[str, tuple[str, str, str]] = {
-    "record": ("record", "record", "command"),
-    "session": ("session", "app", "group"),
-    "labels": ("labels", "app", "group"),
-    "simulate": ("simulate", "app", "group"),
-    "import": ("import_cmd", "app", "group"),
-    "emulate": ("emulate", "app", "group"),
-    "calibrate": ("calibrate", "app", "group"),
-    "ground-truth": ("ground_truth", "app", "group"),
-    "align": ("align", "align", "command"),
-    "eval": ("eval", "app", "group"),
-    "train": ("train", "app", "group"),
-    "features": ("features", "app", "group"),
-    "extract": ("extract", "app", "group"),
-    "export": ("export", "export", "command"),
-    "plot": ("plot", "plot", "command"),
-    "rig": ("rig", "app", "group"),
-    "doctor": ("doctor", "doctor", "command"),
-}
 
 _state = {"debug": False}
 
@@ -52,13 +33,7 @@ def _main(
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks and debug logging."),
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
 ) -> None:
-    """midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).
-
-    Every command reads and writes self-describing session folders; results go to stdout,
-    progress and errors to stderr.
-
-    Exit codes: 0 ok, 1 internal, 2 usage, 3 device, 4 session/data.
-    """
+    """The root options (its help is ``root.ROOT_HELP``)."""
     _state["debug"] = debug
     STDERR_LOG.setLevel(logging.DEBUG if debug else logging.WARNING)
     STDERR_LOG.setFormatter(logging.Formatter("midas: %(levelname)s %(name)s: %(message)s"))
@@ -73,7 +48,7 @@ def build_app(only: str | None = None) -> typer.Typer:
         pretty_exceptions_enable=False,
         context_settings={"help_option_names": ["-h", "--help"]},
     )
-    app.callback()(_main)  # its docstring is `midas --help`'s description
+    app.callback(help=ROOT_HELP)(_main)
     for name, (module_name, attribute, kind) in COMMANDS.items():
         if only is not None and name != only:
             continue

@@ -10,10 +10,7 @@ from rich.table import Table
 
 from midas_cli.commands.common import out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.devices.rigconfig import load_rig
 from midas_cli.errors import ConfigError, DeviceError
-from midas_cli.record.rigcheck import check_rig
-from midas_cli.rig import simulated_rig
 
 app = typer.Typer(no_args_is_help=True, help="Check a rig's devices before recording.\n\n"
                   "Example: midas rig check sessions_template/rigs/simulated.toml")
@@ -36,6 +33,10 @@ def check(
 
     Example: midas rig check sessions_template/rigs/simulated.toml --seconds 3
     """
+    from midas_cli.devices.rigconfig import load_rig
+    from midas_cli.record.rigcheck import check_rig
+    from midas_cli.rig import simulated_rig
+
     if simulate == (rig is not None):
         raise ConfigError("give a rig file or --simulate (one of them)")
     config = simulated_rig() if simulate else load_rig(rig)

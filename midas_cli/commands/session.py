@@ -14,7 +14,6 @@ from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSION_ARG
 from midas_cli.console import clock_text
 from midas_cli.errors import ConfigError, MidasError, SessionError
-from midas_cli.session.integrity import repair_session, verify_session
 from midas_cli.session.manifest import STATUSES
 from midas_cli.session.reader import Session, find_sessions
 from midas_cli.session.summary import summarize_session
@@ -179,6 +178,8 @@ def verify(
 
     Example: midas session verify sessions/*/
     """
+    from midas_cli.session.integrity import verify_session  # numpy and the stream parsers: only here
+
     reports = [verify_session(p, strict=strict) for p in paths]
     if as_json:
         print_json([r.to_json() for r in reports])
@@ -205,6 +206,8 @@ def repair(paths: list[Path] = typer.Argument(..., help="Session folder(s)."), a
 
     Example: midas session repair sessions/suturing_S1_T1_20260101T120000Z && midas session verify $_
     """
+    from midas_cli.session.integrity import repair_session
+
     reports = [repair_session(p) for p in paths]
     if as_json:
         print_json([r.to_json() for r in reports])

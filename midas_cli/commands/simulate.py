@@ -11,9 +11,6 @@ from midas_cli.commands.common import err, non_negative, out, positive, print_js
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
-from midas_cli.simulate.console_video import render_console_video
-from midas_cli.simulate.dataset import generate_dataset, trial_configs
-from midas_cli.synthetic.console_video import ConsoleVideoSpec
 
 app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
 
@@ -41,6 +38,8 @@ def dataset(
 
     Example: midas simulate dataset --out sessions --platform davinci-xi --trials 4 --seed 1
     """
+    from midas_cli.simulate.dataset import generate_dataset, trial_configs
+
     configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
                            difficulty)
 
@@ -75,6 +74,9 @@ def console_video(
 
     Example: midas simulate console-video --out console.mkv --duration 20 --seed 1
     """
+    from midas_cli.simulate.console_video import render_console_video
+    from midas_cli.synthetic.console_video import ConsoleVideoSpec
+
     spec = ConsoleVideoSpec(duration, seed, fps, _parse_size(size), stereo, noise, max_shift, layout)
     with progress_display() as progress:
         task = progress.add_task("rendering frames", total=spec.frames)

@@ -9,20 +9,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
-import numpy as np
-
 from midas_cli.errors import SessionError
-from midas_cli.session.columnar import load_binary_copy
 from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
 from midas_cli.session.schema import StreamSpec
-from midas_cli.session.values import ParsedStream, parse_stream_bytes, parse_stream_file, read_regular_file, structured
 
 log = logging.getLogger(__name__)
 CHUNK_BYTES = 8 << 20  # iter_stream's pieces: about this much CSV text at a time
 _TORN_WARNED: set[tuple[Path, int]] = set()  # (file, size): each torn file is reported once per process
 
 if TYPE_CHECKING:  # pandas is imported where it is used: `midas align` reads binary copies without it
+    import numpy as np
     import pandas as pd
+
+    from midas_cli.session.values import ParsedStream
+
+# numpy (and pandas) come in with columnar/values, imported where a stream's rows are read: opening a
+# session and its manifest (`midas session info|list`) needs neither.
 
 
 @dataclass
@@ -81,6 +83,9 @@ class Session:
         missing): its binary copy memory-mapped when that still matches the CSV, else the CSV parsed
         (as ``read_stream`` does)."""
         self._refuse_unfinished(allow_incomplete)
+        from midas_cli.session.columnar import load_binary_copy
+        from midas_cli.session.values import structured
+
         table = load_binary_copy(self.path, name, self._stream_entry(name))
         return structured(self._parse_csv(name).frame, self.stream_spec(name)) if table is None else table
 
@@ -92,6 +97,8 @@ class Session:
         error ``read_stream`` gives (the file is then parsed whole once, to name the line); a torn last line
         is left out, with a warning."""
         self._refuse_unfinished(allow_incomplete)
+        from midas_cli.session.values import ParsedStream, parse_stream_bytes, parse_stream_file
+
         path, spec = self.stream_path(name), self.stream_spec(name)
         with _open_regular(path) as fh:
             header = fh.readline(len(spec.header_line()) + 1)
@@ -116,6 +123,8 @@ class Session:
             _warn_torn_tail(path, ParsedStream(frame.iloc[:0], len(tail)), rows)
 
     def _parse_csv(self, name: str) -> ParsedStream:
+        from midas_cli.session.values import parse_stream_file
+
         path = self.stream_path(name)
         parsed = parse_stream_file(path, self.stream_spec(name))
         if parsed.torn_tail_bytes:
@@ -148,6 +157,8 @@ def _open_regular(path: Path):
             os.close(fd)
     except OSError as exc:
         raise SessionError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    from midas_cli.session.values import read_regular_file
+
     read_regular_file(path)  # raises, naming what the path is instead
     raise SessionError(f"{path} is not a regular file")
 

@@ -1,0 +1,188 @@
+"""What `midas` answers before typer is imported: `--version`, and the root help from a static table.
+
+`midas --version` and `midas --help` (or plain `midas`) used to build the whole CLI, importing every
+command's module (scipy, pandas, torch...): seconds for one line. Here they cost the interpreter's own
+start-up. The root help is drawn to look like typer's (same panels, wrapping and colours), from
+``COMMAND_SUMMARIES``; tests/test_startup.py holds that table and ``ROOT_HELP`` to the real commands'
+help and the drawing to typer's own. Only stdlib imports here: this module is on the fast path.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from midas_cli import __version__
+
+# name -> (module under midas_cli.commands, attribute, "command" | "group")
+COMMANDS: dict[str, tuple[str, str, str]] = {
+    "record": ("record", "record", "command"),
+    "session": ("session", "app", "group"),
+    "labels": ("labels", "app", "group"),
+    "simulate": ("simulate", "app", "group"),
+    "import": ("import_cmd", "app", "group"),
+    "emulate": ("emulate", "app", "group"),
+    "calibrate": ("calibrate", "app", "group"),
+    "ground-truth": ("ground_truth", "app", "group"),
+    "align": ("align", "align", "command"),
+    "eval": ("eval", "app", "group"),
+    "train": ("train", "app", "group"),
+    "features": ("features", "app", "group"),
+    "extract": ("extract", "app", "group"),
+    "export": ("export", "export", "command"),
+    "plot": ("plot", "plot", "command"),
+    "rig": ("rig", "app", "group"),
+    "doctor": ("doctor", "doctor", "command"),
+}
+
+# Each command's one-line summary (the first paragraph of its help), as `midas --help` lists them:
+# commands first, then groups, each in COMMANDS order. Kept in sync by tests/test_startup.py.
+COMMAND_SUMMARIES: dict[str, str] = {
+    "record": "Record a session from the rig's devices into a new session folder.",
+    "align": "Align each session's streams onto its video frame clock.",
+    "export": "Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.",
+    "plot": "Draw a quick-look page of a session: every stream against session time.",
+    "doctor": "Report versions, serial ports, OBS reachability, GPU and free disk.",
+    "session": "Inspect, list, verify and repair session folders.",
+    "labels": "Gesture taxonomies, annotation import/export and label statistics.",
+    "simulate": "Synthetic recordings with known ground truth (no hardware needed).",
+    "import": "Import sessions from other formats.",
+    "emulate": "Serve emulated serial devices on pseudo-terminals.",
+    "calibrate": "Calibrate devices and write the results into a rig file.",
+    "ground-truth": "Ground truth read from recordings (pedal states from the console video).",
+    "eval": "Validate sensing modalities against robot ground truth (paper tables).",
+    "train": "Train and evaluate gesture-recognition models.",
+    "features": "Extract learned features from recordings.",
+    "extract": "Derive streams from recorded data (offline).",
+    "rig": "Check a rig's devices before recording.",
+}
+
+# `midas --help`'s description (typer's app callback takes it as its help).
+ROOT_HELP = """midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).
+
+Every command reads and writes self-describing session folders; results go to stdout,
+progress and errors to stderr.
+
+Exit codes: 0 ok, 1 internal, 2 usage, 3 device, 4 session/data."""
+
+# (option names, short names, help) as typer shows the root options
+ROOT_OPTIONS: tuple[tuple[str, str, str], ...] = (
+    ("--debug", "", "Show tracebacks and debug logging."),
+    ("--version", "", "Print the version."),
+    ("--help", "-h", "Show this message and exit."),
+)
+
+_HELP_FLAGS = {"--help", "-h"}
+MIN_STATIC_WIDTH = 50  # narrower, rich squeezes typer's columns its own way: let typer draw it
+
+
+def answer_without_typer(argv: list[str]) -> int | None:
+    """Print the answer to `midas [--debug] --version|--help` (or bare `midas`) and return the exit
+    status; None for anything else, which the typer app handles."""
+    flags = set(argv) - {"--debug"}
+    if flags == {"--version"}:
+        sys.stdout.write(f"midas {__version__}\n")
+        return 0
+    width = terminal_width()
+    if (not argv or (flags and flags <= _HELP_FLAGS)) and width >= MIN_STATIC_WIDTH:
+        text = root_help(width, styled=_styled())
+        sys.stdout.write(text if argv else text.removesuffix("\n"))  # bare `midas`: typer's no-args help, exit 2
+        return 0 if argv else 2
+    return None
+
+
+def terminal_width() -> int:
+    """The width rich (so typer) would draw at: $TERMINAL_WIDTH, $COLUMNS, the terminal's, else 80."""
+    for name in ("TERMINAL_WIDTH", "COLUMNS"):
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    for stream in (sys.stdin, sys.stdout, sys.stderr):
+        try:
+            return os.get_terminal_size(stream.fileno()).columns or 80
+        except (AttributeError, ValueError, OSError):
+            continue
+    return 80
+
+
+def _styled() -> bool:
+    env = os.environ
+    if env.get("_TYPER_FORCE_DISABLE_TERMINAL"):
+        return False
+    if env.get("GITHUB_ACTIONS") or env.get("FORCE_COLOR") or env.get("PY_COLORS"):
+        return True
+    if env.get("TERM", "").lower() in ("dumb", "unknown"):
+        return False
+    try:
+        return sys.stdout.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    import textwrap
+
+    return textwrap.wrap(text, max(width, 1), break_on_hyphens=False, break_long_words=True) or [""]
+
+
+def root_help(width: int, styled: bool = False) -> str:
+    """`midas --help` as typer draws it at ``width`` columns (with its ANSI styles when ``styled``)."""
+    colour = styled and not os.environ.get("NO_COLOR")
+
+    def sgr(text: str, code: str, colour_code: str = "") -> str:
+        if not styled:
+            return text
+        codes = ";".join(c for c in (code, colour_code if colour else "") if c)
+        return f"\x1b[{codes}m{text}\x1b[0m" if codes else text
+
+    def padded(text: str, length: int) -> str:
+        return text + " " * max(width - length, 0)
+
+    lines = [sgr(" " * width, "1")]
+    usage = "midas [OPTIONS] COMMAND [ARGS]..."
+    lines.append(sgr(" ", "1") + sgr("Usage: ", "1", "33") + sgr(usage, "1")
+                 + sgr(" " * max(width - 9 - len(usage), 0), "1") + sgr(" ", "1") if styled
+                 else padded(f" Usage: {usage}", 8 + len(usage)))
+    lines.append(sgr(" " * width, "1"))
+    paragraphs = ROOT_HELP.split("\n\n")
+    for index, paragraph in enumerate(paragraphs):
+        for source_line in paragraph.split("\n"):
+            wrapped = _wrap(source_line, width - 2)
+            for i, line in enumerate(wrapped):
+                if i < len(wrapped) - 1 and len(line) < width - 2:
+                    line += " "  # rich keeps the space it broke at where it fits
+                body = line if index == 0 or not styled else sgr(line, "2")
+                lines.append(" " + body + " " * max(width - 1 - len(line), 0))
+        lines.append(" " * width)
+
+    def panel(title: str, rows: list[tuple[list[str], str]], lead: int) -> None:
+        """rows: (styled cells of the ``lead`` columns before the help, help text)."""
+        head = f"╭─ {title} "
+        lines.append(sgr("╭─", "2") + sgr(f" {title} ", "2") + sgr("─" * max(width - len(head) - 2, 0), "2") + sgr("─╮", "2")
+                     if styled else head + "─" * max(width - len(head) - 1, 0) + "╮")
+        help_width = width - lead - 2
+        for cells, help_text in rows:
+            for i, line in enumerate(_wrap(help_text, help_width)):
+                first = cells[0] if i == 0 else cells[1]
+                lines.append(sgr("│", "2") + first + line + " " * max(help_width - len(line), 0) + " " + sgr("│", "2"))
+        lines.append(sgr("╰" + "─" * max(width - 2, 0) + "╯", "2"))
+
+    name_width = max(len(name) for name, _, _ in ROOT_OPTIONS)
+    short_width = max(len(short) for _, short, _ in ROOT_OPTIONS)
+    option_rows = []
+    for name, short, help_text in ROOT_OPTIONS:
+        plain = f" {name.ljust(name_width)}  {short.ljust(short_width)}" + " " * 8
+        cell = (" " + sgr("-", "1", "36") + sgr(name[1:], "1", "36") + " " * (name_width - len(name)) + "  "
+                + (sgr(short, "1", "32") if short else "") + " " * (short_width - len(short)) + " " * 8
+                if styled else plain)
+        option_rows.append(([cell, " " * len(plain)], help_text))
+    panel("Options", option_rows, len(option_rows[0][0][1]) + 1)
+
+    command_width = max(len(name) for name in COMMAND_SUMMARIES)
+    command_rows = []
+    for name, summary in COMMAND_SUMMARIES.items():
+        cell = " " + sgr(name.ljust(command_width), "1", "36") + sgr(" ", "1", "36") + " "
+        blank = " " + sgr(" " * (command_width + 1), "1", "36") + " "
+        command_rows.append(([cell, blank], summary))
+    panel("Commands", command_rows, command_width + 4)
+    return "\n".join(lines) + "\n\n"

@@ -1,0 +1,153 @@
+"""Start-up (issue 17 goal 2): `midas --version` and `midas --help` import no command module and not typer;
+`midas session info|list` imports none of numpy, pandas, scipy, torch, cv2, matplotlib; `midas <cmd> --help`
+stays light where the command allows it. Behaviour, not timing: the timings are benchmarks/bench_startup.py.
+The static root help (commands/root.py) is held to the real commands' help and to typer's own drawing."""
+
+from __future__ import annotations
+
+import inspect
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+import typer.main
+from typer.testing import CliRunner
+
+from midas_cli import __version__
+from midas_cli.commands.main import build_app
+from midas_cli.commands.root import COMMAND_SUMMARIES, COMMANDS, MIN_STATIC_WIDTH, ROOT_HELP, root_help
+from helpers.cli import REPO, write_session
+
+HEAVY = ("numpy", "pandas", "scipy", "torch", "cv2", "matplotlib", "pyarrow")
+
+
+# Runs the CLI as `python -m midas_cli` does and writes every module loaded by the end to a file. (Not
+# `-X importtime`: it does not see modules loaded through importlib.import_module, as build_app loads commands.)
+_RUN = """import atexit, runpy, sys
+def dump(path=sys.argv[1]):
+    with open(path, "w") as fh:
+        fh.write("\\n".join(sorted(sys.modules)))
+atexit.register(dump)
+sys.argv = ["midas", *sys.argv[2:]]
+runpy.run_module("midas_cli", run_name="__main__", alter_sys=True)
+"""
+
+
+def _imported(*args: str, columns: int = 80) -> tuple[subprocess.CompletedProcess, set[str]]:
+    """Run `python -m midas_cli ARGS`; the result and every module loaded by its end."""
+    env = {**os.environ, "NO_COLOR": "1", "COLUMNS": str(columns)}
+    with tempfile.TemporaryDirectory() as folder:
+        listing = Path(folder) / "modules.txt"
+        result = subprocess.run([sys.executable, "-c", _RUN, str(listing), *args], capture_output=True, text=True,
+                                timeout=120, env=env, cwd=REPO)
+        modules = set(listing.read_text().split("\n"))
+    assert "midas_cli.commands.root" in modules, result.stderr[-2000:]
+    return result, modules
+
+
+def _top_level(modules: set[str]) -> set[str]:
+    return {m.split(".")[0] for m in modules}
+
+
+@pytest.mark.parametrize("args", [["--version"], ["--debug", "--version"]])
+def test_version_imports_neither_typer_nor_any_command(args: list[str]) -> None:
+    result, modules = _imported(*args)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout == f"midas {__version__}\n"
+    assert not _top_level(modules) & {"typer", "rich", *HEAVY}
+    assert not {m for m in modules if m.startswith("midas_cli.commands.")} - {"midas_cli.commands.root"}
+
+
+@pytest.mark.parametrize("args", [["--help"], ["-h"], ["--debug", "--help"]])
+def test_root_help_imports_neither_typer_nor_any_command(args: list[str]) -> None:
+    result, modules = _imported(*args)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "Exit codes" in result.stdout and "ground-truth" in result.stdout
+    assert not _top_level(modules) & {"typer", "rich", *HEAVY}
+    assert not {m for m in modules if m.startswith("midas_cli.commands.")} - {"midas_cli.commands.root"}
+
+
+def test_bare_midas_prints_the_help_and_exits_2_as_typer_does() -> None:
+    result, modules = _imported()
+    assert result.returncode == 2
+    assert result.stdout == root_help(80).removesuffix("\n")
+    assert "typer" not in _top_level(modules)
+
+
+def test_narrow_terminals_get_typers_own_help() -> None:
+    result, modules = _imported("--help", columns=MIN_STATIC_WIDTH - 1)
+    assert result.returncode == 0 and "typer" in _top_level(modules)
+    assert "Usage:" in result.stdout
+
+
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_session(tmp_path_factory.mktemp("startup"), rows=20)
+
+
+@pytest.mark.parametrize("command", ["info", "list"])
+def test_session_info_and_list_import_no_heavy_library(command: str, small_session: Path) -> None:
+    target = small_session if command == "info" else small_session.parent
+    result, modules = _imported("session", command, str(target))
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert small_session.name in result.stdout
+    assert not _top_level(modules) & set(HEAVY)
+
+
+def test_session_verify_imports_no_scipy_torch_cv2_matplotlib(small_session: Path) -> None:
+    result, modules = _imported("session", "verify", str(small_session))
+    assert result.returncode == 0, result.stdout + result.stderr[-2000:]
+    # numpy and pandas: the strict value parser (session/values.py) reads every line with them
+    assert not _top_level(modules) & {"scipy", "torch", "cv2", "matplotlib"}
+
+
+# `<cmd> --help` imports only the command's own module, and for these none of the heavy libraries.
+# Not listed: record (the recorder), labels (pandas: EXPORT_FORMATS in its help), align (scipy: METHODS),
+# calibrate (numpy: TARGETS), and train/features/extract/plot/doctor were already light.
+LIGHT_HELP = ["session", "simulate", "import", "emulate", "ground-truth", "eval", "export", "rig", "train",
+              "features", "extract", "plot", "doctor"]
+
+
+@pytest.mark.parametrize("command", LIGHT_HELP)
+def test_command_help_imports_only_its_module_and_no_heavy_library(command: str) -> None:
+    result, modules = _imported(command, "--help")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert not _top_level(modules) & set(HEAVY), sorted(_top_level(modules) & set(HEAVY))
+    own = f"midas_cli.commands.{COMMANDS[command][0]}"
+    commands = {m for m in modules if m.startswith("midas_cli.commands.")}
+    assert own in commands
+    others = {f"midas_cli.commands.{module}" for name, (module, _, _) in COMMANDS.items() if name != command}
+    assert not commands & others
+
+
+def _summary(command) -> str:
+    """What typer lists for a command in its parent's help: short_help, else the first paragraph."""
+    text = command.short_help or inspect.cleandoc(command.help or "").split("\n\n")[0]
+    return " ".join(text.split())
+
+
+def test_the_static_summaries_match_the_commands_own_help() -> None:
+    root = typer.main.get_command(build_app())
+    real = {name: _summary(command) for name, command in root.commands.items()}
+    assert COMMAND_SUMMARIES == real  # also the order: commands, then groups, as typer lists them
+    assert list(COMMAND_SUMMARIES) == list(real)
+    assert set(COMMAND_SUMMARIES) == set(COMMANDS)
+    assert inspect.cleandoc(root.help) == ROOT_HELP
+
+
+@pytest.mark.parametrize("width", [MIN_STATIC_WIDTH, 63, 80, 100, 137, 200])
+def test_the_static_root_help_is_drawn_as_typer_draws_it(width: int) -> None:
+    result = CliRunner().invoke(build_app(), ["--help"], env={"COLUMNS": str(width)}, prog_name="midas")
+    assert result.exit_code == 0
+    assert root_help(width) == result.output
+
+
+def test_the_fast_path_prints_the_static_help(tmp_path: Path) -> None:
+    env = {**os.environ, "COLUMNS": "100", "NO_COLOR": "1"}
+    result = subprocess.run([sys.executable, "-m", "midas_cli", "--help"], capture_output=True, text=True,
+                            timeout=120, env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == root_help(100)
