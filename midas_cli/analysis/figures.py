@@ -13,11 +13,12 @@ from midas_cli.session.derived import AlignedTable
 from midas_cli.session.outputs import out_target, replacing
 
 
-def _pyplot():
+def pyplot(what: str = "plots", otherwise: str = " (or run with --no-plots)"):
+    """matplotlib's pyplot on the Agg backend (files, no display); ConfigError if it is not installed."""
     try:
         import matplotlib
     except ImportError as exc:
-        raise ConfigError("plots need matplotlib: pip install matplotlib (or run with --no-plots)") from exc
+        raise ConfigError(f"{what} need matplotlib: pip install matplotlib{otherwise}") from exc
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -29,7 +30,7 @@ def trajectory_figure(table: AlignedTable, hand: str, sources: dict[str, str], p
     source calibrated onto it (``sources``: target "mtm"/"psm" -> column prefix, e.g. ``emht_mtm_rigid``)
     dashed over it. Angles are unwrapped (no vertical lines where yaw crosses +-180 deg); a source's
     angle is shifted by whole turns to lie within half a turn of its target's."""
-    plt = _pyplot()
+    plt = pyplot()
     t = table.times_s()
     fig, axes = plt.subplots(6, 2, figsize=(13, 11), sharex=True)
     drawn = False
@@ -72,7 +73,7 @@ def unwrap_deg(values: np.ndarray, reference: np.ndarray | None = None) -> np.nd
 
 def pedal_figure(t_s: np.ndarray, truth: np.ndarray, detected: np.ndarray, path: Path, title: str) -> Path:
     """Step plot of ground truth and detection with frames where both are pressed shaded."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 2.6))
     ax.step(t_s, truth + 0.02, where="post", lw=1.2, label="ground truth")
     ax.step(t_s, detected - 0.02, where="post", lw=1.2, label="FPS detection")
@@ -87,7 +88,7 @@ def pedal_figure(t_s: np.ndarray, truth: np.ndarray, detected: np.ndarray, path:
 
 def grasper_figure(t_s: np.ndarray, states: dict[str, np.ndarray], path: Path, title: str) -> Path:
     """Closed (1) / open (0) step plots of each source, offset vertically."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 3))
     for k, (label, values) in enumerate(states.items()):
         ax.step(t_s, values + 1.5 * k, where="post", lw=1, label=label)

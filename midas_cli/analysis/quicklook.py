@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from midas_cli.errors import ConfigError
+from midas_cli.analysis.figures import pyplot
 from midas_cli.session.labels import list_label_sets, read_frame_labels
 from midas_cli.session.outputs import out_target, replacing, session_target
 from midas_cli.session.reader import Session
@@ -62,14 +62,7 @@ class QuickLook:
 
 
 def _pyplot():
-    try:
-        import matplotlib
-    except ImportError as exc:
-        raise ConfigError("midas plot needs matplotlib: pip install matplotlib") from exc
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return pyplot("midas plot and its figures", "")
 
 
 def default_out(session_path: Path | str) -> Path:
