@@ -145,12 +145,6 @@ def _popen_midas(*args: str, **env: str) -> subprocess.Popen:
                             text=True, cwd=REPO, env={**os.environ, "NO_COLOR": "1", "COLUMNS": "200", **env})
 
 
-def _midas_env(env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
-    proc = _popen_midas(*args, **env)
-    stdout, stderr = proc.communicate(timeout=300)
-    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-
-
 def test_a_second_writer_waits_with_a_message_then_writes(session: Path) -> None:
     fd = _hold_lock(session)
     try:
@@ -168,11 +162,24 @@ def test_a_second_writer_waits_with_a_message_then_writes(session: Path) -> None
 def test_a_writer_that_cannot_wait_exits_4_with_one_line_and_writes_nothing(session: Path) -> None:
     fd = _hold_lock(session)
     try:
-        result = _midas_env({"MIDAS_LOCK_WAIT_S": "0"}, "align", str(session))
+        result = midas("align", str(session), env={"MIDAS_LOCK_WAIT_S": "0"}, timeout=300)
     finally:
         os.close(fd)
     _one_error_line(result, 4, "being written by another midas", "MIDAS_LOCK_WAIT_S")
     assert not (session / "derived").exists() or not list((session / "derived").iterdir())
+
+
+def test_verify_during_a_write_does_not_wait_for_the_writer_and_says_what_it_skipped(session: Path) -> None:
+    """verify never blocks on a writer (the wait is 300 s here: a blocked verify times the test out) and
+    does not call the session damaged because another midas is writing its derived files."""
+    assert midas("align", str(session)).returncode == 0
+    fd = _hold_lock(session)
+    try:
+        result = midas("session", "verify", str(session), env={"MIDAS_LOCK_WAIT_S": "300"}, timeout=300)
+    finally:
+        os.close(fd)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "derived/aligned.*: not checked, another midas command is writing" in result.stdout
 
 
 def test_a_lock_left_by_a_killed_process_never_blocks(session: Path) -> None:
@@ -183,7 +190,7 @@ def test_a_lock_left_by_a_killed_process_never_blocks(session: Path) -> None:
     assert holder.stdout.readline().strip() == "locked"
     holder.send_signal(signal.SIGKILL)
     holder.wait(timeout=60)
-    result = _midas_env({"MIDAS_LOCK_WAIT_S": "0"}, "align", str(session))
+    result = midas("align", str(session), env={"MIDAS_LOCK_WAIT_S": "0"}, timeout=300)
     assert result.returncode == 0, result.stderr
 
 

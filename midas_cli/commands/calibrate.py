@@ -53,8 +53,6 @@ def fps(
     from midas_cli.devices.fps.calibration import calibrate_from_session
     from midas_cli.devices.fps.rigfile import load_target, write_target
 
-    if min(rest_s, press_s) <= 0:
-        raise ConfigError(f"--rest-s and --press-s must be positive, got {rest_s} and {press_s}")
     target = load_target(rig, device, url)
     if session is not None:
         result = calibrate_from_session(session, device, target.pedals, target.thresholds)

@@ -7,10 +7,10 @@ from pathlib import Path
 import typer
 
 from midas_cli.commands.common import err, out, print_json
-from midas_cli.commands.options import JSON_OPTION
+from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG
 
 
-def export(sessions: list[Path] = typer.Argument(..., help="Session folder(s)."),
+def export(sessions: list[Path] = SESSIONS_ARG,
            formats: list[str] = typer.Option(..., "--format", help="mcap, parquet and/or xdf (repeat the option or "
                                              "separate with commas)."),
            out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),

@@ -169,10 +169,9 @@ def write_aligned(session_path: Path | str, table: AlignedTable, csv: bool = Fal
         if csv:
             write_aligned_csv(tmps["csv"], table)
         tmps["json"].write_text(json.dumps(table.meta, indent=2) + "\n", encoding="utf-8")
-        # leaving the stack renames the temporaries into place (json first, values last: reversed order)
-    if not csv:
-        with session_lock(session_path):
+        if not csv:  # under the same lock: a concurrent `align --csv` cannot lose its CSV to this run
             paths["values.npy"].with_name("aligned.csv").unlink(missing_ok=True)
+        # leaving the stack renames the temporaries into place (json first, values last: reversed order)
     return paths
 
 

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import logging
-import os
-import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
@@ -97,10 +95,10 @@ class Session:
         error ``read_stream`` gives (the file is then parsed whole once, to name the line); a torn last line
         is left out, with a warning."""
         self._refuse_unfinished(allow_incomplete)
-        from midas_cli.session.values import ParsedStream, parse_stream_bytes, parse_stream_file
+        from midas_cli.session.values import ParsedStream, open_regular, parse_stream_bytes, parse_stream_file
 
         path, spec = self.stream_path(name), self.stream_spec(name)
-        with _open_regular(path) as fh:
+        with open_regular(path) as fh:
             header = fh.readline(len(spec.header_line()) + 1)
             rows, tail, sent = 0, b"", False
             while True:
@@ -143,24 +141,6 @@ class Session:
         except KeyError:
             known = ", ".join(self.stream_names) or "none"
             raise SessionError(f"session {self.path} has no stream {name!r} (streams: {known})") from None
-
-
-def _open_regular(path: Path):
-    """``path`` opened for reading in binary; SessionError (as ``read_regular_file``) if it is not a regular
-    file: a FIFO is never opened for a blocking read."""
-    try:
-        if stat.S_ISREG(os.stat(path).st_mode):
-            fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-            if stat.S_ISREG(os.fstat(fd).st_mode):
-                os.set_blocking(fd, True)
-                return os.fdopen(fd, "rb")
-            os.close(fd)
-    except OSError as exc:
-        raise SessionError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    from midas_cli.session.values import read_regular_file
-
-    read_regular_file(path)  # raises, naming what the path is instead
-    raise SessionError(f"{path} is not a regular file")
 
 
 def _warn_torn_tail(path: Path, parsed: ParsedStream, rows: int | None = None) -> None:

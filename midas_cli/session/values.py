@@ -49,9 +49,9 @@ class ParsedStream:
     torn_tail_bytes: int
 
 
-def read_regular_file(path: Path) -> bytes:
-    """The bytes of ``path``; SessionError if it is not a regular file (a FIFO, device or folder is
-    refused without being opened for a blocking read) or cannot be read."""
+def open_regular(path: Path):
+    """``path`` opened for reading in binary; SessionError if it is not a regular file (a FIFO, device or
+    folder is refused without being opened for a blocking read) or cannot be opened."""
     path = Path(path)
     try:
         mode = os.stat(path).st_mode
@@ -60,14 +60,25 @@ def read_regular_file(path: Path) -> bytes:
             try:
                 mode = os.fstat(fd).st_mode
                 if stat.S_ISREG(mode):
-                    with os.fdopen(fd, "rb", closefd=False) as fh:
-                        return fh.read()
-            finally:
+                    os.set_blocking(fd, True)
+                    return os.fdopen(fd, "rb")
+            except BaseException:
                 os.close(fd)
+                raise
+            os.close(fd)
     except OSError as exc:
         raise SessionError(f"cannot read {path}: {exc.strerror or exc}") from exc
     raise SessionError(f"{path} is not a regular file ({_kind(mode)}); expected the stream's CSV file: "
                        f"put the recorded file back in its place")
+
+
+def read_regular_file(path: Path) -> bytes:
+    """The bytes of ``path`` (see ``open_regular``)."""
+    with open_regular(path) as fh:
+        try:
+            return fh.read()
+        except OSError as exc:
+            raise SessionError(f"cannot read {path}: {exc.strerror or exc}") from exc
 
 
 def _kind(mode: int) -> str:
