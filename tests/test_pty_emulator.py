@@ -71,3 +71,17 @@ def test_the_trakstar_streams_only_the_sensors_the_host_configured(tmp_path: Pat
     assert summary["records_per_sensor"][2:] == [0, 0] and summary["records_per_sensor"][0] > 100
     assert len(rows) >= 100 and device.counters.corrupt == 0
     assert all(len(r) == 3 + 2 * 7 and None not in r[3:5] for r in rows)
+
+
+def test_asking_for_more_sensors_than_are_attached_is_refused_at_open(tmp_path: Path) -> None:
+    """The tracker keeps its own count when asked for more than it has; the driver reads the count back
+    and refuses, instead of recording the missing sensors' empty fields as corruption."""
+    emulator = TrakstarEmulator(EmulatorConfig(sensors=2, link=str(tmp_path / "trakstar"))).start()
+    clock = HostClock.anchored_now()
+    device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emulator.path}?rate=200&sensors=4"), DeviceContext(clock, clock.now_ns()))
+    try:
+        with pytest.raises(DeviceError, match="runs 2 sensor"):
+            device.open()
+    finally:
+        device.close()
+        emulator.stop()

@@ -173,6 +173,8 @@ class PtyEmulator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+            if self._thread.is_alive():  # closing the pty under it could let it write into a reused fd
+                raise DeviceError(f"the {self.label} emulator's thread did not stop within 5 s")
         if self._final_summary is None:
             self._final_summary = self.summary()
         self.port.close()

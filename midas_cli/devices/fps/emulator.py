@@ -149,6 +149,8 @@ class FpsEmulator(PtyEmulator):
         if len(words) == 2 and words[0] in actions and words[1].isdigit():
             self.force(int(words[1]), actions[words[0]])
         elif words in (["unplug"], ["replug"]):
+            if words[0] == "unplug" and not self.port.link:  # the host's path would vanish for good
+                raise ConfigError("unplug needs --link: without it the host cannot find the board again")
             self.set_unplugged(words[0] == "unplug")
         else:
             raise ConfigError(f"unknown emulator control {line.strip()!r} (press N, release N, auto N, unplug, replug)")

@@ -172,11 +172,15 @@ class FobEmHT(Device):
         rate_word = self._examine(fob.PARAM_MEASUREMENT_RATE)
         scaling = self._examine(fob.PARAM_POSITION_SCALING)
         group = self._examine(fob.PARAM_GROUP_MODE)
+        sensors = self._examine(fob.PARAM_AUTOCONFIG)
         if rate_word != fob.rate_word(p["rate"]) or scaling != fob.RANGES_IN[p["range"]] or group != 1:
             raise DeviceError(
                 f"{self.name}: the tracker did not take the settings: measurement rate {rate_word / 256:g} Hz "
                 f"(asked {p['rate']:g}), position scaling {scaling} (asked {fob.RANGES_IN[p['range']]}), "
                 f"group mode {group} (asked 1); check the rate is supported by this tracker")
+        if sensors != p["sensors"]:
+            raise DeviceError(f"{self.name}: the tracker runs {sensors} sensor(s), asked for {p['sensors']}: "
+                              f"are {p['sensors']} sensors plugged in? (set sensors= in the URL to what is attached)")
         revision = self._examine(fob.PARAM_REVISION)
         serial_number = self._examine(fob.PARAM_SERIAL_NUMBER)
         return {"model": "trakSTAR / Flock of Birds (RS-232)", "serial": str(serial_number),

@@ -139,7 +139,9 @@ class TrakstarEmulator(PtyEmulator):
         del self._commands[:1]
         state = self._state
         if 0xF1 <= code <= 0xFE:
-            state.addressed = code - fob.RS232_TO_FBB
+            address = code - fob.RS232_TO_FBB
+            if 1 <= address <= state.sensors:  # a sensor that is not there (or not configured): no one answers
+                state.addressed = address
             return True
         name = {ord("B"): "point", ord("@"): "stream", ord("Y"): "position_angles", ord("/"): "fbb_reset",
                 ord("G"): "sleep", ord("F"): "run"}.get(code, f"unsupported_0x{code:02x}")
