@@ -154,9 +154,12 @@ def mean_rotation(rotations: np.ndarray) -> np.ndarray:
     return u @ d @ vt
 
 
-def unwrap_deg(angles: np.ndarray) -> np.ndarray:
-    """Unwrap an angle trajectory (N,) in degrees across +/-180 jumps (NaN kept in place)."""
+def unwrap_deg(angles: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """Unwrap an angle trajectory (N,) in degrees across +/-180 jumps (NaN kept in place); with
+    ``reference``, shifted by whole turns so its median lies within 180 deg of the reference's."""
     out = np.array(angles, dtype=float)
     ok = np.isfinite(out)
     out[ok] = np.degrees(np.unwrap(np.radians(out[ok])))
+    if reference is not None and ok.any() and np.isfinite(reference).any():
+        out -= 360.0 * np.round((np.nanmedian(out) - np.nanmedian(reference)) / 360.0)
     return out

@@ -8,8 +8,6 @@ import json
 import os
 import pickle
 import shutil
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -18,12 +16,6 @@ from helpers.cli import midas, write_session
 from helpers.gesture_sessions import write_gesture_dataset
 
 from midas_cli.commands.progress import PlainProgress, progress_line
-
-
-def midas_env(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    """`midas ARGS` with ``env`` added to the environment (conftest's ``midas`` takes no env)."""
-    return subprocess.run([sys.executable, "-m", "midas_cli", *args], capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "NO_COLOR": "1", "COLUMNS": "200", **env})
 
 
 def assert_one_error(result, code: int, *needles: str) -> None:
@@ -173,7 +165,7 @@ def assert_disk_full(result, path_part: str) -> None:
 def test_align_on_a_full_disk_keeps_the_old_table_and_leaves_no_temporaries(gestures, tmp_path):
     session = copy_session(gestures[0], tmp_path)
     before = {p.name: p.read_bytes() for p in (session / "derived").iterdir()}
-    result = midas_env("align", str(session), env=full_disk_env(tmp_path, session / "derived"))
+    result = midas("align", str(session), env=full_disk_env(tmp_path, session / "derived"))
     assert_disk_full(result, "aligned")
     assert {p.name: p.read_bytes() for p in (session / "derived").iterdir()} == before
 
@@ -186,7 +178,7 @@ def test_repair_on_a_full_disk_loses_nothing_and_can_run_again(tmp_path):
     with open(stream, "ab") as fh:
         fh.write(b"20,123")  # a torn last line
     data = stream.read_bytes()
-    result = midas_env("session", "repair", str(session), env=full_disk_env(tmp_path, session, "demo.csv"))
+    result = midas("session", "repair", str(session), env=full_disk_env(tmp_path, session, "demo.csv"))
     assert_disk_full(result, "demo.csv")
     cut = session / "logs" / "repair-demo.cut"
     assert stream.read_bytes() + (cut.read_bytes() if cut.exists() else b"") in (data, data + b"20,123")
@@ -198,7 +190,7 @@ def test_repair_on_a_full_disk_loses_nothing_and_can_run_again(tmp_path):
 def test_record_on_a_full_disk_is_exit_4(tmp_path):
     out = tmp_path / "rec"
     out.mkdir()
-    result = midas_env("record", "--simulate", "--duration", "1", "--out", str(out), "--subject", "1", "--task", "t",
+    result = midas("record", "--simulate", "--duration", "1", "--out", str(out), "--subject", "1", "--task", "t",
                    "--trial", "1", env=full_disk_env(tmp_path, out, "midas.log"))
     assert_disk_full(result, "midas.log")
 
@@ -207,7 +199,7 @@ def test_record_on_a_full_disk_is_exit_4(tmp_path):
 
 def test_train_prints_plain_progress_lines_when_stderr_is_not_a_terminal(gestures, tmp_path):
     env = {"MIDAS_PROGRESS_INTERVAL_S": "0"}
-    result = midas_env("train", "gestures", *map(str, gestures), "--epochs", "2", "--out", str(tmp_path / "run"), env=env)
+    result = midas("train", "gestures", *map(str, gestures), "--epochs", "2", "--out", str(tmp_path / "run"), env=env)
     assert result.returncode == 0, result.stderr
     lines = [line for line in result.stderr.splitlines() if line.startswith("midas: progress: ")]
     assert [line.split(",")[0] for line in lines] == ["midas: progress: mstcn epochs: 1/2 (50%)",
@@ -218,7 +210,7 @@ def test_train_prints_plain_progress_lines_when_stderr_is_not_a_terminal(gesture
 
 def test_bad_progress_interval_is_exit_2(gestures, tmp_path):
     env = {"MIDAS_PROGRESS_INTERVAL_S": "soon"}
-    assert_one_error(midas_env("align", str(copy_session(gestures[0], tmp_path)), env=env), 2, "MIDAS_PROGRESS_INTERVAL_S")
+    assert_one_error(midas("align", str(copy_session(gestures[0], tmp_path)), env=env), 2, "MIDAS_PROGRESS_INTERVAL_S")
 
 
 def test_plain_progress_waits_the_interval_between_lines():

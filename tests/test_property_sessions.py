@@ -33,13 +33,14 @@ from pathlib import Path
 
 import pytest
 
-hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from helpers.cli import midas  # noqa: E402
+from helpers.cli import midas
 
-pytestmark = pytest.mark.slow
+# SIGALRM is this module's hang detector (run_midas), so the suite's timeout must not use it too: the
+# thread method keeps pytest-timeout's guard over the whole module's examples
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900, method="thread")]
 
 EXAMPLES = int(os.environ.get("MIDAS_PROPERTY_EXAMPLES", "300"))
 HANG_S = 60  # a command still running after this long on damaged input is hung (a FIFO opened blindly)

@@ -9,6 +9,7 @@ import numpy as np
 
 from midas_cli.analysis.evaluation import AXES
 from midas_cli.errors import ConfigError
+from midas_cli.geometry import unwrap_deg
 from midas_cli.session.derived import AlignedTable
 from midas_cli.session.outputs import out_target, replacing
 
@@ -57,18 +58,6 @@ def trajectory_figure(table: AlignedTable, hand: str, sources: dict[str, str], p
         return None
     fig.suptitle(title)
     return _save(plt, fig, path)
-
-
-def unwrap_deg(values: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
-    """Angles (deg) unwrapped over their finite samples (NaN kept); with ``reference``, shifted by whole
-    turns so their median lies within 180 deg of the reference's."""
-    out = np.array(values, dtype=float)
-    ok = np.isfinite(out)
-    if ok.sum() > 1:
-        out[ok] = np.degrees(np.unwrap(np.radians(out[ok])))
-    if reference is not None and ok.any() and np.isfinite(reference).any():
-        out -= 360.0 * np.round((np.nanmedian(out) - np.nanmedian(reference)) / 360.0)
-    return out
 
 
 def pedal_figure(t_s: np.ndarray, truth: np.ndarray, detected: np.ndarray, path: Path, title: str) -> Path:

@@ -120,8 +120,8 @@ def complete(root: Path) -> bool:
         runs = _fold_runs(folder)
         if folder == Path(root) and not runs:
             return False
-        if runs and len(runs) < len(_expected(runs)):
-            return False
+        if runs and (not _expected(runs) or len(runs) < len(_expected(runs))):
+            return False  # a run without its split's groups (an older midas) cannot say how many folds exist
     return True
 
 
@@ -133,7 +133,8 @@ def collect(root: Path) -> dict:
     records = {k: json.loads((p / "run.json").read_text(encoding="utf-8")) for k, p in runs.items()}
     first = records[min(records)]
     same = ("dataset_config", "data_fingerprint", "classes", "model")
-    train_keys = lambda r: {k: v for k, v in r["train_config"].items() if k != "fold"}  # noqa: E731
+    # the fold differs by design; the device (cpu/cuda) a cluster job ran on does not change what is trained
+    train_keys = lambda r: {k: v for k, v in r["train_config"].items() if k not in ("fold", "device")}  # noqa: E731
     for k, record in records.items():
         differs = [key for key in same if record.get(key) != first.get(key)]
         differs += ["train_config"] if train_keys(record) != train_keys(first) else []

@@ -18,9 +18,10 @@ REPO = Path(__file__).resolve().parents[2]
 SHARED_DATA = Path(os.environ.get("MIDAS_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
-def midas(*args: str, timeout: float = 120, check: bool = False, **kwargs) -> subprocess.CompletedProcess:
-    """Run `python -m midas_cli ARGS` and capture stdout/stderr as text."""
-    env = {**os.environ, "NO_COLOR": "1", "COLUMNS": "200"}
+def midas(*args: str, timeout: float = 120, check: bool = False, env: dict[str, str] | None = None,
+          **kwargs) -> subprocess.CompletedProcess:
+    """Run `python -m midas_cli ARGS` and capture stdout/stderr as text (``env`` added to the environment)."""
+    env = {**os.environ, "NO_COLOR": "1", "COLUMNS": "200", **(env or {})}
     result = subprocess.run([sys.executable, "-m", "midas_cli", *args], capture_output=True, text=True,
                             timeout=timeout, env=env, **kwargs)
     if check and result.returncode != 0:
