@@ -17,11 +17,13 @@ thread, ``torch.no_grad``, 100 calls. Sizes 5, 10 and 15 trials give the slope p
     .venv/bin/python benchmarks/bench_train.py --louo     # JIGSAWS-sized LOUO fold -> results/train_louo.json
 
 LOUO (``--louo``): a JIGSAWS-sized dataset, 8 subjects x 5 trials of ~100 s at 30 Hz (``midas simulate
-dataset --platform raven-ii --trials 40 --subjects 8 --max-seconds 100``, ``--difficulty real``), 76 input columns (mtm 22
-+ psm 22 + image 32: pos, ori, vel, grasper at ``--model-rate 30``, as JIGSAWS's 76 kinematic columns).
-One LOUO fold of MS-TCN++ (fold 0: 6 subjects train, 1 validation, 1 test; the split of ``--split louo``)
-through the real loop (``models.train.fit`` with validation every epoch): a warm-up epoch, then
-``LOUO_EPOCHS`` timed epochs; a 50-epoch fold is extrapolated (50 x epoch + test evaluation) and said so.
+dataset --platform raven-ii --trials 40 --subjects 8 --max-seconds 100``, ``--difficulty real``), 76 input
+columns as JIGSAWS's kinematics: mtm + psm, both arms, pos 3 + rotation matrix 9 + linear velocity 3 +
+angular velocity 3 + grasper 1 per arm, at ``--model-rate 30``. One LOUO fold of MS-TCN++ as
+``train gestures --split louo`` runs it today (fold 0: 7 subjects train, no validation set, 1 test; the
+MS-TCN++ recipe: batch 1, ``RECIPES["mstcn"]["epochs"]`` epochs) through the real loop
+(``models.train.fit``): a warm-up epoch, then ``LOUO_EPOCHS`` timed epochs; the whole fold is
+extrapolated (recipe epochs x epoch + test evaluation) and said so.
 CPU only here; a GPU run is recorded only where ``torch.cuda.is_available()``.
 """
 
@@ -44,8 +46,9 @@ PLATFORM, SEED = "raven-ii", 1
 MODALITIES = ("emht", "mtm", "psm", "image")
 FEATURES = ("pos", "ori", "vel", "grasper")
 ONLINE_CONTEXT = {"mstcn": 1024, "transformer": 64}
-LOUO_SUBJECTS, LOUO_TRIALS_PER_SUBJECT, LOUO_EPOCHS, LOUO_FOLD_EPOCHS = 8, 5, 2, 50
-LOUO_MODALITIES, LOUO_RATE_HZ, LOUO_MAX_SECONDS = ("mtm", "psm", "image"), 30.0, 100.0
+LOUO_SUBJECTS, LOUO_TRIALS_PER_SUBJECT, LOUO_EPOCHS = 8, 5, 2
+LOUO_MODALITIES, LOUO_RATE_HZ, LOUO_MAX_SECONDS = ("mtm", "psm"), 30.0, 100.0
+LOUO_FEATURES = ("pos", "ori", "vel", "angvel", "grasper")  # with rotation matrices: JIGSAWS's 19 per arm
 
 
 def prepare_dataset(folder: Path, trials: int, max_seconds: float | None, subjects: int = 1) -> dict:
@@ -159,28 +162,26 @@ def louo_case(folder: Path, device_name: str) -> dict:
     """Runs inside the child: one LOUO fold of MS-TCN++ on ``device_name`` (see the module docstring)."""
     import torch
 
-    from midas_cli.models.data import DatasetConfig, Normaliser, build_dataset
+    from midas_cli.models.data import DatasetConfig, build_dataset
     from midas_cli.models.splits import make_split
-    from midas_cli.models.train import Sequences, TrainConfig, build_model, fit, predict
+    from midas_cli.models.train import RECIPES, TrainConfig, _sequences, build_model, fit, fit_normaliser, predict
 
     torch.manual_seed(0)
     device = torch.device(device_name)
     t0 = time.monotonic()
-    dataset = build_dataset(sessions_in(folder), DatasetConfig(LOUO_MODALITIES, FEATURES, rate_hz=LOUO_RATE_HZ))
+    dataset = build_dataset(sessions_in(folder), DatasetConfig(LOUO_MODALITIES, LOUO_FEATURES, rate_hz=LOUO_RATE_HZ))
     build_s = time.monotonic() - t0
-    split = make_split(dataset, "louo", 0, 0)
+    split = make_split(dataset, "louo", 0, 0)  # the default: no validation set, every other subject trains
     order = list(dataset.config.modalities)
-    blocks = {t.name: t.stacked(order) for t in dataset.trials}
-    normaliser = Normaliser.fit([blocks[n][a:b] for n, a, b in split.units["train"]])
-    parts = {part: Sequences(list(units), [normaliser.apply(blocks[n][a:b]) for n, a, b in units],
-                             [dataset.trials[dataset.trial_index(n)].labels[a:b] for n, a, b in units])
-             for part, units in split.units.items()}
+    normaliser = fit_normaliser(dataset, split.units["train"], order)
+    parts = {part: _sequences(dataset, units, normaliser, order) for part, units in split.units.items()}
     model, _ = build_model("mstcn", dataset.modality_dims, len(dataset.classes), {})
     model.to(device)
     fit(model, parts["train"], parts["val"], TrainConfig(model="mstcn", epochs=1), device)  # warm-up
     t0 = time.monotonic()
     fit(model, parts["train"], parts["val"], TrainConfig(model="mstcn", epochs=LOUO_EPOCHS), device)
     epoch_s = (time.monotonic() - t0) / LOUO_EPOCHS
+    fold_epochs = RECIPES["mstcn"]["epochs"]
     t0 = time.monotonic()
     predict(model, parts["test"], device)
     test_s = time.monotonic() - t0
@@ -190,8 +191,8 @@ def louo_case(folder: Path, device_name: str) -> dict:
             "trials": {part: len(units) for part, units in split.units.items()}, "frames": frames,
             "frames_per_trial_mean": round(float(np.mean([len(t.labels) for t in dataset.trials])), 1),
             "dataset_build_s": round(build_s, 2), "timed_epochs": LOUO_EPOCHS, "epoch_s": round(epoch_s, 2),
-            "test_predict_s": round(test_s, 2), "fold_epochs": LOUO_FOLD_EPOCHS,
-            "fold_s_extrapolated": round(LOUO_FOLD_EPOCHS * epoch_s + test_s, 1)}
+            "test_predict_s": round(test_s, 2), "fold_epochs": fold_epochs, "batch_size": RECIPES["mstcn"]["batch_size"],
+            "fold_s_extrapolated": round(fold_epochs * epoch_s + test_s, 1)}
 
 
 def run_louo() -> None:
@@ -214,7 +215,7 @@ def run_louo() -> None:
             runs.append({"load_average_before_after": [load, load_average()],
                          **json.loads(proc.stdout.strip().splitlines()[-1])})
     write_result("train_louo", {"machine": machine_info(), "data": data, "gpu_available": len(devices) > 1,
-                                "dataset_config": {"modalities": list(LOUO_MODALITIES), "features": list(FEATURES)},
+                                "dataset_config": {"modalities": list(LOUO_MODALITIES), "features": list(LOUO_FEATURES)},
                                 "runs": runs})
 
 

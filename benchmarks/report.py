@@ -229,19 +229,22 @@ def train_section(t: dict) -> list[str]:
 
 
 def train_louo_section(t: dict) -> list[str]:
-    d, m = t["data"], t["machine"]
+    d, m, r0 = t["data"], t["machine"], t["runs"][0]
     cut = f" --max-seconds {d['max_seconds_per_trial']:g}" if d["max_seconds_per_trial"] else ""
     out = ["### One LOUO fold, JIGSAWS-sized (`bench_train.py --louo`)", "",
            f"Data: `midas simulate dataset --platform {d['platform']} --trials {d['trials']} --subjects {d['subjects']} "
            f"--seed {d['seed']}{cut}` (default `--difficulty real`; {d['video_frames_total']} video frames, "
            f"{d['dataset_mb']:g} MB) took {d['simulate_s']:g} s, `midas align` {d['align_s']:g} s (`--jobs {d['jobs']}`). "
-           "The fold: MS-TCN++ on mtm + psm + image (pos, ori, vel, grasper) at 30 Hz, LOUO fold 0 (6 subjects "
-           "train, 1 validation, 1 test), the real loop (`models.train.fit`, validation every epoch); a warm-up "
-           "epoch, then the timed epochs; **the 50-epoch fold time is extrapolated** (50 x epoch + test "
-           f"prediction), not measured. Machine: {m['cpu_model']}, {m['affinity_cpus']} usable CPUs "
-           f"of {m['cpus']}, {m['date_utc']}.", "",
+           f"The fold: MS-TCN++ on {' + '.join(t['dataset_config']['modalities'])} "
+           f"({', '.join(t['dataset_config']['features'])}) at {r0['rate_hz']:g} Hz, {r0['columns']} columns, LOUO "
+           f"fold 0 ({r0['trials']['train']} trials train, {r0['trials']['val']} validation, {r0['trials']['test']} "
+           f"test), the MS-TCN++ recipe (batch {r0.get('batch_size', '?')}) through the real loop "
+           "(`models.train.fit`); a warm-up epoch, then the timed epochs; **the "
+           f"{r0['fold_epochs']}-epoch fold time is extrapolated** ({r0['fold_epochs']} x epoch + test prediction), "
+           f"not measured. Machine: {m['cpu_model']}, {m['affinity_cpus']} usable CPUs of {m['cpus']}, "
+           f"{m['date_utc']}.", "",
            "| device | columns | trials train/val/test | frames train/val/test | frames per trial | load 1 min | "
-           "epoch s (timed epochs) | test predict s | 50-epoch fold s (extrapolated) |",
+           f"epoch s (timed epochs) | test predict s | {r0['fold_epochs']}-epoch fold s (extrapolated) |",
            "|---|---|---|---|---|---|---|---|---|"]
     for r in t["runs"]:
         load = "–".join(f"{x:g}" for x in r["load_average_before_after"])

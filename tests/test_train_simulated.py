@@ -15,7 +15,7 @@ refinement stages the transformer stalled near 0.78 here, even after 16 epochs: 
 The dataset is `--difficulty easy` (every subject moves alike): the point here is the training
 mechanics, not how hard the data is. How far the default `real` simulator pulls models below 1.0 under
 LOUO (MS-TCN++ against a per-frame logistic regression) is measured in README ("Simulated data vs real
-data") with benchmarks/louo_baseline.py."""
+data") with `midas train gestures --model baseline --split louo --fold all`."""
 
 from __future__ import annotations
 
