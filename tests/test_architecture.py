@@ -43,7 +43,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "midas_cli"
 #   commands     the typer CLI
 #   __main__     entry point
 LAYERS: list[set[str]] = [
-    {"", "errors", "clock", "geometry"},
+    {"", "errors", "clock", "geometry", "config"},
     {"session"},
     {"devices", "synthetic"},
     {"rig", "labels", "models"},

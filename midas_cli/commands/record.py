@@ -16,6 +16,7 @@ from rich.table import Table
 from rich.text import Text
 
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
+from midas_cli.config import RIG_ENV, config_path, default_rig, default_sessions
 from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
@@ -38,9 +39,11 @@ STOP_SIGNALS = {
 
 def record(
     simulate: bool = typer.Option(False, "--simulate", help="Record from the built-in simulated rig."),
-    rig: Optional[Path] = typer.Option(None, "--rig", help="Rig configuration file (TOML).", dir_okay=False),
+    rig: Optional[Path] = typer.Option(None, "--rig", help="Rig configuration file (TOML; default: $MIDAS_RIG or "
+                                       "[record] rig in ~/.config/midas/config.toml).", dir_okay=False),
     device: list[str] = typer.Option([], "--device", help="Add or replace a device: NAME=URL (repeatable)."),
-    out: Path = typer.Option(Path("sessions"), "--out", help="Folder that receives the session folder."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder that receives the session folder (default: "
+                                       "$MIDAS_SESSIONS, [record] sessions in the config, else ./sessions)."),
     subject: Optional[str] = typer.Option(None, help="Subject id."),
     task: Optional[str] = typer.Option(None, help="Task name, e.g. suturing or peg-transfer."),
     trial: Optional[int] = typer.Option(None, help="Trial number."),
@@ -69,7 +72,7 @@ def record(
         _check_options(seed, master_rate, queue_size)
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
-                          rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest())
+                          rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size, rig_config.to_manifest())
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         _exit_if_stopped_before_start(stop)
         mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
@@ -123,8 +126,11 @@ def _exit_if_stopped_before_start(stop: "_StopFlag") -> None:
 def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigConfig:
     if simulate and rig is not None:
         raise ConfigError("give either --simulate or --rig, not both")
+    if not (simulate or rig):
+        rig = default_rig()  # --device then adds to or replaces devices of the technician's rig
     if not (simulate or rig or device):
-        raise ConfigError("nothing to record: give --simulate, --rig FILE or --device NAME=URL")
+        raise ConfigError("nothing to record: give --simulate, --rig FILE or --device NAME=URL "
+                          f"(or set {RIG_ENV} or [record] rig in {config_path()})")
     config = load_rig(rig) if rig else simulated_rig()
     if device and not (simulate or rig):
         config.devices.clear()

@@ -18,7 +18,8 @@ app = typer.Typer(no_args_is_help=True, help="Check a rig's devices before recor
 
 @app.command("check")
 def check(
-    rig: Optional[Path] = typer.Argument(None, help="Rig file (TOML; templates in sessions_template/rigs/)."),
+    rig: Optional[Path] = typer.Argument(None, help="Rig file (TOML; templates in sessions_template/rigs/; default: "
+                                         "$MIDAS_RIG or [record] rig in the config)."),
     simulate: bool = typer.Option(False, "--simulate", help="Check the built-in simulated rig."),
     seconds: float = typer.Option(3.0, "--seconds", callback=positive, help="Seconds to read from each device."),
     as_json: bool = JSON_OPTION,
@@ -37,8 +38,14 @@ def check(
     from midas_cli.record.rigcheck import check_rig
     from midas_cli.rig import simulated_rig
 
-    if simulate == (rig is not None):
+    from midas_cli.config import RIG_ENV, config_path, default_rig
+
+    if simulate and rig is not None:
         raise ConfigError("give a rig file or --simulate (one of them)")
+    if not simulate and rig is None:
+        rig = default_rig()
+        if rig is None:
+            raise ConfigError(f"give a rig file or --simulate (or set {RIG_ENV} or [record] rig in {config_path()})")
     config = simulated_rig() if simulate else load_rig(rig)
     results = check_rig(config, seconds)
     failed = [r.device for r in results if r.state == "failed"]

@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "plot": ("plot", "plot", "command"),
     "rig": ("rig", "app", "group"),
     "doctor": ("doctor", "doctor", "command"),
+    "config": ("config_cmd", "config", "command"),
 }
 
 # Each command's one-line summary (the first paragraph of its help), as `midas --help` lists them:
@@ -43,6 +44,7 @@ COMMAND_SUMMARIES: dict[str, str] = {
     "export": "Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.",
     "plot": "Draw a quick-look page of a session: every stream against session time.",
     "doctor": "Report versions, serial ports, OBS reachability, GPU and free disk.",
+    "config": "Show the defaults in use (rig, sessions, SLURM) and where each comes from.",
     "session": "Inspect, list, verify and repair session folders.",
     "labels": "Gesture taxonomies, annotation import/export and label statistics.",
     "simulate": "Synthetic recordings with known ground truth (no hardware needed).",

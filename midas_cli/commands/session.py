@@ -30,7 +30,8 @@ def _fmt(value: Any, spec: str = "") -> str:
 def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
     """Summarise one session: metadata, status, devices and stream statistics.
 
-    Metadata, status, duration, devices and per-stream rates, counts, gaps.
+    Metadata, status, duration, devices and per-stream rates, counts, gaps, and the first and last
+    sample's host time in seconds from the session start (--json: also in host ns).
 
     Example: midas session info sessions/suturing_S1_T1_20260101T120000Z
     """
@@ -47,11 +48,12 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
     if summary["operator_note"]:
         out.print(f"note: {summary['operator_note']}", markup=False)
     table = Table("stream", "device", "nominal Hz", "measured Hz", "samples", "gaps", "missing", "dropped",
-                  "corrupt", "p99 latency ms", header_style="bold")
+                  "corrupt", "p99 latency ms", "first s", "last s", header_style="bold")
     for name, s in summary["streams"].items():
         table.add_row(name, s["device"], _fmt(s["nominal_rate_hz"], "g"), _fmt(s["measured_rate_hz"], ".2f"),
                       _fmt(s["samples"]), _fmt(s["gaps"]), _fmt(s["missing"]), _fmt(s["dropped"]),
-                      _fmt(s["corrupt"]), _fmt(s["latency_p99_ms"]))
+                      _fmt(s["corrupt"]), _fmt(s["latency_p99_ms"]), _fmt(s["first_s"], ".3f"),
+                      _fmt(s["last_s"], ".3f"))
     out.print(table)
     for name, d in summary["devices"].items():
         out.print(f"device {name}: {d['kind']} {d['url']}  serial {d['serial'] or '—'}  "
@@ -60,7 +62,8 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
 
 @app.command("list")
 def list_sessions(
-    root: Path = typer.Argument(..., help="Folder to search."),
+    root: Optional[Path] = typer.Argument(None, help="Folder to search (default: $MIDAS_SESSIONS, [record] "
+                                          "sessions in the config, else ./sessions)."),
     task: Optional[str] = typer.Option(None, help="Only sessions of this task."),
     subject: Optional[str] = typer.Option(None, help="Only sessions of this subject."),
     platform: Optional[str] = typer.Option(None, help="Only sessions on this platform."),
@@ -87,6 +90,10 @@ def list_sessions(
     """
     if paths and as_json:
         raise ConfigError("give --paths or --json, not both")
+    if root is None:
+        from midas_cli.config import default_sessions
+
+        root = default_sessions()
     statuses = _status_filter(status)
     wanted = {"task": task, "subject": subject, "platform": platform}
     rows, unreadable, hidden = [], 0, 0

@@ -11,6 +11,7 @@ def summarize_session(session: Session) -> dict[str, Any]:
     """Metadata, status, duration and per-stream figures (rates, counts, gaps, drops, latency)."""
     manifest = session.manifest
     streams = {}
+    start_ns = manifest["start"].get("host_ns")
     for name, entry in manifest["streams"].items():
         gaps = entry.get("seq_gaps") or {}
         streams[name] = {
@@ -25,6 +26,10 @@ def summarize_session(session: Session) -> dict[str, Any]:
             "dropped": entry.get("dropped"),
             "corrupt": entry.get("corrupt"),
             "latency_p99_ms": (entry.get("latency_ms") or {}).get("p99"),
+            "first_t_host_ns": entry.get("first_t_host_ns"),
+            "last_t_host_ns": entry.get("last_t_host_ns"),
+            "first_s": _since(entry.get("first_t_host_ns"), start_ns),
+            "last_s": _since(entry.get("last_t_host_ns"), start_ns),
         }
     devices = {
         name: {"kind": d.get("kind"), "url": d.get("url"), "reconnects": d.get("reconnects"),
@@ -42,3 +47,10 @@ def summarize_session(session: Session) -> dict[str, Any]:
         "devices": devices,
         "streams": streams,
     }
+
+
+def _since(t_ns: Any, start_ns: Any) -> float | None:
+    """Seconds from the session start (the host clock both are on), or None when either is unknown."""
+    if not isinstance(t_ns, int) or not isinstance(start_ns, int):
+        return None
+    return round((t_ns - start_ns) / 1e9, 6)

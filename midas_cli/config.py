@@ -1,0 +1,128 @@
+"""Defaults a technician sets once: environment variables and ``~/.config/midas/config.toml``.
+
+Precedence, highest first: the command-line flag, the environment variable, the config file, the
+built-in default. The config file is found at ``$MIDAS_CONFIG`` (a file path), else
+``$XDG_CONFIG_HOME/midas/config.toml``, else ``~/.config/midas/config.toml``; a missing file is an
+empty config. Its sections and keys are checked (a typo is an error, not a silently ignored setting)::
+
+    [record]
+    rig = "/etc/midas/console-rig.toml"   # MIDAS_RIG; relative paths are relative to this file
+    sessions = "/data/midas/sessions"     # MIDAS_SESSIONS; where `midas record` puts new sessions
+
+    [slurm]                               # `--executor slurm` settings (flags override them)
+    partition = "gpu"
+    time = "02:00:00"
+    mem = "8G"
+    gpus = 0
+    array_parallelism = 32
+
+Only the standard library is imported here, so every command may ask for its defaults at no cost.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Optional
+
+from midas_cli.errors import ConfigError
+
+CONFIG_ENV = "MIDAS_CONFIG"
+RIG_ENV = "MIDAS_RIG"
+SESSIONS_ENV = "MIDAS_SESSIONS"
+DEFAULT_SESSIONS = Path("sessions")
+
+# section -> key -> accepted Python types (TOML values); path keys are resolved against the file's folder
+KNOWN: dict[str, dict[str, tuple[type, ...]]] = {
+    "record": {"rig": (str,), "sessions": (str,)},
+    "slurm": {"partition": (str,), "time": (str,), "mem": (str,), "gpus": (int,), "array_parallelism": (int,),
+              "account": (str,), "qos": (str,), "cpus_per_task": (int,)},
+}
+PATH_KEYS = {("record", "rig"), ("record", "sessions")}
+
+
+def config_path() -> Path:
+    """Where the config file is looked for (it need not exist)."""
+    explicit = os.environ.get(CONFIG_ENV)
+    if explicit:
+        return Path(explicit).expanduser()
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "midas" / "config.toml"
+
+
+def load_config(path: Optional[Path] = None) -> dict[str, dict[str, Any]]:
+    """The config file's checked sections ({} when there is none); a bad file is a one-line ConfigError."""
+    import tomllib  # lazily: only commands that ask for defaults pay for it
+
+    path = config_path() if path is None else path
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        if os.environ.get(CONFIG_ENV):
+            raise ConfigError(f"{CONFIG_ENV}={path}: no such config file") from None
+        return {}
+    except IsADirectoryError:
+        raise ConfigError(f"config {path} is a folder, expected a TOML file") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config {path} is not valid TOML: {exc}") from None
+    return _checked(data, path)
+
+
+def _checked(data: dict[str, Any], path: Path) -> dict[str, dict[str, Any]]:
+    result: dict[str, dict[str, Any]] = {}
+    for section, values in data.items():
+        keys = KNOWN.get(section)
+        if keys is None or not isinstance(values, dict):
+            raise ConfigError(f"config {path}: unknown section [{section}] (known: "
+                              f"{', '.join('[' + s + ']' for s in KNOWN)})")
+        for key, value in values.items():
+            if key not in keys:
+                raise ConfigError(f"config {path}: unknown key '{key}' in [{section}] (known: {', '.join(keys)})")
+            if not isinstance(value, keys[key]) or isinstance(value, bool):
+                expected = " or ".join(t.__name__ for t in keys[key])
+                raise ConfigError(f"config {path}: [{section}] {key} = {value!r} should be a {expected}")
+            if (section, key) in PATH_KEYS:
+                value = str((path.parent / Path(value).expanduser()))
+            result.setdefault(section, {})[key] = value
+    return result
+
+
+def section(name: str) -> dict[str, Any]:
+    """One section of the config file ({} when absent)."""
+    return load_config().get(name, {})
+
+
+def default_rig() -> Optional[Path]:
+    """The rig file to record from when no --rig/--simulate/--device is given: MIDAS_RIG, then [record] rig."""
+    value = os.environ.get(RIG_ENV)
+    if value:
+        return Path(value).expanduser()
+    configured = section("record").get("rig")
+    return Path(configured) if configured else None
+
+
+def default_sessions() -> Path:
+    """Where new sessions go when --out is not given: MIDAS_SESSIONS, then [record] sessions, then ./sessions."""
+    value = os.environ.get(SESSIONS_ENV)
+    if value:
+        return Path(value).expanduser()
+    configured = section("record").get("sessions")
+    return Path(configured) if configured else DEFAULT_SESSIONS
+
+
+def describe_defaults() -> dict[str, Any]:
+    """Where each default comes from, for `midas doctor`/`midas config`: value and source per setting."""
+    file_config = load_config()
+    rows: dict[str, Any] = {"config_file": {"path": str(config_path()), "exists": config_path().is_file()}}
+    for key, env in (("rig", RIG_ENV), ("sessions", SESSIONS_ENV)):
+        if os.environ.get(env):
+            rows[key] = {"value": str(Path(os.environ[env]).expanduser()), "source": env}
+        elif key in file_config.get("record", {}):
+            rows[key] = {"value": file_config["record"][key], "source": f"{config_path()} [record]"}
+        else:
+            rows[key] = {"value": str(DEFAULT_SESSIONS) if key == "sessions" else None, "source": "built-in"}
+    rows["slurm"] = file_config.get("slurm", {})
+    return rows
