@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from midas_cli.analysis.align import AlignOptions, align_and_write
-from midas_cli.analysis.sync import associate, downsample_rows, estimate_lag, fill_gaps
+from midas_cli.analysis.sync import associate, cubic_spline, downsample_rows, estimate_lag, fill_gaps
 from midas_cli.session.derived import read_aligned
 from helpers.analysis_sessions import raven_session
 from helpers.cli import midas
@@ -50,6 +50,20 @@ def test_gap_filling_spline_for_short_gaps_forward_fill_for_long() -> None:
     assert (code[20:35] == 2).all()
     np.testing.assert_array_equal(filled[20:35], np.repeat(values[19:20], 15, axis=0))
     assert (code[35:] == 0).all()
+
+
+@pytest.mark.parametrize("knots", [2, 3, 4, 7, 500])
+def test_gap_spline_is_scipys_not_a_knot_cubic_spline(knots: int) -> None:
+    """align fills gaps without importing scipy.interpolate; the curve must stay CubicSpline's (uneven knots,
+    several columns, between knots and beyond both ends)."""
+    from scipy.interpolate import CubicSpline
+
+    rng = np.random.default_rng(knots)
+    x = np.cumsum(rng.uniform(0.01, 0.2, knots))
+    y = rng.normal(size=(knots, 3)) * [1, 100, 1e-3]
+    at = np.concatenate([rng.uniform(x[0] - 0.3, x[-1] + 0.3, 300), x])
+    expected = CubicSpline(x, y, axis=0)(at)
+    np.testing.assert_allclose(cubic_spline(x, y, at), expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
 
 
 def test_downsampling_keeps_first_frame_of_each_bin() -> None:
