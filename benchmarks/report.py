@@ -41,6 +41,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_train.py      # simulate + align 15 trials; MS-TCN++ / transformer",
             ".venv/bin/python benchmarks/bench_train.py --louo   # one JIGSAWS-sized LOUO fold of MS-TCN++",
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
+            ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -279,10 +280,25 @@ def startup_section(s: dict) -> list[str]:
                     "parser).", ""]
 
 
+def batch_section(b: dict) -> list[str]:
+    m, n = b["machine"], b["sessions"]
+    lines = ["## 7. Batch throughput: one call for many sessions vs one call each (`bench_batch.py`)", "",
+             f"{n} copies of one {b['session_seconds']}-s simulated session; `midas CMD S1 .. S{n}` once against "
+             f"{n} `midas CMD Si` run one after another (a shell loop), outputs removed between runs. Load average "
+             f"{b['load_average_1min_before_after'][0]}–{b['load_average_1min_before_after'][1]}, {m['date_utc']}.", "",
+             "| command | one call s | sessions/s | loop s | sessions/s | one call faster by | fixed cost per process s |",
+             "|---|---|---|---|---|---|---|"]
+    for name, c in b["cases"].items():
+        lines.append(f"| `midas {name}` | {c['one_call_s']} | {c['one_call_sessions_per_s']} | {c['loop_s']} | "
+                     f"{c['loop_sessions_per_s']} | {c['speedup']}x | {c['fixed_cost_per_process_s']} |")
+    return lines + ["", "The fixed cost is the interpreter, typer and the command's imports (numpy and the align code; "
+                    "`verify` adds pandas): paid once per call, so scripts should pass many sessions to one call.", ""]
+
+
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
-    quick = [name for name in ("startup", "record", "align", "train", "soak", "soak-short") if (load(name) or {}).get("quick")]
+    quick = [name for name in ("startup", "record", "align", "train", "soak", "soak-short", "batch") if (load(name) or {}).get("quick")]
     if quick:
         lines += [f"**Smoke run** (`--quick`) for {', '.join(quick)}: short sizes, not for comparison.", ""]
     for name, section in (("record", record_section), ("align", align_section), ("pedal_gt", pedal_section),
@@ -294,6 +310,8 @@ def main() -> None:
     lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     startup = load("startup")
     lines += startup_section(startup) if startup else ["## startup: no results yet (run its script)", ""]
+    batch = load("batch")
+    lines += batch_section(batch) if batch else ["## batch: no results yet (run its script)", ""]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
 

@@ -39,11 +39,12 @@ def _rows(seqs) -> list[tuple]:
     return [(i, 1_000_000_000 + i * 33_333_333, i / 30) for i in seqs]
 
 
-def _output(tmp_path, out) -> tuple[WorkerOutput, object]:
-    """A worker's output on a stream file that holds only its header, as the recorder leaves it."""
+def _output(tmp_path, out, every_s: float = 0.0) -> tuple[WorkerOutput, object]:
+    """A worker's output on a stream file that holds only its header, as the recorder leaves it (by
+    default telling the recorder after every write; the recorder's own interval is BOOKKEEPING_EVERY_S)."""
     path = tmp_path / "video.csv"
     path.write_text(SPEC.header_line())
-    output = WorkerOutput("video", out, HostClock.anchored_now())
+    output = WorkerOutput("video", out, HostClock.anchored_now(), every_s)
     output.open({"video": str(path)})
     return output, path
 
@@ -68,6 +69,24 @@ def test_the_worker_writes_rows_before_it_tells_the_recorder(tmp_path) -> None:
     assert on_disk_2 == SPEC.header_line() + SPEC.format_rows(_rows(range(5)))
     assert list(second.seq) == [3, 4] and first.nbytes == len(SPEC.format_rows(_rows(range(3))))
     assert (first.committed_ns > first.t_host_ns).all() and second.committed_ns[0] >= first.committed_ns[0]
+
+
+def test_bookkeeping_of_quick_reads_goes_in_one_message_and_before_any_event(tmp_path) -> None:
+    out: queue.Queue = queue.Queue()
+    output, path = _output(tmp_path, out, every_s=3600)
+    output.last_sent_ns = output.clock.now_ns()  # the interval has just begun
+    for k in range(5):
+        _flush(VIDEO, {"video": SPEC}, {"video": _rows(range(2 * k, 2 * k + 2))}, output)
+    assert out.empty(), "reads within the interval are gathered, not sent one by one"
+    assert path.read_text() == SPEC.header_line() + SPEC.format_rows(_rows(range(10))), "but on disk at once"
+    output.event("lost", "gone")
+    batch, event = out.get_nowait(), out.get_nowait()
+    assert isinstance(batch, DataBatch) and isinstance(event, DeviceEvent)
+    assert list(batch.seq) == list(range(10)) and len(batch.committed_ns) == 10
+    assert batch.nbytes == path.stat().st_size - len(SPEC.header_line())
+    output.every_ns = 0
+    _flush(VIDEO, {"video": SPEC}, {"video": _rows(range(10, 11))}, output)
+    assert list(out.get_nowait().seq) == [10], "once the interval has passed, the next write sends"
 
 
 def test_a_full_queue_merges_bookkeeping_instead_of_dropping(tmp_path) -> None:

@@ -43,6 +43,8 @@ log = logging.getLogger(__name__)
 BACKOFF_START_S = 0.25
 BACKOFF_MAX_S = 1.0  # a returning device is retried within 1 s (issue 3: reconnect within 2 s)
 EVENT_TIMEOUT_S = 2.0  # how long an event waits for room in the queue
+BOOKKEEPING_EVERY_S = 0.05  # rows already on disk are reported to the recorder at most this often
+ALIVE_EVERY_S = 0.25  # how often the pump checks that the recorder still exists
 
 
 @dataclass(frozen=True)
@@ -69,17 +71,49 @@ class StreamWriteFailed(Exception):
         self.stream, self.rows = stream, rows
 
 
+class PendingRows:
+    """Bookkeeping of one stream's rows written since the last message (plain lists: cheap to extend)."""
+
+    def __init__(self) -> None:
+        self.seq: list[int] = []
+        self.t_host_ns: list[int] = []
+        self.committed_ns: list[int] = []
+        self.last_row: tuple = ()
+        self.nbytes = self.write_ns = self.corrupt = 0
+
+    def add(self, rows: list[tuple], committed: int, nbytes: int, write_ns: int, corrupt: int) -> None:
+        self.seq.extend(r[0] for r in rows)
+        self.t_host_ns.extend(r[1] for r in rows)
+        self.committed_ns.extend([committed] * len(rows))
+        self.last_row, self.corrupt = rows[-1], corrupt
+        self.nbytes += nbytes
+        self.write_ns += write_ns
+
+    def batch(self, device: str, stream: str) -> DataBatch:
+        return DataBatch(device, stream, np.array(self.seq, dtype=np.int64), np.array(self.t_host_ns, dtype=np.int64),
+                         np.array(self.committed_ns, dtype=np.int64), self.last_row, self.nbytes, self.write_ns,
+                         self.corrupt)
+
+
 class WorkerOutput:
     """Where a worker's rows go: appended to their stream files, then accounted to the recorder.
 
-    The rows are on disk before the recorder hears of them, so a full queue can only delay the
-    bookkeeping: a message it refuses is held and merged into that stream's next message, never
-    dropped. Events wait for the held messages to go first, so the recorder sees them in order."""
+    The rows are on disk before the recorder hears of them, so the bookkeeping may come later: it is
+    gathered per stream and sent at most every BOOKKEEPING_EVERY_S (one message per stream then,
+    instead of one per read: at 850 reads a second the per-message cost, a thread hand-off, a pickle
+    and a pipe write in the worker and the same back in the recorder, was most of the recording's
+    CPU). A full queue can only delay it further: a message it refuses is held and merged into that
+    stream's next message, never dropped. Events send everything gathered or held first, so the
+    recorder sees them in order."""
 
-    def __init__(self, device: str, out: "queue.Queue", clock: HostClock) -> None:
+    def __init__(self, device: str, out: "queue.Queue", clock: HostClock,
+                 every_s: float = BOOKKEEPING_EVERY_S) -> None:
         self.device, self.out, self.clock = device, out, clock
         self.appenders: dict[str, StreamAppender] = {}
         self.held: dict[str, DataBatch] = {}
+        self.pending: dict[str, PendingRows] = {}
+        self.every_ns = int(every_s * 1e9)
+        self.last_sent_ns = 0
         self.corrupt_closed = 0  # corrupt records counted by earlier connections (counters restart per open)
 
     def open(self, files: dict[str, str]) -> None:
@@ -99,10 +133,23 @@ class WorkerOutput:
         except OSError as exc:
             raise StreamWriteFailed(spec.name, len(rows), exc) from exc
         committed = self.clock.now_ns()
-        n = len(rows)
-        self.send(DataBatch(self.device, spec.name, np.fromiter((r[0] for r in rows), dtype=np.int64, count=n),
-                            np.fromiter((r[1] for r in rows), dtype=np.int64, count=n),
-                            np.full(n, committed, dtype=np.int64), rows[-1], nbytes, committed - started, corrupt))
+        pending = self.pending.get(spec.name)
+        if pending is None:
+            pending = self.pending[spec.name] = PendingRows()
+        pending.add(rows, committed, nbytes, committed - started, corrupt)
+        self.tick(committed)
+
+    def tick(self, now_ns: int | None = None) -> None:
+        """Send the gathered bookkeeping if BOOKKEEPING_EVERY_S has passed since the last time."""
+        now_ns = self.clock.now_ns() if now_ns is None else now_ns
+        if self.pending and now_ns - self.last_sent_ns >= self.every_ns:
+            self.send_pending()
+            self.last_sent_ns = now_ns
+
+    def send_pending(self) -> None:
+        for stream, pending in self.pending.items():
+            self.send(pending.batch(self.device, stream))
+        self.pending.clear()
 
     def send(self, batch: DataBatch) -> None:
         """Queue ``batch`` without waiting; if the queue is full, hold it (merged with what is held)."""
@@ -115,7 +162,8 @@ class WorkerOutput:
             self.held[batch.stream] = batch
 
     def event(self, event: str, message: str = "", info: dict[str, Any] | None = None) -> None:
-        """Send a device event after any held bookkeeping (waits up to EVENT_TIMEOUT_S for room)."""
+        """Send a device event after any gathered or held bookkeeping (waits up to EVENT_TIMEOUT_S for room)."""
+        self.send_pending()
         for stream in list(self.held):
             self._put_waiting(self.held.pop(stream))
         self._put_waiting(DeviceEvent(self.device, event, self.clock.now_ns(), message, info or {}))
@@ -213,15 +261,21 @@ def _pump(device: Device, job: WorkerJob, output: WorkerOutput, stop) -> None:
     Rows are written as soon as a read returns them: what arrived together is written together, and
     no batching window or process hop adds to the host-read -> disk latency (see benchmarks/)."""
     specs = {spec.name: spec for spec in device.streams}
-    last_data = time.monotonic()
-    while not stop.is_set() and _alive(job.parent_pid):
+    last_data = checked_alive = time.monotonic()
+    while not stop.is_set():
         rows_by_stream = device.read()
         now = time.monotonic()
         if any(rows_by_stream.values()):
             last_data = now
-        _flush(device, specs, rows_by_stream, output)
+            _flush(device, specs, rows_by_stream, output)
+        else:
+            output.tick()
         if now - last_data > job.stall_timeout_s:
             raise DeviceError(f"{job.device}: no data for {job.stall_timeout_s:.2f} s")
+        if now - checked_alive >= ALIVE_EVERY_S:
+            if not _alive(job.parent_pid):
+                break
+            checked_alive = now
     _flush(device, specs, device.finish(), output)
 
 
