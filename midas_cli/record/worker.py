@@ -34,6 +34,7 @@ from midas_cli.devices.base import Device
 from midas_cli.devices.registry import DeviceContext, create_device
 from midas_cli.errors import DeviceError, MidasError
 from midas_cli.record.link import StopSignal, WorkerLink
+from midas_cli.record.lsl_out import LiveOutlets
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import StreamAppender
@@ -59,6 +60,8 @@ class WorkerJob:
     session_dir: str = ""  # absolute session folder, for devices that write files into it (obs:// video/)
     stream_files: dict[str, str] = field(default_factory=dict)  # stream -> absolute path; the recorder created it
     queue_size: int = 4096  # bookkeeping messages held before they are merged (a slow recorder)
+    lsl_out: bool = False  # also publish the rows as LSL outlets (record/lsl_out.py)
+    kind: str = ""  # the device's kind (the outlets' LSL type)
 
 
 class StreamWriteFailed(Exception):
@@ -81,6 +84,7 @@ class WorkerOutput:
         self.appenders: dict[str, StreamAppender] = {}
         self.held: dict[str, DataBatch] = {}
         self.corrupt_closed = 0  # corrupt records counted by earlier connections (counters restart per open)
+        self.outlets: LiveOutlets | None = None  # --lsl-out: rows are published after they are on disk
 
     def open(self, files: dict[str, str]) -> None:
         """Open the existing stream files for appending (never creates one)."""
@@ -103,6 +107,8 @@ class WorkerOutput:
         self.send(DataBatch(self.device, spec.name, np.fromiter((r[0] for r in rows), dtype=np.int64, count=n),
                             np.fromiter((r[1] for r in rows), dtype=np.int64, count=n),
                             np.full(n, committed, dtype=np.int64), rows[-1], nbytes, committed - started, corrupt))
+        if self.outlets is not None:
+            self.outlets.publish(spec, rows)
 
     def send(self, batch: DataBatch) -> None:
         """Queue ``batch`` without waiting; if the queue is full, hold it (merged with what is held)."""
@@ -131,6 +137,8 @@ class WorkerOutput:
                       getattr(message, "event", "bookkeeping"))
 
     def close(self) -> None:
+        if self.outlets is not None:
+            self.outlets.close()
         for appender in self.appenders.values():
             appender.close()
 
@@ -158,6 +166,9 @@ def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
     try:
         output.event("opening")
         output.open(job.stream_files)
+        if job.lsl_out:
+            output.outlets = LiveOutlets(Path(job.session_dir).name, job.kind, job.anchor_ns,
+                                         lambda message: output.event("warning", message))
         _serve(job, output, stop)
     except StreamWriteFailed as exc:
         output.event("write_failed", str(exc), {"stream": exc.stream, "rows": exc.rows})
