@@ -63,9 +63,14 @@ def open_outlet(spec: StreamSpec, kind: str, session: str) -> Any:
 
 
 def row_values(spec: StreamSpec, rows: Sequence[Sequence[Any]]) -> list[list[float]]:
-    """The channel values of ``rows`` (full rows: seq, t_host_ns, ...), None -> NaN."""
-    at = [spec.column_names.index(c.name) for c in channel_columns(spec)]
-    return [[math.nan if row[i] is None else float(row[i]) for i in at] for row in rows]
+    """The channel values of ``rows`` (full rows: seq, t_host_ns, ...) as the stream's CSV holds them:
+    a float rounded to its column's decimals (``round`` and the CSV's ``{:.Nf}`` round alike), an int
+    as an int; None -> NaN. A live consumer sees what a later replay of the file sends."""
+    columns = channel_columns(spec)
+    at = [spec.column_names.index(c.name) for c in columns]
+    digits = [None if c.dtype == "int" else c.decimals for c in columns]
+    return [[math.nan if row[i] is None else float(int(row[i])) if d is None else round(float(row[i]), d)
+             for i, d in zip(at, digits)] for row in rows]
 
 
 def lsl_seconds(t_host_ns: int, anchor_ns: int) -> float:
