@@ -8,19 +8,22 @@ publishes rows that equal the CSV's, with the manifest's labels and units.
 from __future__ import annotations
 
 import math
+import os
 import signal
 import subprocess
 import sys
-import time
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from rich.console import Console
+
 from midas_cli.clock import HostClock
+from midas_cli.console import dashboard
 from midas_cli.record.lsl_out import LiveOutlets
 from midas_cli.record.stats import DeviceRecord
+from midas_cli.record.status import DeviceStatus, RecorderSnapshot
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
@@ -175,6 +178,10 @@ def test_a_failing_outlet_is_a_warning_and_recording_goes_on(monkeypatch: pytest
     record = DeviceRecord("arm", "test", "sim://", {}, ["arm"])
     record.events.append({"t_host_ns": 0, "event": "warning", "message": warnings[0]})
     assert record.warning == warnings[0]
+    screen = Console(width=200, record=True, file=open(os.devnull, "w"))
+    screen.print(dashboard(RecorderSnapshot("/s", "s", 1.0, None, 10**9, 0.0, 0, (
+        DeviceStatus("arm", "test", "sim://", "ok", 0, "", (), {}, record.warning),))))
+    assert f"arm: {warnings[0]}" in screen.export_text()  # on the live screen although the device is ok
 
 
 @pytest.mark.parametrize(("args", "code", "message"), [
