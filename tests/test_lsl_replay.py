@@ -12,6 +12,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +118,41 @@ def test_replayed_session_is_recorded_back_with_its_values_and_spacing(tmp_path:
     assert recorded.stream_spec("clicks").is_events  # irregular (nominal_srate 0) -> an event stream
     _check_round_trip(source, recorded, "arm", ["x_mm", "angle_deg"])
     _check_round_trip(source, recorded, "clicks", ["button"])
+
+
+def test_faster_replay_keeps_the_recorded_spacing_in_its_timestamps(tmp_path: Path) -> None:
+    import pylsl
+
+    from midas_cli.interop.lsl_replay import plan_replay, replay
+
+    source = Session.open(_source_session(tmp_path))
+    plan = plan_replay(source.path, ["arm"], speed=4.0, loop=True, delay_s=0.0)
+    stop = threading.Event()
+    player = threading.Thread(target=replay, args=(plan, stop.is_set), daemon=True)
+    player.start()
+    try:
+        found = pylsl.resolve_bypred(f"source_id='midas:{source.path.name}:arm'", 1, 30)
+        assert found
+        inlet = pylsl.StreamInlet(found[0])
+        stamps, samples = [], []
+        deadline = time.monotonic() + 60
+        while len(stamps) < 200 and time.monotonic() < deadline:
+            chunk, times = inlet.pull_chunk(timeout=0.2)
+            samples += chunk
+            stamps += times
+        inlet.close_stream()
+    finally:
+        stop.set()
+        player.join(timeout=10)
+    src = source.read_stream("arm")
+    x = src["x_mm"].to_numpy(float)
+    at = np.array([int(np.flatnonzero(np.isclose(x, s[0], atol=1e-9))[0]) for s in samples])
+    same_pass = np.diff(at) == 1
+    src_gap = np.diff(src["t_host_ns"].to_numpy(np.int64)[at]) / 1e9
+    assert same_pass.sum() >= 100 and not player.is_alive()
+    assert np.abs(np.diff(stamps) - src_gap)[same_pass].max() < 1e-6  # recorded spacing, not a quarter of it
+    wrapped = np.diff(stamps)[~same_pass]
+    assert np.all(wrapped > 0)  # a new --loop pass goes on forward in time
 
 
 def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
