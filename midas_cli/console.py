@@ -110,9 +110,14 @@ def _device_table(snapshot: RecorderSnapshot) -> Table:
 
 
 def _device_errors(snapshot: RecorderSnapshot) -> Text:
-    """Last error of every device that is not healthy, one line each."""
+    """Last error of every device that is not healthy (red), then each device's last warning (yellow),
+    one line each."""
     lines = [d.last_error for d in snapshot.devices if d.last_error and d.state != "ok"]
-    return Text("\n".join(lines), "red")
+    text = Text("\n".join(lines), "red")
+    for device in snapshot.devices:
+        if device.warning:
+            text.append(("\n" if text.plain else "") + f"{device.name}: {device.warning}", "yellow")
+    return text
 
 
 def _live_panels(snapshot: RecorderSnapshot) -> list[Panel]:

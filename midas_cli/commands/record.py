@@ -57,6 +57,8 @@ def record(
                                      "then a final {\"event\": \"stopped\", ...} with the session path."),
     queue_size: int = typer.Option(4096, "--queue-size", help="Bookkeeping messages a worker holds before merging "
                                    "them (rows are on disk first; nothing is dropped)."),
+    lsl_out: bool = typer.Option(False, "--lsl-out", help="Also publish every stream live as an LSL outlet "
+                                 "(labels, units, rate; timestamps = host times on the LSL clock)."),
 ) -> None:
     """Record a session from the rig's devices into a new session folder.
 
@@ -70,9 +72,14 @@ def record(
     stop.install()  # first: from here on a stop signal ends the recording as documented, never a traceback
     try:
         _check_options(seed, master_rate, queue_size)
+        if lsl_out:
+            from midas_cli.devices.lsl.device import import_pylsl
+
+            import_pylsl()  # pylsl missing: one error line before anything is created
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
-                          rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size, rig_config.to_manifest())
+                          rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
+                          rig_config.to_manifest(), lsl_out)
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         _exit_if_stopped_before_start(stop)
         mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")

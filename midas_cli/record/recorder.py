@@ -50,6 +50,7 @@ class RecordPlan:
     seed: int = 0
     queue_size: int = 4096
     rig: dict[str, Any] = field(default_factory=dict)
+    lsl_out: bool = False  # workers also publish every stream as an LSL outlet (record/lsl_out.py)
 
 
 class Recorder:
@@ -123,7 +124,8 @@ class Recorder:
                 files = {s: str(folder / self.streams[s].spec.file) for s in self.devices[name].streams}
                 job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
-                                session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size)
+                                session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size,
+                                lsl_out=self.plan.lsl_out, kind=self.devices[name].kind)
                 receiver, sender = self._ctx.Pipe(duplex=False)
                 process = self._ctx.Process(target=worker_main, args=(job, sender, self._stop_workers.reader),
                                             name=f"midas-{name}", daemon=True)
@@ -250,7 +252,7 @@ class Recorder:
             elif event.event == "write_failed":  # its worker exits; the whole recording stops
                 self.streams[event.info["stream"]].dropped += event.info["rows"]
         level = {"lost": logging.WARNING, "open_failed": logging.WARNING, "crashed": logging.ERROR,
-                 "write_failed": logging.ERROR}.get(event.event, logging.INFO)
+                 "write_failed": logging.ERROR, "warning": logging.WARNING}.get(event.event, logging.INFO)
         log.log(level, "%s: %s %s", event.device, event.event, event.message)
         if event.event == "write_failed":
             self._fail(f"writing the session failed: {event.message}")
@@ -282,7 +284,7 @@ class Recorder:
     def _device_status(self, record: DeviceRecord, now_ns: int) -> DeviceStatus:
         streams = tuple(self._stream_status(self.streams[name], now_ns) for name in record.streams)
         return DeviceStatus(record.name, record.kind, record.url, _health(record, streams), record.reconnects,
-                            record.last_error, streams, record.labels)
+                            record.last_error, streams, record.labels, record.warning)
 
     @staticmethod
     def _stream_status(stats: StreamStats, now_ns: int) -> StreamStatus:

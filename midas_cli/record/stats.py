@@ -146,6 +146,12 @@ class DeviceRecord:
     def reconnects(self) -> int:
         return max(0, self.opens - 1)
 
+    @property
+    def warning(self) -> str:
+        """The last ``warning`` event's message (something degraded that does not stop the recording,
+        e.g. a stream --lsl-out could not publish), '' if none."""
+        return next((e["message"] for e in reversed(self.events) if e["event"] == "warning"), "")
+
     def manifest_entry(self) -> dict[str, Any]:
         return {
             "kind": self.kind,

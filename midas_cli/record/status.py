@@ -39,6 +39,7 @@ class DeviceStatus:
     last_error: str
     streams: tuple[StreamStatus, ...]
     labels: dict[str, str] = field(default_factory=dict)  # channel/sensor number -> name from the rig
+    warning: str = ""  # the last warning that does not stop the recording (e.g. --lsl-out)
 
 
 @dataclass(frozen=True)

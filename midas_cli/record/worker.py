@@ -34,6 +34,7 @@ from midas_cli.devices.base import Device
 from midas_cli.devices.registry import DeviceContext, create_device
 from midas_cli.errors import DeviceError, MidasError
 from midas_cli.record.link import StopSignal, WorkerLink
+from midas_cli.record.lsl_out import LiveOutlets
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import StreamAppender
@@ -61,6 +62,8 @@ class WorkerJob:
     session_dir: str = ""  # absolute session folder, for devices that write files into it (obs:// video/)
     stream_files: dict[str, str] = field(default_factory=dict)  # stream -> absolute path; the recorder created it
     queue_size: int = 4096  # bookkeeping messages held before they are merged (a slow recorder)
+    lsl_out: bool = False  # also publish the rows as LSL outlets (record/lsl_out.py)
+    kind: str = ""  # the device's kind (the outlets' LSL type)
 
 
 class StreamWriteFailed(Exception):
@@ -115,6 +118,7 @@ class WorkerOutput:
         self.every_ns = int(every_s * 1e9)
         self.last_sent_ns = 0
         self.corrupt_closed = 0  # corrupt records counted by earlier connections (counters restart per open)
+        self.outlets: LiveOutlets | None = None  # --lsl-out: rows are published after they are on disk
 
     def open(self, files: dict[str, str]) -> None:
         """Open the existing stream files for appending (never creates one)."""
@@ -137,6 +141,8 @@ class WorkerOutput:
         if pending is None:
             pending = self.pending[spec.name] = PendingRows()
         pending.add(rows, committed, nbytes, committed - started, corrupt)
+        if self.outlets is not None:  # published once on disk; the bookkeeping may follow later
+            self.outlets.publish(spec, rows)
         self.tick(committed)
 
     def tick(self, now_ns: int | None = None) -> None:
@@ -179,6 +185,8 @@ class WorkerOutput:
                       getattr(message, "event", "bookkeeping"))
 
     def close(self) -> None:
+        if self.outlets is not None:
+            self.outlets.close()
         for appender in self.appenders.values():
             appender.close()
 
@@ -206,6 +214,9 @@ def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
     try:
         output.event("opening")
         output.open(job.stream_files)
+        if job.lsl_out:
+            output.outlets = LiveOutlets(Path(job.session_dir).name, job.kind, job.anchor_ns,
+                                         lambda message: output.event("warning", message))
         _serve(job, output, stop)
     except StreamWriteFailed as exc:
         output.event("write_failed", str(exc), {"stream": exc.stream, "rows": exc.rows})

@@ -39,6 +39,7 @@ MAX_CHUNK = 4096
 POLL_S = 0.005
 INT_FORMATS = {"int8", "int16", "int32", "int64"}
 _LABEL_OK = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,40}$")
+RESERVED_LABELS = {"seq", "t_host_ns", "t_lsl_s"}  # the columns every lsl:// stream starts with
 CF_NAMES = {1: "float32", 2: "double64", 3: "string", 4: "int32", 5: "int16", 6: "int8", 7: "int64"}
 
 
@@ -116,13 +117,16 @@ def layout_of(info) -> LslLayout:
 
 
 def channel_labels(info) -> tuple[str, ...]:
-    """Labels from the stream's <desc><channels> when each is a usable, unique column name; else ch1..chN."""
+    """Labels from the stream's <desc><channels> when each is a usable, unique column name that is not
+    one of the recorder's own (seq, t_host_ns, t_lsl_s: a replayed lsl:// session has a t_lsl_s
+    channel); else ch1..chN."""
     count = info.channel_count()
     labels, channel = [], info.desc().child("channels").child("channel")
     while not channel.empty() and len(labels) < count:
         labels.append(channel.child_value("label"))
         channel = channel.next_sibling()
-    if len(labels) == count and len(set(labels)) == count and all(_LABEL_OK.match(x) for x in labels):
+    usable = all(_LABEL_OK.match(x) and x not in RESERVED_LABELS for x in labels)
+    if len(labels) == count and len(set(labels)) == count and usable:
         return tuple(labels)
     return tuple(f"ch{i}" for i in range(1, count + 1))
 

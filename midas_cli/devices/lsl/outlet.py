@@ -1,0 +1,78 @@
+"""Publish a midas stream as an LSL outlet: the one place that turns a ``StreamSpec`` into a StreamInfo.
+
+Used by ``midas replay --to lsl`` (interop/lsl_replay.py) and ``midas record --lsl-out``
+(record/lsl_out.py), so a consumer sees the same stream either way:
+
+* name = the stream's name, type = its device's kind, ``source_id`` = ``midas:<session>:<stream>``
+  (stable: a consumer that resolves by source_id finds the stream again after a restart);
+* ``channel_format`` ``double64`` (ints are exact below 2**53; a missing value is NaN), one channel per
+  data column: every column but ``seq`` and ``t_host_ns`` (a stream with no other column sends its
+  ``seq``);
+* ``nominal_srate`` = the manifest's nominal rate, 0 (irregular) for an event stream;
+* ``<desc><channels><channel><label/><unit/><type/><description/></channel>...`` from the columns,
+  and ``<acquisition><manufacturer>midas</manufacturer>``.
+
+Times: a midas host time (Unix-epoch ns from CLOCK_MONOTONIC + the session's anchor, clock.py) is on
+the LSL clock (``pylsl.local_clock()`` = CLOCK_MONOTONIC) at ``(t_host_ns - anchor_ns) / 1e9`` s.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+from midas_cli.devices.lsl.device import import_pylsl
+from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+
+CHANNEL_FORMAT = "double64"
+
+
+def source_id(session: str, stream: str) -> str:
+    """The outlet's stable ``source_id`` for ``stream`` of session ``session`` (its folder name)."""
+    return f"midas:{session}:{stream}"
+
+
+def channel_columns(spec: StreamSpec) -> tuple[Column, ...]:
+    """The columns sent as channels, in order (see the module docstring)."""
+    data = tuple(c for c in spec.columns if c.name not in (SEQ.name, T_HOST.name))
+    return data or (spec.columns[0],)
+
+
+def stream_info(spec: StreamSpec, kind: str, session: str) -> Any:
+    """The ``pylsl.StreamInfo`` describing ``spec`` (device kind ``kind``) of session ``session``."""
+    pylsl = import_pylsl()
+    columns = channel_columns(spec)
+    info = pylsl.StreamInfo(spec.name, kind or spec.device, len(columns), spec.nominal_rate_hz or 0.0,
+                            CHANNEL_FORMAT, source_id(session, spec.name))
+    desc = info.desc()
+    channels = desc.append_child("channels")
+    for column in columns:
+        channel = channels.append_child("channel")
+        channel.append_child_value("label", column.name)
+        channel.append_child_value("unit", column.unit)
+        channel.append_child_value("type", column.dtype)
+        if column.description:
+            channel.append_child_value("description", column.description)
+    desc.append_child("acquisition").append_child_value("manufacturer", "midas")
+    return info
+
+
+def open_outlet(spec: StreamSpec, kind: str, session: str) -> Any:
+    """A ``pylsl.StreamOutlet`` for ``spec`` (discoverable from now on)."""
+    return import_pylsl().StreamOutlet(stream_info(spec, kind, session))
+
+
+def row_values(spec: StreamSpec, rows: Sequence[Sequence[Any]]) -> list[list[float]]:
+    """The channel values of ``rows`` (full rows: seq, t_host_ns, ...) as the stream's CSV holds them:
+    a float rounded to its column's decimals (``round`` and the CSV's ``{:.Nf}`` round alike), an int
+    as an int; None -> NaN. A live consumer sees what a later replay of the file sends."""
+    columns = channel_columns(spec)
+    at = [spec.column_names.index(c.name) for c in columns]
+    digits = [None if c.dtype == "int" else c.decimals for c in columns]
+    return [[math.nan if row[i] is None else float(int(row[i])) if d is None else round(float(row[i]), d)
+             for i, d in zip(at, digits)] for row in rows]
+
+
+def lsl_seconds(t_host_ns: int, anchor_ns: int) -> float:
+    """A host time (ns) on the local LSL clock (s)."""
+    return (t_host_ns - anchor_ns) / 1e9

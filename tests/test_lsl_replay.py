@@ -1,0 +1,239 @@
+"""`midas replay --to lsl` and `midas record --lsl-out`, through real liblsl on this host only.
+
+Round trip: a session replayed as LSL outlets is recorded back with `lsl://` inlets (both CLIs, end to
+end); the values come back equal and the timestamps keep the recorded spacing. Live: `record --lsl-out`
+publishes rows that equal the CSV's, with the manifest's labels and units.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rich.console import Console
+
+from midas_cli.clock import HostClock
+from midas_cli.console import dashboard
+from midas_cli.record.lsl_out import LiveOutlets
+from midas_cli.record.stats import DeviceRecord
+from midas_cli.record.status import DeviceStatus, RecorderSnapshot
+from midas_cli.session.reader import Session
+from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+from midas_cli.session.writer import SessionMetadata, SessionWriter
+from helpers.cli import midas, record_until
+from helpers.lsl_fixture import loopback_lsl_config
+
+pytest.importorskip("pylsl", reason="pylsl (pip install pylsl==1.18.6) is not installed")
+
+ARM = StreamSpec("arm", "arm", (SEQ, T_HOST, Column("x_mm", "float", "mm", 3, description="position"),
+                                Column("angle_deg", "float", "deg", 3)), 100.0)
+CLICKS = StreamSpec("clicks", "buttons", (SEQ, T_HOST, Column("button", "int", "id")), None)
+SPACING_TOLERANCE_S = 0.002
+
+
+@pytest.fixture(scope="module", autouse=True)
+def loopback_only(tmp_path_factory: pytest.TempPathFactory) -> None:
+    loopback_lsl_config(tmp_path_factory.mktemp("lsl"))
+
+
+def _source_session(root: Path) -> Path:
+    """A finished session: `arm` at ~100 Hz with jittered spacing (1.2 s) and an event stream `clicks`
+    (8 irregular button presses); every value is unique within its stream."""
+    rng = np.random.default_rng(7)
+    clock = HostClock.anchored_now()
+    writer = SessionWriter.create(root, SessionMetadata("7", "replay", 1), clock,
+                                  {"arm": {"kind": "kinematics"}, "buttons": {"kind": "buttons"}}, [ARM, CLICKS])
+    t0 = clock.now_ns()
+    arm_t = t0 + np.cumsum(rng.integers(7_000_000, 13_000_000, 120))
+    writer.append("arm", ARM.format_rows([(i, int(t), 100 + i * 0.25, math.sin(i) * 90)
+                                          for i, t in enumerate(arm_t)]))
+    click_t = np.sort(rng.integers(arm_t[0], arm_t[-1], 8))
+    writer.append("clicks", CLICKS.format_rows([(i, int(t), 10 + 3 * i) for i, t in enumerate(click_t)]))
+    writer.finalize("complete", "test", int(arm_t[-1]) + 1_000_000, {})
+    return writer.folder
+
+
+def _replay(*args: str) -> subprocess.Popen:
+    env = {**os.environ, "NO_COLOR": "1", "COLUMNS": "200"}
+    return subprocess.Popen([sys.executable, "-m", "midas_cli", "replay", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def _stop(process: subprocess.Popen) -> tuple[int, str]:
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=30)
+    return process.returncode, stderr
+
+
+def _check_round_trip(source: Session, recorded: Session, stream: str, channels: list[str]) -> None:
+    """The recorded rows are consecutive source rows (wrapping at a --loop pass) with equal values, and
+    consecutive LSL timestamps are as far apart as the source's host times (within one pass)."""
+    src, got = source.read_stream(stream), recorded.read_stream(stream)
+    assert list(got.columns) == ["seq", "t_host_ns", "t_lsl_s", *channels]  # labels came through <desc>
+    first = np.flatnonzero(np.isclose(src[channels[0]].to_numpy(float), got[channels[0]].iloc[0], atol=1e-9))
+    assert len(first) == 1
+    at = (first[0] + np.arange(len(got))) % len(src)
+    assert np.allclose(got[channels].to_numpy(float), src[channels].to_numpy(float)[at], atol=1e-9)
+    same_pass = np.diff(at) == 1
+    src_gap = np.diff(src["t_host_ns"].to_numpy(np.int64)[at]) / 1e9
+    got_gap = np.diff(got["t_lsl_s"].to_numpy(float))
+    assert same_pass.sum() >= 5
+    assert np.abs(got_gap - src_gap)[same_pass].max() < SPACING_TOLERANCE_S
+
+
+def test_replayed_session_is_recorded_back_with_its_values_and_spacing(tmp_path: Path) -> None:
+    import pylsl
+
+    source = Session.open(_source_session(tmp_path / "source"))
+    sid = f"midas:{source.path.name}"
+    player = _replay(str(source.path), "--to", "lsl", "--loop", "--delay", "0")
+    try:
+        found = pylsl.resolve_bypred(f"source_id='{sid}:arm'", 1, 30)
+        assert found, "the replayed stream was not announced"
+        inlet = pylsl.StreamInlet(found[0])
+        info = inlet.info(timeout=10)
+        channel = info.desc().child("channels").child("channel")
+        assert (info.name(), info.type(), info.nominal_srate(), info.channel_count()) == ("arm", "kinematics", 100, 2)
+        assert (channel.child_value("label"), channel.child_value("unit")) == ("x_mm", "mm")
+        inlet.close_stream()
+        result = record_until(tmp_path / "out", [
+            "--device", f"arm=lsl://?source_id={sid}:arm&timeout=30",
+            "--device", f"clicks=lsl://?source_id={sid}:clicks&timeout=30",
+            "--subject", "1", "--task", "replayed", "--trial", "1", "--no-tui"], {"arm": 150, "clicks": 10})
+    finally:
+        code, stderr = _stop(player)
+    assert result.returncode == 0, result.stderr
+    assert code == 0, stderr
+    assert stderr.strip().splitlines()[-1].startswith("midas: replay stopped by Ctrl-C after ")
+    recorded = Session.open(result.stdout.strip().splitlines()[-1])
+    assert recorded.stream_spec("clicks").is_events  # irregular (nominal_srate 0) -> an event stream
+    _check_round_trip(source, recorded, "arm", ["x_mm", "angle_deg"])
+    _check_round_trip(source, recorded, "clicks", ["button"])
+
+
+def test_faster_replay_keeps_the_recorded_spacing_in_its_timestamps(tmp_path: Path) -> None:
+    import pylsl
+
+    from midas_cli.interop.lsl_replay import plan_replay, replay
+
+    source = Session.open(_source_session(tmp_path))
+    plan = plan_replay(source.path, ["arm"], speed=4.0, loop=True, delay_s=0.0)
+    stop = threading.Event()
+    player = threading.Thread(target=replay, args=(plan, stop.is_set), daemon=True)
+    player.start()
+    try:
+        found = pylsl.resolve_bypred(f"source_id='midas:{source.path.name}:arm'", 1, 30)
+        assert found
+        inlet = pylsl.StreamInlet(found[0])
+        stamps, samples = [], []
+        deadline = time.monotonic() + 60
+        while len(stamps) < 200 and time.monotonic() < deadline:
+            chunk, times = inlet.pull_chunk(timeout=0.2)
+            samples += chunk
+            stamps += times
+        inlet.close_stream()
+    finally:
+        stop.set()
+        player.join(timeout=10)
+    src = source.read_stream("arm")
+    x = src["x_mm"].to_numpy(float)
+    at = np.array([int(np.flatnonzero(np.isclose(x, s[0], atol=1e-9))[0]) for s in samples])
+    same_pass = np.diff(at) == 1
+    src_gap = np.diff(src["t_host_ns"].to_numpy(np.int64)[at]) / 1e9
+    assert same_pass.sum() >= 100 and not player.is_alive()
+    assert np.abs(np.diff(stamps) - src_gap)[same_pass].max() < 1e-6  # recorded spacing, not a quarter of it
+    wrapped = np.diff(stamps)[~same_pass]
+    assert np.all(wrapped > 0)  # a new --loop pass goes on forward in time
+
+
+def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
+    import pylsl
+
+    received: list[tuple[float, list[float]]] = []
+    state: dict = {}
+
+    def enough_received(out: Path) -> bool:
+        if "inlet" not in state:
+            sessions = list(out.glob("*/manifest.json"))
+            found = sessions and pylsl.resolve_bypred(f"source_id='midas:{sessions[0].parent.name}:emht'", 1, 1)
+            if not found:
+                return False
+            state["inlet"] = pylsl.StreamInlet(found[0])
+            state["info"] = state["inlet"].info(timeout=10)
+        samples, stamps = state["inlet"].pull_chunk(timeout=0.2)
+        received.extend(zip(stamps, samples))
+        if len(received) < 100:
+            return False
+        state["inlet"].close_stream()  # before the recording stops: no broken-off stream to report
+        return True
+
+    result = record_until(tmp_path, ["--simulate", "--lsl-out", "--subject", "1", "--task", "lslout",
+                                     "--trial", "1", "--no-tui"], until=enough_received, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert len(received) >= 100
+    session = Session.open(result.stdout.strip().splitlines()[-1])
+    spec = session.stream_spec("emht")
+    info = state["info"]
+    labels, units, channel = [], [], info.desc().child("channels").child("channel")
+    while not channel.empty():
+        labels.append(channel.child_value("label"))
+        units.append(channel.child_value("unit"))
+        channel = channel.next_sibling()
+    assert labels == spec.column_names[2:] and units == [c.unit for c in spec.columns[2:]]
+    assert (info.name(), info.type(), info.nominal_srate()) == ("emht", "emht", 240)
+    frame = session.read_stream("emht")
+    times = frame["t_host_ns"].to_numpy(np.int64)
+    stamps_ns = np.array([s for s, _ in received]) * 1e9 + session.manifest["clock"]["anchor_ns"]
+    rows = np.clip(np.searchsorted(times, stamps_ns.round().astype(np.int64) - 1_000), 0, len(times) - 1)
+    assert np.abs(times[rows] - stamps_ns).max() < 1_000  # each timestamp is a row's host time
+    values = frame[spec.column_names[2:]].to_numpy(float)[rows]
+    assert np.array_equal(values, np.array([v for _, v in received]), equal_nan=True)
+
+
+def test_a_failing_outlet_is_a_warning_and_recording_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    import midas_cli.record.lsl_out as lsl_out
+
+    def broken(*_args):
+        raise RuntimeError("no network")
+
+    monkeypatch.setattr(lsl_out, "open_outlet", broken)
+    warnings: list[str] = []
+    outlets = LiveOutlets("s", "test", 0, warnings.append)
+    outlets.publish(ARM, [(0, 1, 1.0, 2.0)])
+    outlets.publish(ARM, [(1, 2, 1.0, 2.0)])  # off for this stream: not retried, not reported again
+    assert warnings == ["--lsl-out: stream arm is no longer published (RuntimeError: no network); "
+                        "recording goes on"]
+    record = DeviceRecord("arm", "test", "sim://", {}, ["arm"])
+    record.events.append({"t_host_ns": 0, "event": "warning", "message": warnings[0]})
+    assert record.warning == warnings[0]
+    screen = Console(width=200, record=True, file=open(os.devnull, "w"))
+    screen.print(dashboard(RecorderSnapshot("/s", "s", 1.0, None, 10**9, 0.0, 0, (
+        DeviceStatus("arm", "test", "sim://", "ok", 0, "", (), {}, record.warning),))))
+    assert f"arm: {warnings[0]}" in screen.export_text()  # on the live screen although the device is ok
+
+
+@pytest.mark.parametrize(("args", "code", "message"), [
+    (["--streams", "arm,nope"], 2, "--streams: nope not in "),
+    (["--speed", "0"], 2, "--speed must be a finite number > 0"),
+    (["--to", "ros2"], 2, "--to ros2: expected one of lsl"),
+], ids=["unknown stream", "speed 0", "unknown target"])
+def test_bad_replay_input_is_one_line_and_an_exit_code(tmp_path: Path, args: list[str], code: int,
+                                                        message: str) -> None:
+    result = midas("replay", str(_source_session(tmp_path)), *args)
+    assert result.returncode == code
+    assert result.stderr.count("\n") == 1 and message in result.stderr
+
+
+def test_replay_of_no_session_is_a_session_error(tmp_path: Path) -> None:
+    result = midas("replay", str(tmp_path / "nowhere"))
+    assert result.returncode == 4
+    assert result.stderr.count("\n") == 1 and "is not a folder" in result.stderr
