@@ -152,3 +152,15 @@ def test_a_mistyped_manifest_is_refused_naming_the_field(session: Path, field: t
     (session / "manifest.json").write_text(json.dumps(manifest))
     _one_error_line(midas("session", "info", str(session)), str(field[-1]))
     assert midas("session", "verify", str(session)).returncode == 4
+
+
+def test_a_burst_of_rows_gets_no_measured_rate() -> None:
+    """13 rows stamped within 36 µs (a device that opened late and delivered its buffer at once) once
+    reported 354,180 Hz for a 240 Hz stream; a span that short measures nothing."""
+    from midas_cli.session.streamfile import summarize_bytes
+    from helpers.cli import SPEC
+
+    burst = SPEC.header_line() + SPEC.format_rows([(k, 10**18 + 3_000 * k, 0.5) for k in range(13)])
+    assert summarize_bytes(burst.encode(), SPEC).measured_rate_hz is None
+    steady = SPEC.header_line() + SPEC.format_rows([(k, 10**18 + 10_000_000 * k, 0.5) for k in range(51)])
+    assert abs(summarize_bytes(steady.encode(), SPEC).measured_rate_hz - 100.0) < 1e-9

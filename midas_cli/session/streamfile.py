@@ -123,12 +123,16 @@ def _lines_with_wrong_width(body: bytes, width: int) -> list[int]:
     return [int(i) + 1 for i in np.flatnonzero(per_line != width - 1)[:20]]
 
 
+MIN_RATE_SPAN_S = 0.1  # the shortest first-to-last span a measured rate is given for
+
+
 def _fill_time_and_sequence(summary: StreamSummary, seq: np.ndarray, t_host: np.ndarray) -> None:
     summary.samples = len(seq)
     summary.first_t_host_ns = int(t_host[0])
     summary.last_t_host_ns = int(t_host[-1])
     span = (summary.last_t_host_ns - summary.first_t_host_ns) / 1e9
-    summary.measured_rate_hz = (len(seq) - 1) / span if span > 0 else None
+    # a rate over a burst (rows a device delivered at once: a late open, a buffer flushed) means nothing
+    summary.measured_rate_hz = (len(seq) - 1) / span if span >= MIN_RATE_SPAN_S else None
     summary.t_host_nonincreasing = int(np.count_nonzero(np.diff(t_host) <= 0))
     step = np.diff(seq)
     jumps = np.flatnonzero(step != 1)
