@@ -29,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load_average, machine_info, write_result  # noqa: E402
+from process_cpu import percent_between, snapshot  # noqa: E402
 
 PY = sys.executable
 EMHT_RATE, FPS_RATE = 220, 850  # 220 Hz: the most 4 sensors x 13-byte records carry at 115200 baud
@@ -71,9 +72,12 @@ def run_record(duration_s: float) -> dict:
         load_before = load_average()
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.monotonic()
-        proc = subprocess.run([PY, "-m", "midas_cli", "record", *device_args(folder), "--duration", str(duration_s),
-                               "--out", str(folder / "s"), "--subject", "1", "--task", "bench", "--trial", "1",
-                               "--no-tui"], capture_output=True, text=True)
+        proc = subprocess.Popen([PY, "-m", "midas_cli", "record", *device_args(folder), "--duration", str(duration_s),
+                                 "--out", str(folder / "s"), "--subject", "1", "--task", "bench", "--trial", "1",
+                                 "--no-tui"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        steady = steady_state_cpu(proc, duration_s)
+        stdout, stderr = proc.communicate()
+        proc = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
         wall = time.monotonic() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         summaries = stop_emulators(emulators, folder)
@@ -85,7 +89,19 @@ def run_record(duration_s: float) -> dict:
     return {"duration_s": duration_s, "wall_s": round(wall, 2), "load_average_before_after": [load_before, load_average()],
             "recorder_cpu_s": round(cpu_s, 2), "recorder_cpu_percent_of_one_core": round(100 * cpu_s / wall, 1),
             "cpu_note": "recorder + its worker processes (RUSAGE_CHILDREN), including ~2 s Python start-up",
+            "steady_cpu_percent_of_one_core": steady,
             "streams": {name: stream_figures(name, entry, summaries) for name, entry in manifest["streams"].items()}}
+
+
+def steady_state_cpu(proc: subprocess.Popen, duration_s: float) -> dict:
+    """CPU per process (recorder, each worker) over the middle of the recording: from 40 % of --duration
+    (the devices open and streaming) to 90 % (before the stop), as % of one core."""
+    t_start = time.monotonic()
+    time.sleep(0.4 * duration_s)
+    before, t_before = snapshot(proc.pid), time.monotonic()
+    time.sleep(max(0.0, 0.9 * duration_s - (t_before - t_start)))
+    after, t_after = snapshot(proc.pid), time.monotonic()
+    return {"window_s": round(t_after - t_before, 2), "percent": percent_between(before, after, t_after - t_before)}
 
 
 def stream_figures(name: str, entry: dict, summaries: dict) -> dict:

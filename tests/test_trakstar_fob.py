@@ -141,3 +141,23 @@ def test_emulate_command_serves_a_pty_and_writes_its_summary(tmp_path: Path) -> 
     assert sent["records_per_sensor"] == [streamed + points] + [streamed + points - 1] * 3, \
         "the first POINT (stopping a stream) came before group mode: sensor 1 only"
     assert not link.exists(), "the link is removed at exit"
+
+
+def test_a_late_point_answer_is_drained_not_read_as_the_settings(tmp_path: Path) -> None:
+    """On a busy host (or behind a USB-serial adapter's latency timer) the answer to the POINT that stops
+    a stream left running came after the driver's fixed 50 ms wait and was read as the EXAMINE answers:
+    'measurement rate 20.66 Hz, position scaling 31313, group mode 112' and the recording failed."""
+    from midas_cli.devices.trakstar.emulator import EmulatorConfig, TrakstarEmulator
+
+    emu = TrakstarEmulator(EmulatorConfig(link=str(tmp_path / "trakstar"), point_delay_s=0.2)).start()
+    try:
+        clock = HostClock.anchored_now()
+        device = FobEmHT("emht", DeviceUrl.parse(f"fob://{emu.path}?rate=100&sensors=4"),
+                         DeviceContext(clock, clock.now_ns()))
+        info = device.open()
+        rows = _read_for(device, 1.0, wanted=20)
+        device.close()
+    finally:
+        emu.stop()
+    assert info["measurement_rate_hz"] == 100.0 and len(rows) >= 20
+    assert (np.diff([r[0] for r in rows]) == 1).all()

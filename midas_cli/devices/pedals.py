@@ -50,9 +50,30 @@ class PedalStateTracker:
     def __init__(self, thresholds: PedalThresholds) -> None:
         self._press = np.asarray(thresholds.press_v)
         self._release = np.asarray(thresholds.release_v)
-        self.state = np.zeros(len(self._press), dtype=bool)
+        self._limits = list(zip(self._press.tolist(), self._release.tolist()))
+        self._state = [False] * len(self._press)
+
+    @property
+    def state(self) -> np.ndarray:
+        """Pressed (channels,) bool after the last sample."""
+        return np.array(self._state, dtype=bool)
 
     def update(self, volts: np.ndarray) -> np.ndarray:
         """volts: (channels,) -> pressed (channels,) bool after this sample."""
-        self.state = np.where(volts >= self._press, True, np.where(volts <= self._release, False, self.state))
-        return self.state.copy()
+        state = np.where(volts >= self._press, True, np.where(volts <= self._release, False, self.state))
+        self._state = state.tolist()
+        return state
+
+    def update_counts(self, counts: "list[int] | tuple[int, ...]") -> list[int]:
+        """One sample's ADC counts -> pressed (0/1) per channel: ``update(adc_to_volts(counts))`` in plain
+        Python, for a driver that sees one sample per read (850 a second: numpy's per-call cost on
+        nine numbers was most of the pedal worker's CPU)."""
+        scale = VCC / ADC_FULL_SCALE
+        state = self._state
+        for i, (press, release) in enumerate(self._limits):
+            volts = counts[i] * scale
+            if volts >= press:
+                state[i] = True
+            elif volts <= release:
+                state[i] = False
+        return [int(s) for s in state]

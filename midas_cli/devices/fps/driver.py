@@ -20,14 +20,13 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import serial
 
 from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.fps.protocol import (
     MAX_RATE_HZ, PROTO_VERSION, Banner, LineDecoder, Message, Reply, Sample, encode_command, max_rate_hz, rate_fits,
 )
-from midas_cli.devices.pedals import PedalStateTracker, PedalThresholds, adc_to_volts
+from midas_cli.devices.pedals import PedalStateTracker, PedalThresholds
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 
@@ -222,9 +221,9 @@ class FpsDevice(Device):
         seq = self._session_seq(sample.seq, t_host)
         n = self.params["channels"]
         counts = sample.adc[:n]
-        pressed = self.tracker.update(adc_to_volts(np.asarray(counts))).astype(int)
+        pressed = self.tracker.update_counts(counts)
         self.state.last_out, self.state.last_t_host_ns = seq, t_host
-        return (seq, t_host, sample.t_us, *counts, *pressed.tolist())
+        return (seq, t_host, sample.t_us, *counts, *pressed)
 
     def _session_seq(self, board_seq: int, t_host: int) -> int:
         state = self.state

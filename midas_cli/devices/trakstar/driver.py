@@ -54,9 +54,15 @@ READ_TIMEOUT_S = 0.005
 IDLE_BYTES = 16  # line silence (byte times) that ends a burst: > a 16550 FIFO trigger level (14 bytes)
 IDLE_FLOOR_S = 0.0005  # tty-layer and scheduling delay of a byte that was sent back to back
 REPLY_TIMEOUT_S = 1.0
+QUIET_S = 0.1  # the line counts as drained once no byte came for this long
+DRAIN_MAX_S = 1.0  # a line that never goes quiet (a stream that did not stop) is drained this long at most
 AUTOCONFIG_SETTLE_S = 0.6  # the Flock needs this long after an FBB auto-configuration
 RTS_RESET_S = (1.0, 2.0)  # hold RTS high, then wait for the tracker to wake up
 
+
+
+class SettingsMismatch(DeviceError):
+    """The settings read back differ from those sent (said again after one more reading)."""
 
 class FobEmHT(Device):
     """The trakSTAR (or any Flock-of-Birds-compatible tracker) on a serial port, group mode, STREAM."""
@@ -168,18 +174,26 @@ class FobEmHT(Device):
         return info
 
     def _verify(self) -> dict[str, Any]:
+        try:
+            return self._verify_once()
+        except SettingsMismatch:  # a stray byte in front of an answer shifts every value: read them all again once
+            log.warning("%s: the settings read back did not match; reading them again", self.name)
+            self._drain_until_quiet()
+            return self._verify_once()
+
+    def _verify_once(self) -> dict[str, Any]:
         p = self.params
         rate_word = self._examine(fob.PARAM_MEASUREMENT_RATE)
         scaling = self._examine(fob.PARAM_POSITION_SCALING)
         group = self._examine(fob.PARAM_GROUP_MODE)
         sensors = self._examine(fob.PARAM_AUTOCONFIG)
         if rate_word != fob.rate_word(p["rate"]) or scaling != fob.RANGES_IN[p["range"]] or group != 1:
-            raise DeviceError(
+            raise SettingsMismatch(
                 f"{self.name}: the tracker did not take the settings: measurement rate {rate_word / 256:g} Hz "
                 f"(asked {p['rate']:g}), position scaling {scaling} (asked {fob.RANGES_IN[p['range']]}), "
                 f"group mode {group} (asked 1); check the rate is supported by this tracker")
         if sensors != p["sensors"]:
-            raise DeviceError(f"{self.name}: the tracker runs {sensors} sensor(s), asked for {p['sensors']}: "
+            raise SettingsMismatch(f"{self.name}: the tracker runs {sensors} sensor(s), asked for {p['sensors']}: "
                               f"are {p['sensors']} sensors plugged in? (set sensors= in the URL to what is attached)")
         revision = self._examine(fob.PARAM_REVISION)
         serial_number = self._examine(fob.PARAM_SERIAL_NUMBER)
@@ -195,9 +209,18 @@ class FobEmHT(Device):
         self._port.reset_input_buffer()
 
     def _stop_stream(self) -> None:
-        """POINT stops a stream left running; drop whatever it and the stream sent."""
+        """POINT stops a stream left running; drop whatever it and the stream sent, waiting until the
+        line has been quiet for QUIET_S: the POINT answer itself may come late (a USB-serial adapter's
+        latency timer, a busy host) and must not be read as the answer to the EXAMINEs that follow."""
         self._send(fob.POINT)
-        time.sleep(0.05)
+        self._drain_until_quiet()
+
+    def _drain_until_quiet(self) -> None:
+        deadline = time.monotonic() + DRAIN_MAX_S
+        last_byte = time.monotonic()
+        while time.monotonic() < deadline and time.monotonic() - last_byte < QUIET_S:
+            if self._port.read(max(1, self._port.in_waiting)):
+                last_byte = time.monotonic()
         self._port.reset_input_buffer()
 
     def _start_stream(self) -> None:

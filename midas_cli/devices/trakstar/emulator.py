@@ -45,8 +45,11 @@ class EmulatorConfig:
     seed: int = 0
     faults: Faults = Faults()
     link: str | None = None
+    point_delay_s: float = 0.0  # answer POINT this late (a USB-serial adapter's latency timer, a busy host)
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.point_delay_s <= 5.0:
+            raise ConfigError(f"point_delay_s must be in [0, 5] s, got {self.point_delay_s}")
         if not 1 <= self.sensors <= 4:
             raise ConfigError(f"sensors must be 1..4, got {self.sensors}")
         if self.baud <= 0:
@@ -93,6 +96,7 @@ class TrakstarEmulator(PtyEmulator):
         self._commands = bytearray()
         self._cycle = 0
         self._block_range = 36
+        self._point_due: float | None = None  # when a delayed POINT answer goes out
         self._plug()  # the path is known (and printed) before serving starts
 
     def _summary(self) -> dict[str, Any]:
@@ -113,6 +117,9 @@ class TrakstarEmulator(PtyEmulator):
         readable, _, _ = select.select([self.port.master], [], [], timeout)
         if readable:
             self._receive()
+        if self._point_due is not None and time.monotonic() >= self._point_due:
+            self._point_due = None
+            self._send_cycle(self._cycle - 1, self._cycle_time(self._cycle - 1), point=True)
         self._emit_due_cycles(time.monotonic())
 
     def _on_plug(self, now: float) -> None:
@@ -148,7 +155,10 @@ class TrakstarEmulator(PtyEmulator):
         self._count(name)
         if name == "point":
             state.streaming = False
-            self._send_cycle(self._cycle - 1, self._cycle_time(self._cycle - 1), point=True)
+            if self.config.point_delay_s:
+                self._point_due = time.monotonic() + self.config.point_delay_s
+            else:
+                self._send_cycle(self._cycle - 1, self._cycle_time(self._cycle - 1), point=True)
         elif name == "stream":
             state.streaming = True
         elif name in ("fbb_reset", "sleep"):
