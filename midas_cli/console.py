@@ -188,3 +188,19 @@ def status_line(snapshot: RecorderSnapshot) -> str:
     parts.append(f"disk {human_bytes(snapshot.disk_free_bytes)} free")
     return " | ".join(parts)
 
+
+
+def control_line(prompt: str | None, markers: int, last_marker: str | None, armed_waiting: bool,
+                 keys: bool) -> Text:
+    """The line under the live screen: the marker being typed, or how to add one and the last one;
+    while armed, that the recording waits for `midas ctl start`."""
+    if prompt is not None:
+        return Text.assemble(("marker: ", "bold"), prompt, ("▌", "bold"), ("   Enter saves, Esc cancels", "dim"))
+    parts: list[Any] = []
+    if armed_waiting:
+        parts.append(("ARMED: devices open, waiting for `midas ctl start`   ", "bold yellow"))
+    if keys:
+        parts.append(("m: add a marker", "dim"))
+    if markers:
+        parts.append((f"   markers {markers}, last: {(last_marker or '')[:40]}", "dim"))
+    return Text.assemble(*parts)

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
@@ -20,6 +21,7 @@ from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
+from midas_cli.record.markers import events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
@@ -54,12 +56,17 @@ def record(
                                      "then a final {\"event\": \"stopped\", ...} with the session path."),
     queue_size: int = typer.Option(4096, "--queue-size", help="Bookkeeping messages a worker holds before merging "
                                    "them (rows are on disk first; nothing is dropped)."),
+    control: Optional[Path] = typer.Option(None, "--control", help="Control socket for `midas ctl` / `midas mark` "
+                                           "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
+    armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
+                               "it are kept as warm-up; --duration counts from it)."),
 ) -> None:
     """Record a session from the rig's devices into a new session folder.
 
     One worker process per device, host-clock timestamps, crash-safe stream files. Stops on
-    Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line (with
-    --status-json, the final JSON object's session_path).
+    Ctrl-C, SIGTERM, SIGHUP, `midas ctl stop` or --duration; the session path is the last stdout
+    line (with --status-json, the final JSON object's session_path). Markers (key m on the live
+    screen, `midas mark TEXT`) go to the session's events stream.
 
     Example: midas record --simulate --duration 10 --out sessions --subject 1 --task suturing --trial 1
     """
@@ -69,24 +76,36 @@ def record(
         _check_options(seed, master_rate, queue_size)
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
-                          rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest())
+                          rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest(),
+                          extra_streams=(events_spec(),))
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         _exit_if_stopped_before_start(stop)
         mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
-        _record(recorder, _Display(mode, stop), stop, duration)
+        from midas_cli.commands.record_control import RemoteControl
+
+        remote = RemoteControl(control, armed, stop)  # a socket in use: refused before anything is created
+        try:
+            _record(recorder, _Display(mode, stop), stop, duration, remote)
+        finally:
+            remote.close()  # the socket file goes on every exit path
     finally:
         stop.restore()
 
 
-def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float]) -> None:
+def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float], remote) -> None:
     """Create the session, show the devices opening, record until told, finalise, report."""
-    should_stop = lambda: stop.reason is not None or recorder.fatal_error is not None  # noqa: E731
+    should_stop = lambda: stop.asked or recorder.fatal_error is not None  # noqa: E731
     recorder.start()
-    ended = lambda: should_stop() or recorder.duration_reached(duration)  # noqa: E731
-    with display:
-        ready = recorder.wait_ready(READY_TIMEOUT_S, ended, display.update)
+    remote.attach(recorder)
+    display.footer = remote.footer
+    on_tick = remote.watching(display.update)
+    ended = lambda: should_stop() or (not remote.armed and recorder.duration_reached(duration))  # noqa: E731
+    with display, remote.keyboard(display.mode == "tui", display.message):
+        display.message(f"midas: control socket {remote.path} (midas mark TEXT, midas ctl status|stop)")
+        ready = recorder.wait_ready(READY_TIMEOUT_S, ended, on_tick)
         failed = {} if ended() else recorder.unopened()
         if failed:
+            remote.finish("")
             manifest = recorder.stop("failed", f"could not open {', '.join(failed)} at the start")
             display.final(manifest, recorder.path, show_path=False)
             details = "; ".join(f"{name}: {error}" for name, error in failed.items())
@@ -94,10 +113,11 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
         if not ready and not ended():
             display.message(f"midas: warning: {', '.join(recorder.starting())} did not start within "
                             f"{READY_TIMEOUT_S:.0f} s; recording the others while they keep trying")
-        run_until(recorder, duration, should_stop, display.update)
+        duration = remote.wait_for_start(should_stop, on_tick, duration) if remote.armed else duration
+        run_until(recorder, duration, should_stop, on_tick)
         display.update(recorder.snapshot(duration, stopping=True))
         status, reason = ("interrupted", recorder.fatal_error) if recorder.fatal_error else stop.outcome()
-        manifest = recorder.stop(status, reason)
+        manifest = recorder.stop(status, remote.finish(reason))
     display.final(manifest, recorder.path)
     if recorder.fatal_error:
         raise SessionError(f"{recorder.fatal_error} (session kept: {recorder.path})")
@@ -157,6 +177,7 @@ class _StopFlag:
 
     def __init__(self) -> None:
         self.reason: Optional[signal.Signals] = None
+        self.requested: Optional[str] = None  # a stop asked for over the control socket: its reason
         self.hung_up = False
         self._previous: dict = {}
 
@@ -174,9 +195,18 @@ class _StopFlag:
         if signum == signal.SIGHUP:
             self.hung_up = True
 
+    def request(self, reason: str) -> None:
+        """A stop asked for by `midas ctl stop`: ends the recording as Ctrl-C does."""
+        if self.requested is None:
+            self.requested = reason
+
+    @property
+    def asked(self) -> bool:
+        return self.reason is not None or self.requested is not None
+
     def outcome(self) -> tuple[str, str]:
         if self.reason is None:
-            return "complete", "duration reached"
+            return "complete", self.requested or "duration reached"
         return STOP_SIGNALS[self.reason]
 
 
@@ -192,6 +222,7 @@ class _Display:
         self._live: Optional[Live] = None
         self._last_plain = 0.0
         self._last_json = 0.0
+        self.footer = None  # a callable giving the live screen's last line (markers, armed)
 
     def __enter__(self) -> "_Display":
         if self.mode == "tui":
@@ -213,7 +244,8 @@ class _Display:
             return
         now = time.monotonic()
         if self._live is not None:
-            self._safely(lambda: self._live.update(dashboard(snapshot)))
+            screen = dashboard(snapshot) if self.footer is None else Group(dashboard(snapshot), self.footer())
+            self._safely(lambda: self._live.update(screen))
         elif self.mode == "json" and (now - self._last_json >= 1.0 or snapshot.stopping):
             self._last_json = now
             self._safely(lambda: _write_line(sys.stdout, json.dumps({"event": "status", **snapshot.to_json()},
