@@ -308,7 +308,8 @@ def _final_table(manifest: dict) -> Table:
     for name, o in stream_outcomes(manifest).items():
         rate = o["measured_rate_hz"]
         missing = f"{o['missing_outage']} / {o['missing_unexplained']}" if o["missing"] else "0"
-        table.add_row(name, str(o["samples"]), "—" if rate is None else f"{rate:.2f}",
+        rate_text = "events" if o["nominal_rate_hz"] is None else "—" if rate is None else f"{rate:.2f}"
+        table.add_row(name, str(o["samples"]), rate_text,
                       Text(missing, "yellow" if o["missing"] else ""), str(o["dropped"]), str(o["corrupt"]),
-                      str(o["reconnects"]), str(o["p99_latency_ms"]))
+                      str(o["reconnects"]), "—" if o["p99_latency_ms"] is None else str(o["p99_latency_ms"]))
     return table
