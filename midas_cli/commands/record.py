@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
@@ -97,7 +96,7 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
     should_stop = lambda: stop.asked or recorder.fatal_error is not None  # noqa: E731
     recorder.start()
     remote.attach(recorder)
-    display.footer = remote.footer
+    display.control_line = remote.control_line
     on_tick = remote.watching(display.update)
     ended = lambda: should_stop() or (not remote.armed and recorder.duration_reached(duration))  # noqa: E731
     with display, remote.keyboard(display.mode == "tui", display.message):
@@ -222,7 +221,7 @@ class _Display:
         self._live: Optional[Live] = None
         self._last_plain = 0.0
         self._last_json = 0.0
-        self.footer = None  # a callable giving the live screen's last line (markers, armed)
+        self.control_line = None  # a callable giving the live screen's marker line (markers, armed)
 
     def __enter__(self) -> "_Display":
         if self.mode == "tui":
@@ -244,7 +243,7 @@ class _Display:
             return
         now = time.monotonic()
         if self._live is not None:
-            screen = dashboard(snapshot) if self.footer is None else Group(dashboard(snapshot), self.footer())
+            screen = dashboard(snapshot, None if self.control_line is None else self.control_line())
             self._safely(lambda: self._live.update(screen))
         elif self.mode == "json" and (now - self._last_json >= 1.0 or snapshot.stopping):
             self._last_json = now

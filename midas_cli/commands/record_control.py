@@ -60,8 +60,8 @@ class RemoteControl:
             on_tick(snapshot)
         return tick
 
-    def footer(self) -> Any:
-        """The live screen's last line (console.control_line)."""
+    def control_line(self) -> Any:
+        """The live screen's marker line (console.control_line)."""
         markers = self.markers
         last = markers.last["text"] if markers is not None and markers.last else None
         return control_line(self.prompt.text, markers.count if markers else 0, last,
