@@ -55,7 +55,7 @@ def start(ctx: typer.Context) -> None:
 @app.command("stop")
 def stop(ctx: typer.Context,
          timeout: float = typer.Option(60.0, "--timeout", help="Seconds to wait for the finalised manifest.")) -> None:
-    """Stop the recording as Ctrl-C does; wait until its manifest is final and print its status.
+    """Stop the recording as Ctrl-C does; print its status once the manifest is final.
 
     Example: midas ctl stop
     """

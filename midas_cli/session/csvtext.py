@@ -12,8 +12,10 @@ Numeric streams never hold a quote; for them the quote-aware counts below equal 
 from __future__ import annotations
 
 import re
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:  # numpy is imported where it is used: the schema (and `midas session info`) need none
+    import numpy as np
 
 _QUOTE, _COMMA, _NEWLINE = ord('"'), ord(","), ord("\n")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
@@ -61,6 +63,8 @@ def split_fields(line: bytes) -> list[bytes]:
 def separator_mask(raw: np.ndarray) -> np.ndarray:
     """For the bytes ``raw`` (uint8) of whole lines: True at each comma that separates fields, i.e. one
     with an even number of quotes before it on its line."""
+    import numpy as np
+
     commas = raw == _COMMA
     quotes = raw == _QUOTE
     if not quotes.any():
