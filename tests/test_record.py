@@ -132,6 +132,7 @@ def test_sigkill_leaves_a_repairable_session(tmp_path: Path) -> None:
     repaired = midas("session", "repair", str(path), check=True)
     assert "recovered" in repaired.stdout
     assert midas("session", "verify", str(path)).returncode == 0
+    assert on_disk.pop("events") == b"seq,t_host_ns,text,source\n"  # the operator's markers: none here
     assert set(on_disk) == {"emht", "fps", "video", "handkp"}
     for name, before in on_disk.items():  # a killed recorder loses nothing the OS had accepted
         whole_lines = before[:before.rindex(b"\n") + 1]

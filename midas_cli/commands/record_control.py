@@ -20,7 +20,7 @@ from midas_cli.commands.record_keys import Keyboard, MarkerPrompt, keyboard_avai
 from midas_cli.console import control_line
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.record.control import ControlServer, default_control_path
-from midas_cli.record.markers import MarkerLog
+from midas_cli.record.markers import EVENTS_STREAM, MarkerLog
 from midas_cli.record.recorder import Recorder
 from midas_cli.record.status import RecorderSnapshot
 
@@ -102,8 +102,10 @@ class RemoteControl:
         if self.markers is not None:
             self.markers.close()
         if self.recorder is not None and self.recorder.writer is not None:
-            self.recorder.writer.manifest["control"] = {"socket": str(self.path), "armed": self.armed,
-                                                        "started_host_ns": self.started_ns}
+            manifest = self.recorder.writer.manifest
+            manifest["control"] = {"socket": str(self.path), "armed": self.armed, "started_host_ns": self.started_ns}
+            # a marker that could not be written was refused to whoever sent it, never acknowledged
+            manifest["streams"][EVENTS_STREAM].update(dropped=0, corrupt=0)
         if self.armed and self.started_ns is None:
             return f"{reason}; armed, `midas ctl start` never came"
         return reason
