@@ -62,10 +62,13 @@ def stop(ctx: typer.Context,
     from midas_cli.errors import SessionError
     from midas_cli.session.manifest import load_manifest
 
+    from midas_cli.record.control import process_alive
+
     path = _socket(ctx.obj)
     reply = _ask(path, {"cmd": "stop"})
     deadline = time.monotonic() + timeout
-    while path.exists():  # the recorder removes its socket once the session is finalised
+    # the recorder removes its socket once the session is finalised (a killed one leaves it: its pid is gone)
+    while path.exists() and process_alive(reply["pid"]):
         if time.monotonic() > deadline:
             raise SessionError(f"the recorder at {path} did not finish within {timeout:g} s "
                                f"(session {reply.get('session_path')})")

@@ -8,7 +8,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.live import Live
@@ -20,12 +20,15 @@ from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
-from midas_cli.record.markers import events_spec
+from midas_cli.record.markers import check_stream_names, events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.rig import simulated_rig
 from midas_cli.session.writer import SessionMetadata
+
+if TYPE_CHECKING:
+    from midas_cli.commands.record_control import RemoteControl
 
 PLAIN_EVERY_S = 2.0
 READY_TIMEOUT_S = 15.0
@@ -78,6 +81,7 @@ def record(
                           rig_config.device_urls(), out, seed, queue_size, rig_config.to_manifest(),
                           extra_streams=(events_spec(),))
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
+        check_stream_names(recorder.streams)
         _exit_if_stopped_before_start(stop)
         mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
         from midas_cli.commands.record_control import RemoteControl
@@ -91,7 +95,8 @@ def record(
         stop.restore()
 
 
-def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float], remote) -> None:
+def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float],
+            remote: "RemoteControl") -> None:
     """Create the session, show the devices opening, record until told, finalise, report."""
     should_stop = lambda: stop.asked or recorder.fatal_error is not None  # noqa: E731
     recorder.start()

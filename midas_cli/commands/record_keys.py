@@ -2,7 +2,9 @@
 
 Read only while the live screen is on and stdin is the terminal in the foreground (a recorder started
 with ``&`` never touches the terminal's modes). The terminal goes to cbreak without echo (Ctrl-C still
-stops the recording) and is put back as it was on every exit path.
+stops the recording) and is put back as it was on every exit path. SIGTTIN and SIGTTOU are ignored
+meanwhile: a recorder sent to the background (Ctrl-Z, ``bg``) keeps recording instead of being stopped
+by the terminal; it reads no keys until it is in the foreground again.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import codecs
 import logging
 import os
 import select
+import signal
 import sys
 import termios
 import threading
@@ -87,10 +90,13 @@ class Keyboard:
         self.on_marker = on_marker
         self._fd = sys.stdin.fileno()
         self._saved: Optional[list] = None
+        self._signals: dict = {}
         self._stopping = threading.Event()
         self._thread: Optional[threading.Thread] = None
 
     def __enter__(self) -> "Keyboard":
+        for sig in (signal.SIGTTIN, signal.SIGTTOU):
+            self._signals[sig] = signal.signal(sig, signal.SIG_IGN)
         self._saved = termios.tcgetattr(self._fd)
         mode = termios.tcgetattr(self._fd)
         mode[3] &= ~(termios.ECHO | termios.ICANON)  # lflag: keys one at a time, not shown; ISIG stays
@@ -107,16 +113,19 @@ class Keyboard:
         if self._saved is not None:
             try:
                 termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
-            except termios.error:  # the terminal is gone (hang-up): nothing to restore
+            except (termios.error, OSError):  # the terminal is gone (hang-up): nothing to restore
                 pass
+        for sig, handler in self._signals.items():
+            signal.signal(sig, handler)
 
     def _loop(self) -> None:
         while not self._stopping.is_set():
             try:
                 ready, _, _ = select.select([self._fd], [], [], 0.1)
                 data = os.read(self._fd, 256) if ready else None
-            except OSError:  # the terminal hung up
-                return
+            except OSError:  # in the background (EIO), or the terminal hung up: try again later
+                self._stopping.wait(0.2)
+                continue
             if data == b"":
                 return
             for text in self.prompt.feed(data or b""):

@@ -68,14 +68,15 @@ def running_recordings(folder: Path) -> list[Path]:
         match = _DEFAULT_NAME.match(path.name)
         if match is None:
             continue
-        if _process_alive(int(match.group(1))):
+        if process_alive(int(match.group(1))):
             found.append(path)
         elif _is_socket(path):
             path.unlink(missing_ok=True)
     return found
 
 
-def _process_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """True while process ``pid`` exists."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

@@ -11,7 +11,7 @@ moment the recorder starts to stop, so every one lies within the session's span.
 from __future__ import annotations
 
 import threading
-from typing import Any
+from typing import Any, Iterable
 
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
@@ -33,6 +33,13 @@ def events_spec() -> StreamSpec:
         Column("source", "text", description="where it came from: key (live screen), mark (`midas mark`), "
                                              "ctl (`midas ctl`)"),
     ), None, "operator markers and remote-control events (host clock)")
+
+
+def check_stream_names(device_streams: Iterable[str]) -> None:
+    """ConfigError if a device's stream would take the events stream's name."""
+    if EVENTS_STREAM in set(device_streams):
+        raise ConfigError(f"a device stream is named {EVENTS_STREAM!r}, which holds the operator's markers: "
+                          f"rename that device")
 
 
 def check_marker_text(text: str) -> str:
