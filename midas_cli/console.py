@@ -74,10 +74,11 @@ def _age_text(age: float | None) -> str:
     return f"{age * 1000:.0f} ms" if age < 10 else f"{age:.0f} s"
 
 
-def dashboard(snapshot: RecorderSnapshot) -> Group:
-    """The live TUI (fits an 80-column SSH terminal): header, device health, pedal bars, EmHT positions."""
-    return Group(_header(snapshot), _device_table(snapshot), _device_errors(snapshot),
-                 Columns(_live_panels(snapshot)))
+def dashboard(snapshot: RecorderSnapshot, control: Text | None = None) -> Group:
+    """The live TUI (fits an 80-column SSH terminal): header, ``control`` (markers: ``control_line``; under
+    the header, so a short terminal never crops it), device health, pedal bars, EmHT positions."""
+    top = (_header(snapshot),) if control is None else (_header(snapshot), control)
+    return Group(*top, _device_table(snapshot), _device_errors(snapshot), Columns(_live_panels(snapshot)))
 
 
 def _header(snapshot: RecorderSnapshot) -> Text:
@@ -193,3 +194,19 @@ def status_line(snapshot: RecorderSnapshot) -> str:
     parts.append(f"disk {human_bytes(snapshot.disk_free_bytes)} free")
     return " | ".join(parts)
 
+
+
+def control_line(prompt: str | None, markers: int, last_marker: str | None, armed_waiting: bool,
+                 keys: bool) -> Text:
+    """The live screen's marker line: the marker being typed, or how to add one and the last one; while
+    armed, that the recording waits for `midas ctl start`."""
+    if prompt is not None:
+        return Text.assemble(("marker: ", "bold"), prompt, ("▌", "bold"), ("   Enter saves, Esc cancels", "dim"))
+    parts: list[Any] = []
+    if armed_waiting:
+        parts.append(("ARMED: devices open, waiting for `midas ctl start`   ", "bold yellow"))
+    if keys:
+        parts.append(("m: add a marker", "dim"))
+    if markers:
+        parts.append((f"   markers {markers}, last: {(last_marker or '')[:40]}", "dim"))
+    return Text.assemble(*parts)

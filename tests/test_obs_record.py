@@ -185,7 +185,8 @@ def test_a_mixed_session_with_obs_emulators_and_lsl_verifies(obs: ObsServer, tmp
     assert verify.returncode == 0, verify.stdout + verify.stderr
     session = Session.open(path)
     assert {"emht", "fps", "video", "raven", "hr"} <= set(session.stream_names)
-    assert all(session.manifest["streams"][name]["samples"] > 0 for name in session.stream_names)
+    assert all(session.manifest["streams"][name]["samples"] > 0 for name in session.stream_names
+               if name != "events")  # the operator's markers: none here
     # one segment, or more if a busy host stalled OBS past the stall timeout (a reconnect, explained)
     segments = list((path / "video").glob("*.mkv"))
     assert len(segments) == 1 + session.manifest["devices"]["video"]["reconnects"]

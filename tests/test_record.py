@@ -132,6 +132,7 @@ def test_sigkill_leaves_a_repairable_session(tmp_path: Path) -> None:
     repaired = midas("session", "repair", str(path), check=True)
     assert "recovered" in repaired.stdout
     assert midas("session", "verify", str(path)).returncode == 0
+    assert on_disk.pop("events") == b"seq,t_host_ns,text,source\n"  # the operator's markers: none here
     assert set(on_disk) == {"emht", "fps", "video", "handkp"}
     for name, before in on_disk.items():  # a killed recorder loses nothing the OS had accepted
         whole_lines = before[:before.rindex(b"\n") + 1]
@@ -262,10 +263,19 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
         # screen where every device is healthy rather than judge the first one
         screen = _wait_for_screen(name, "", lambda text: not _unhealthy_rows(text))
         assert "pedals" in screen and "positions (mm)" in screen and "disk free" in screen
+        assert "m: add a marker" in screen, screen
+        subprocess.run(["tmux", "send-keys", "-t", name, "m"], check=True)  # a marker: m, text, Enter
+        _wait_for_screen(name, "Enter saves, Esc cancels")
+        subprocess.run(["tmux", "send-keys", "-t", name, "-l", 'suture 1, "knot"'], check=True)
+        _wait_for_screen(name, 'marker: suture 1, "knot"')
+        subprocess.run(["tmux", "send-keys", "-t", name, "Enter"], check=True)
+        _wait_for_screen(name, "markers 1, last: suture 1")
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
         screen = _wait_for_screen(name, str(tmp_path))
         session = Session.open(_only_session(tmp_path))
         assert session.status == "complete" and "Ctrl-C" in session.manifest["stop_reason"]
+        events = session.read_stream("events")
+        assert events["text"].tolist() == ['suture 1, "knot"'] and events["source"].tolist() == ["key"]
         assert midas("session", "verify", str(session.path)).returncode == 0
     finally:
         subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)

@@ -88,8 +88,8 @@ def parse_clock(text: str) -> float | None:
 
 
 def value_columns(session: Session, stream: str) -> list[Any]:
-    """The data columns of a stream: everything except seq, t_host_ns and device-clock columns."""
-    return [c for c in session.stream_spec(stream).columns if c.clock is None and c.name != "seq"]
+    """The data columns of a stream: everything except seq, t_host_ns, device-clock and text columns."""
+    return [c for c in session.stream_spec(stream).columns if c.clock is None and c.name != "seq" and c.dtype != "text"]
 
 
 def stale_ns_for(session: Session, stream: str, options: AlignOptions) -> int:
@@ -140,10 +140,13 @@ def reference_frames(session: Session, video: np.ndarray | None = None) -> tuple
     return np.asarray(video["seq"], np.int64)[order], np.asarray(video["t_host_ns"], np.int64)[order]
 
 
-def read_streams(session: Session) -> dict[str, np.ndarray]:
-    """Every stream except the reference as a structured array (memory-mapped binary copy, or the CSV
-    parsed when the session has none)."""
-    return {name: session.read_columns(name) for name in session.stream_names if name != REFERENCE}
+def read_streams(session: Session, with_reference: bool = False) -> dict[str, np.ndarray]:
+    """Every stream (but the reference unless ``with_reference``) as a structured array (memory-mapped
+    binary copy, or the CSV parsed when the session has none). A stream of text only (the operator's
+    markers) has no value to put on a frame and is left out."""
+    return {name: session.read_columns(name) for name in session.stream_names
+            if (with_reference or name != REFERENCE)
+            and not (session.stream_spec(name).has_text and not value_columns(session, name))}
 
 
 def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: ColumnSet, frame_ns: np.ndarray,
@@ -242,7 +245,7 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
         data = read_streams(session)
         time_order = time_order_warnings(session, {REFERENCE: video, **data})
     else:
-        data = {name: session.read_columns(name) for name in session.stream_names}
+        data = read_streams(session, with_reference=True)
         frames, frame_ns = regular_frames(data, options.clock_hz)
         time_order = time_order_warnings(session, data)
     t_s = (frame_ns - frame_ns[0]) / 1e9

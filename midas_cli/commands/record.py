@@ -8,7 +8,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.live import Live
@@ -21,11 +21,15 @@ from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
+from midas_cli.record.markers import check_stream_names, events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.rig import simulated_rig
 from midas_cli.session.writer import SessionMetadata
+
+if TYPE_CHECKING:
+    from midas_cli.commands.record_control import RemoteControl
 
 PLAIN_EVERY_S = 2.0
 READY_TIMEOUT_S = 15.0
@@ -59,12 +63,17 @@ def record(
                                    "them (rows are on disk first; nothing is dropped)."),
     lsl_out: bool = typer.Option(False, "--lsl-out", help="Also publish every stream live as an LSL outlet "
                                  "(labels, units, rate; timestamps = host times on the LSL clock)."),
+    control: Optional[Path] = typer.Option(None, "--control", help="Control socket for `midas ctl` / `midas mark` "
+                                           "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
+    armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
+                               "it are kept as warm-up; --duration counts from it)."),
 ) -> None:
     """Record a session from the rig's devices into a new session folder.
 
     One worker process per device, host-clock timestamps, crash-safe stream files. Stops on
-    Ctrl-C, SIGTERM, SIGHUP or --duration; the session path is the last stdout line (with
-    --status-json, the final JSON object's session_path).
+    Ctrl-C, SIGTERM, SIGHUP, `midas ctl stop` or --duration; the session path is the last stdout
+    line (with --status-json, the final JSON object's session_path). Markers (key m on the live
+    screen, `midas mark TEXT`) go to the session's events stream.
 
     Example: midas record --simulate --duration 10 --out sessions --subject 1 --task suturing --trial 1
     """
@@ -79,24 +88,37 @@ def record(
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
-                          rig_config.to_manifest(), lsl_out)
+                          rig_config.to_manifest(), lsl_out, extra_streams=(events_spec(),))
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
+        check_stream_names(recorder.streams)
         _exit_if_stopped_before_start(stop)
         mode = "json" if status_json else ("tui" if is_interactive() and not no_tui else "plain")
-        _record(recorder, _Display(mode, stop), stop, duration)
+        from midas_cli.commands.record_control import RemoteControl
+
+        remote = RemoteControl(control, armed, stop)  # a socket in use: refused before anything is created
+        try:
+            _record(recorder, _Display(mode, stop), stop, duration, remote)
+        finally:
+            remote.close()  # the socket file goes on every exit path
     finally:
         stop.restore()
 
 
-def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float]) -> None:
+def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float],
+            remote: "RemoteControl") -> None:
     """Create the session, show the devices opening, record until told, finalise, report."""
-    should_stop = lambda: stop.reason is not None or recorder.fatal_error is not None  # noqa: E731
+    should_stop = lambda: stop.asked or recorder.fatal_error is not None  # noqa: E731
     recorder.start()
-    ended = lambda: should_stop() or recorder.duration_reached(duration)  # noqa: E731
-    with display:
-        ready = recorder.wait_ready(READY_TIMEOUT_S, ended, display.update)
+    remote.attach(recorder)
+    display.control_line = remote.control_line
+    on_tick = remote.watching(display.update)
+    ended = lambda: should_stop() or (not remote.armed and recorder.duration_reached(duration))  # noqa: E731
+    with display, remote.keyboard(display.mode == "tui", display.message):
+        display.message(f"midas: control socket {remote.path} (midas mark TEXT, midas ctl status|stop)")
+        ready = recorder.wait_ready(READY_TIMEOUT_S, ended, on_tick)
         failed = {} if ended() else recorder.unopened()
         if failed:
+            remote.finish("")
             manifest = recorder.stop("failed", f"could not open {', '.join(failed)} at the start")
             display.final(manifest, recorder.path, show_path=False)
             details = "; ".join(f"{name}: {error}" for name, error in failed.items())
@@ -104,10 +126,11 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
         if not ready and not ended():
             display.message(f"midas: warning: {', '.join(recorder.starting())} did not start within "
                             f"{READY_TIMEOUT_S:.0f} s; recording the others while they keep trying")
-        run_until(recorder, duration, should_stop, display.update)
+        duration = remote.wait_for_start(should_stop, on_tick, duration) if remote.armed else duration
+        run_until(recorder, duration, should_stop, on_tick)
         display.update(recorder.snapshot(duration, stopping=True))
         status, reason = ("interrupted", recorder.fatal_error) if recorder.fatal_error else stop.outcome()
-        manifest = recorder.stop(status, reason)
+        manifest = recorder.stop(status, remote.finish(reason))
     display.final(manifest, recorder.path)
     if recorder.fatal_error:
         raise SessionError(f"{recorder.fatal_error} (session kept: {recorder.path})")
@@ -170,6 +193,7 @@ class _StopFlag:
 
     def __init__(self) -> None:
         self.reason: Optional[signal.Signals] = None
+        self.requested: Optional[str] = None  # a stop asked for over the control socket: its reason
         self.hung_up = False
         self._previous: dict = {}
 
@@ -187,9 +211,18 @@ class _StopFlag:
         if signum == signal.SIGHUP:
             self.hung_up = True
 
+    def request(self, reason: str) -> None:
+        """A stop asked for by `midas ctl stop`: ends the recording as Ctrl-C does."""
+        if self.requested is None:
+            self.requested = reason
+
+    @property
+    def asked(self) -> bool:
+        return self.reason is not None or self.requested is not None
+
     def outcome(self) -> tuple[str, str]:
         if self.reason is None:
-            return "complete", "duration reached"
+            return "complete", self.requested or "duration reached"
         return STOP_SIGNALS[self.reason]
 
 
@@ -205,6 +238,7 @@ class _Display:
         self._live: Optional[Live] = None
         self._last_plain = 0.0
         self._last_json = 0.0
+        self.control_line = None  # a callable giving the live screen's marker line (markers, armed)
 
     def __enter__(self) -> "_Display":
         if self.mode == "tui":
@@ -226,7 +260,8 @@ class _Display:
             return
         now = time.monotonic()
         if self._live is not None:
-            self._safely(lambda: self._live.update(dashboard(snapshot)))
+            screen = dashboard(snapshot, None if self.control_line is None else self.control_line())
+            self._safely(lambda: self._live.update(screen))
         elif self.mode == "json" and (now - self._last_json >= 1.0 or snapshot.stopping):
             self._last_json = now
             self._safely(lambda: _write_line(sys.stdout, json.dumps({"event": "status", **snapshot.to_json()},
@@ -289,7 +324,8 @@ def _final_table(manifest: dict) -> Table:
     for name, o in stream_outcomes(manifest).items():
         rate = o["measured_rate_hz"]
         missing = f"{o['missing_outage']} / {o['missing_unexplained']}" if o["missing"] else "0"
-        table.add_row(name, str(o["samples"]), "—" if rate is None else f"{rate:.2f}",
+        rate_text = "events" if o["nominal_rate_hz"] is None else "—" if rate is None else f"{rate:.2f}"
+        table.add_row(name, str(o["samples"]), rate_text,
                       Text(missing, "yellow" if o["missing"] else ""), str(o["dropped"]), str(o["corrupt"]),
-                      str(o["reconnects"]), str(o["p99_latency_ms"]))
+                      str(o["reconnects"]), "—" if o["p99_latency_ms"] is None else str(o["p99_latency_ms"]))
     return table

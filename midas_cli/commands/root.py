@@ -17,6 +17,8 @@ from midas_cli import __version__
 # name -> (module under midas_cli.commands, attribute, "command" | "group")
 COMMANDS: dict[str, tuple[str, str, str]] = {
     "record": ("record", "record", "command"),
+    "mark": ("control", "mark", "command"),
+    "ctl": ("control", "app", "group"),
     "session": ("session", "app", "group"),
     "labels": ("labels", "app", "group"),
     "simulate": ("simulate", "app", "group"),
@@ -41,12 +43,14 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
 # commands first, then groups, each in COMMANDS order. Kept in sync by tests/test_startup.py.
 COMMAND_SUMMARIES: dict[str, str] = {
     "record": "Record a session from the rig's devices into a new session folder.",
+    "mark": "Add a marker to the running recording's events stream.",
     "align": "Align each session's streams onto its video frame clock.",
     "export": "Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.",
     "replay": "Play a session's streams back as live LSL outlets with their recorded timing.",
     "plot": "Draw a quick-look page of a session: every stream against session time.",
     "doctor": "Report versions, serial ports, OBS reachability, GPU and free disk.",
     "config": "Show the defaults in use (rig, sessions, SLURM) and where each comes from.",
+    "ctl": "Remote control of a running recording (start, stop, status, mark).",
     "session": "Inspect, list, verify and repair session folders.",
     "labels": "Gesture taxonomies, annotation import/export and label statistics.",
     "simulate": "Synthetic recordings with known ground truth (no hardware needed).",

@@ -82,12 +82,15 @@ def label_sets(session: Session, clock: FrameClock | None) -> Iterator[TimedLabe
 
 
 def json_columns(chunk: Any) -> list[list[Any]]:
-    """The columns of a stream piece as lists of Python values (int, float, None for a missing value):
+    """The columns of a stream piece as lists of Python values (int, float, str, None for a missing value):
     what a JSON encoder writes exactly (floats by repr, ints in full)."""
     columns = []
     for name in chunk.columns:
         series = chunk[name]
         missing = series.isna().to_numpy()
+        if series.dtype == object:  # a text column
+            columns.append([None if m else v for v, m in zip(series.tolist(), missing)])
+            continue
         values = series.to_numpy(dtype=object, na_value=None) if series.dtype.kind in "iu" or str(series.dtype) == "Int64" \
             else series.to_numpy(dtype=np.float64).tolist()
         if not isinstance(values, list):

@@ -25,7 +25,7 @@ from midas_cli.interop.common import FRAME_STREAM, column_facts, frame_clock, js
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
 
-JSON_TYPES = {"int": "integer", "float": "number"}
+JSON_TYPES = {"int": "integer", "float": "number", "text": "string"}
 
 
 def stream_schema(session: Session, name: str) -> dict[str, Any]:

@@ -22,7 +22,9 @@ timestamp, not a channel; int columns are exact below 2**53, a missing value is 
 midas session has one clock, the host clock of the recording computer (manifest ``clock``); every stream
 is already on it, so each offset is 0 s, written at the start, every ``OFFSET_EVERY_S`` and at the stop
 (what LabRecorder does for a stream recorded on the recording host), so that pyxdf's synchronisation
-leaves the times as they are. Label sets are ``string`` streams (``labels/<name>``, one channel
+leaves the times as they are. A stream with text columns (the markers of ``streams/events.csv``) is a
+``string`` stream: every column but ``t_host_ns`` a channel, numbers as their decimal text, a missing value
+"". Label sets are ``string`` streams (``labels/<name>``, one channel
 ``label``, one sample per labelled frame at that frame's host time, ``nominal_srate`` 0).
 """
 
@@ -36,7 +38,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from midas_cli import __version__
-from midas_cli.interop.common import frame_clock, label_sets
+from midas_cli.interop.common import frame_clock, json_columns, label_sets
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
 
@@ -72,10 +74,18 @@ def numeric_samples(stream_id: int, times_s: np.ndarray, values: np.ndarray) -> 
 
 
 def string_samples(stream_id: int, times_s: Sequence[float], values: Sequence[str]) -> bytes:
-    parts = [struct.pack("<I", stream_id), varlen(len(values))]
-    for t, value in zip(times_s, values):
-        data = value.encode("utf-8")
-        parts += [struct.pack("<Bd", 8, t), varlen(len(data)), data]
+    """A Samples chunk's content for a one-channel string stream."""
+    return text_samples(stream_id, times_s, [[value] for value in values])
+
+
+def text_samples(stream_id: int, times_s: Sequence[float], rows: Sequence[Sequence[str]]) -> bytes:
+    """A Samples chunk's content for a string stream: ``rows`` (N, C) of text at ``times_s`` (N,)."""
+    parts = [struct.pack("<I", stream_id), varlen(len(rows))]
+    for t, row in zip(times_s, rows):
+        parts.append(struct.pack("<Bd", 8, t))
+        for value in row:
+            data = value.encode("utf-8")
+            parts += [varlen(len(data)), data]
     return b"".join(parts)
 
 
@@ -120,7 +130,8 @@ def write_xdf(session: Session, target: Path) -> dict[str, Any]:
             spec = session.stream_spec(name)
             columns = [c for c in spec.columns if c.name != "t_host_ns"]
             info = {"name": name, "type": spec.device, "channel_count": len(columns),
-                    "nominal_srate": spec.nominal_rate_hz or 0, "channel_format": "double64",
+                    "nominal_srate": spec.nominal_rate_hz or 0,
+                    "channel_format": "string" if spec.has_text else "double64",
                     "source_id": f"{session_id}/{name}", "version": "1.1", "created_at": start_ns / 1e9,
                     "uid": f"{session_id}/{name}", "session_id": session_id, "hostname": session.manifest.get(
                         "software", {}).get("host", "")}
@@ -129,8 +140,12 @@ def write_xdf(session: Session, target: Path) -> dict[str, Any]:
             names = [c.name for c in columns]
             for chunk in session.iter_stream(name):
                 times = chunk["t_host_ns"].to_numpy(np.int64) / 1e9
-                values = chunk[names].to_numpy(dtype=np.float64, na_value=np.nan)
-                write_chunk(fh, SAMPLES, numeric_samples(stream_id, times, values))
+                if spec.has_text:
+                    rows = [["" if v is None else str(v) for v in row] for row in zip(*json_columns(chunk[names]))]
+                    write_chunk(fh, SAMPLES, text_samples(stream_id, times.tolist(), rows))
+                else:
+                    values = chunk[names].to_numpy(dtype=np.float64, na_value=np.nan)
+                    write_chunk(fh, SAMPLES, numeric_samples(stream_id, times, values))
                 stream.seen(times)
             stream.finish(offsets_at)
             counts[name] = stream.count

@@ -31,6 +31,7 @@ from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.spawn import stop_signals_blocked, worker_context
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
+from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import LOG_FILE, SessionMetadata, SessionWriter
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,7 @@ class RecordPlan:
     queue_size: int = 4096
     rig: dict[str, Any] = field(default_factory=dict)
     lsl_out: bool = False  # workers also publish every stream as an LSL outlet (record/lsl_out.py)
+    extra_streams: tuple[StreamSpec, ...] = ()  # written by the recorder's own process (the events stream)
 
 
 class Recorder:
@@ -110,7 +112,7 @@ class Recorder:
         The stop signals are blocked while the workers are created (never ignored): one that arrives
         meanwhile stays pending and reaches this process's handler as soon as they are unblocked,
         while each worker sets them to ignored before it unblocks them (it stops when told)."""
-        specs = [stats.spec for stats in self.streams.values()]
+        specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
                                            self.plan.rig)

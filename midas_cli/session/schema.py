@@ -4,7 +4,8 @@ Every stream starts with the two columns the recorder guarantees:
   * ``seq``       -- the device's own sample counter (or frame index), never rewritten;
   * ``t_host_ns`` -- host clock (Unix-epoch ns, monotonic-anchored) when the bytes were read.
 Missing values (a hand the camera did not see, a sensor record that failed framing) are written as
-empty fields, never as in-band sentinels such as 0 or -1.
+empty fields, never as in-band sentinels such as 0 or -1. A ``text`` column (an event stream's marker
+text) holds one line of text, always quoted (``session/csvtext.py``).
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Sequence
 
 from midas_cli.errors import SessionError
+from midas_cli.session.csvtext import quote_text
 
-DTYPES = ("int", "float")
+DTYPES = ("int", "float", "text")
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,11 @@ class StreamSpec:
         return self.nominal_rate_hz is None
 
     @property
+    def has_text(self) -> bool:
+        """True when a column holds text (parsed line by line, not by the vectorised number checks)."""
+        return any(c.dtype == "text" for c in self.columns)
+
+    @property
     def file(self) -> str:
         return f"streams/{self.name}.csv"
 
@@ -124,6 +131,8 @@ class StreamSpec:
 def _formatter(column: Column):
     if column.dtype == "int":
         return _format_int
+    if column.dtype == "text":
+        return quote_text
     template = "{:.%df}" % column.decimals
 
     def format_float(value: Any) -> str:

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from midas_cli.session.csvtext import count_separators, separator_mask
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.values import read_regular_file
 
@@ -106,7 +107,7 @@ def complete_line_end(data: bytes, width: int) -> int:
     end = data.rfind(b"\n") + 1
     while end > 0:
         start = data.rfind(b"\n", 0, end - 1) + 1
-        if data.count(b",", start, end) == width - 1 or start == 0:
+        if count_separators(data[start:end]) == width - 1 or start == 0:
             return end
         end = start
     return 0
@@ -117,7 +118,7 @@ def _lines_with_wrong_width(body: bytes, width: int) -> list[int]:
     if not body:
         return []
     raw = np.frombuffer(body, dtype=np.uint8)
-    commas = np.cumsum(raw == ord(","))
+    commas = np.cumsum(separator_mask(raw))
     ends = np.flatnonzero(raw == ord("\n"))
     per_line = np.diff(np.concatenate(([0], commas[ends])))
     return [int(i) + 1 for i in np.flatnonzero(per_line != width - 1)[:20]]

@@ -8,7 +8,9 @@ spaces, quotes or bytes that are not ASCII. Ranges: a float's magnitude is at mo
 (no device midas records measures anything near it: 1e308 is damage), a column with unit ``bool`` holds
 0 or 1. A torn last line (no newline: a killed recorder) is not data either: it is left out and its
 size reported, so readers can use the whole lines and say so. Anything else refuses the file with a
-SessionError naming the file and line.
+SessionError naming the file and line. A ``text`` column's fields are quoted UTF-8 text without control
+characters (``csvtext.py``); a stream with text columns (an event stream: few rows) is checked line by
+line, its number columns as strictly as anywhere else.
 
 The checks are vectorised (one byte-class pass, one pandas parse, one pass per column); only when
 the parse fails is the file parsed again as text to find the first bad value.
@@ -26,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from midas_cli.errors import SessionError
+from midas_cli.session.csvtext import TEXT_FIELD, separator_mask, split_fields, unquote_text
 from midas_cli.session.schema import Column, StreamSpec
 
 if TYPE_CHECKING:
@@ -106,7 +109,10 @@ def parse_stream_bytes(data: bytes, spec: StreamSpec, path: Path) -> ParsedStrea
                            f"{_short(spec.header_line().strip())!r}; {REMEDY}")
     body_end = data.rfind(b"\n") + 1
     body = data[header_end + 1 : body_end]
-    _check_bytes(body, spec, path)
+    if spec.has_text:
+        _check_text_lines(body, spec, path)
+    else:
+        _check_bytes(body, spec, path)
     _check_widths(body, spec, path)
     frame = _parse(body, spec, path)
     _check_ranges(frame, spec, path)
@@ -126,13 +132,44 @@ def _check_bytes(body: bytes, spec: StreamSpec, path: Path) -> None:
     raise SessionError(f"{path} line {line}, column {column!r}: {what}; expected {_expected(spec, column)}; {REMEDY}")
 
 
+def _check_text_lines(body: bytes, spec: StreamSpec, path: Path) -> None:
+    """Every field of every line: text columns quoted UTF-8 text (or empty), the others only the bytes a
+    number can hold (their values are checked by the parse that follows)."""
+    for number, line in enumerate(body.split(b"\n")[:-1], start=2):
+        fields = split_fields(line)
+        if len(fields) != len(spec.columns):
+            raise SessionError(f"{path} line {number}: {len(fields)} fields, expected {len(spec.columns)} "
+                               f"(damage inside the file, not a torn last line); {REMEDY}")
+        for column, field in zip(spec.columns, fields):
+            if column.dtype == "text" and field and not _is_text(field):
+                raise SessionError(f"{path} line {number}, column {column.name!r}: {_short(_shown(field))!r}; "
+                                   f"expected {_expected(spec, column.name)}; {REMEDY}")
+            if column.dtype != "text" and not _ALLOWED[np.frombuffer(field, dtype=np.uint8)].all():
+                raise SessionError(f"{path} line {number}, column {column.name!r}: {_short(_shown(field))!r}, which "
+                                   f"is not a number; expected {_expected(spec, column.name)}; {REMEDY}")
+
+
+def _is_text(field: bytes) -> bool:
+    if not TEXT_FIELD.fullmatch(field):
+        return False
+    try:
+        unquote_text(field)
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def _shown(field: bytes) -> str:
+    return field.decode("utf-8", "replace")
+
+
 def _check_widths(body: bytes, spec: StreamSpec, path: Path) -> None:
     if not body:
         return
     width = len(spec.columns)
     raw = np.frombuffer(body, dtype=np.uint8)
     ends = np.flatnonzero(raw == ord("\n"))
-    commas = np.cumsum(raw == ord(","), dtype=np.int64)[ends]
+    commas = np.cumsum(separator_mask(raw), dtype=np.int64)[ends]
     per_line = np.diff(commas, prepend=0) + 1
     wrong = np.flatnonzero(per_line != width)
     if len(wrong):
@@ -142,8 +179,8 @@ def _check_widths(body: bytes, spec: StreamSpec, path: Path) -> None:
 
 
 def _dtypes(spec: StreamSpec) -> dict[str, str]:
-    return {c.name: ("int64" if c.name in REQUIRED else "Int64") if c.dtype == "int" else "float64"
-            for c in spec.columns}
+    kinds = {"int": "Int64", "float": "float64", "text": "object"}
+    return {c.name: "int64" if c.name in REQUIRED and c.dtype == "int" else kinds[c.dtype] for c in spec.columns}
 
 
 def _parse(body: bytes, spec: StreamSpec, path: Path) -> "pd.DataFrame":
@@ -183,6 +220,8 @@ def _valid_text(values: "pd.Series", column: Column) -> "pd.Series":
     import pandas as pd
 
     empty = values == ""
+    if column.dtype == "text":
+        return pd.Series(True, index=values.index)
     if column.dtype == "int":
         ok = values.str.fullmatch(r"[+-]?[0-9]+")
         long = ok & (values.str.len() > 18)
@@ -194,7 +233,7 @@ def _valid_text(values: "pd.Series", column: Column) -> "pd.Series":
 
 
 def _check_ranges(frame: "pd.DataFrame", spec: StreamSpec, path: Path) -> None:
-    for column in spec.columns:
+    for column in (c for c in spec.columns if c.dtype != "text"):
         low, high = UNIT_RANGES.get(column.unit, (-FLOAT_LIMIT, FLOAT_LIMIT) if column.dtype == "float" else (None, None))
         if low is None:
             continue
@@ -211,6 +250,8 @@ def _expected(spec: StreamSpec, name: str | None) -> str:
     if column is None:
         return "numbers separated by commas"
     missing = "" if column.name in REQUIRED else " or an empty field (missing)"
+    if column.dtype == "text":
+        return f"text in double quotes (inner quotes doubled, no control characters){missing}"
     if column.unit in UNIT_RANGES:
         low, high = UNIT_RANGES[column.unit]
         return f"{low} or {high} ({column.unit}){missing}"
@@ -237,11 +278,14 @@ def _short(text: str, limit: int = 60) -> str:
 
 def structured(frame: "pd.DataFrame", spec: StreamSpec) -> np.ndarray:
     """``frame`` (as parsed) as a structured array: int columns int64, or float64 with NaN where an int
-    column has missing values; float columns float64."""
+    column has missing values; float columns float64; text columns fixed-width unicode ("" = missing)."""
     fields = {}
     for column in spec.columns:
         series = frame[column.name]
-        if column.dtype == "int" and not series.hasnans:
+        if column.dtype == "text":
+            texts = series.fillna("").astype(str).to_numpy()
+            fields[column.name] = texts.astype(f"U{max([1, *map(len, texts)])}")
+        elif column.dtype == "int" and not series.hasnans:
             fields[column.name] = series.to_numpy(np.int64)
         else:
             fields[column.name] = series.to_numpy(np.float64, na_value=np.nan)

@@ -183,6 +183,10 @@ class SessionWriter:
         for appender in self._appenders.values():
             appender.sync()
 
+    def sync_stream(self, stream: str) -> None:
+        """fsync one stream file (an operator's marker is on disk before it is acknowledged)."""
+        self._appenders[stream].sync()
+
     def finalize(self, status: str, stop_reason: str, stop_ns: int, extra: dict[str, dict[str, Any]]) -> dict:
         """Close the files, describe each from what is on disk, and replace the manifest atomically.
 
