@@ -36,19 +36,28 @@ def _options(ctx: typer.Context,
 
 @app.command("status")
 def status(ctx: typer.Context) -> None:
-    """Print the recording's state as JSON: session, state, device health, duration."""
+    """Print the recording's state as JSON: session, state, device health, duration.
+
+    Example: midas ctl status | jq -r .state
+    """
     print_json(_ask(ctx.obj, {"cmd": "status"}))
 
 
 @app.command("mark")
 def ctl_mark(ctx: typer.Context, text: str = typer.Argument(..., help="The marker's text (one line).")) -> None:
-    """Add a marker (source "ctl") to the events stream; print its row as JSON."""
+    """Add a marker (source "ctl") to the events stream; print its row as JSON.
+
+    Example: midas ctl --control /run/user/1000/midas/record-4242.sock mark "suture 2"
+    """
     print_json(_ask(ctx.obj, {"cmd": "mark", "text": text, "source": "ctl"}))
 
 
 @app.command("start")
 def start(ctx: typer.Context) -> None:
-    """Start an armed recording (`midas record --armed`); --duration counts from now."""
+    """Start an armed recording (`midas record --armed`); --duration counts from now.
+
+    Example: midas record --rig rig.toml --armed ... & midas ctl start
+    """
     print_json(_ask(ctx.obj, {"cmd": "start"}))
 
 
@@ -60,9 +69,8 @@ def stop(ctx: typer.Context,
     Example: midas ctl stop
     """
     from midas_cli.errors import SessionError
-    from midas_cli.session.manifest import load_manifest
-
     from midas_cli.record.control import process_alive
+    from midas_cli.session.manifest import load_manifest
 
     path = _socket(ctx.obj)
     reply = _ask(path, {"cmd": "stop"})
