@@ -161,16 +161,21 @@ def reference_epoch(model: ReferenceMSTCN, optimiser: torch.optim.Optimizer, xs:
 
 
 def copy_midas_weights(midas: nn.Module, ref: ReferenceMSTCN) -> None:
-    """midas's parameters into the reference, layer by layer by meaning (not by name or order)."""
+    """midas's parameters into the reference, layer by layer by meaning (not by name or order); every
+    parameter of midas must be copied exactly once."""
+    copied = []
+
     def put(dst: nn.Conv1d, src: nn.Conv1d) -> None:
+        if dst.dilation != src.dilation or dst.weight.shape != src.weight.shape:
+            raise SystemExit(f"layers do not match: {dst} against {src}")
         dst.weight.data.copy_(src.weight.data)
         dst.bias.data.copy_(src.bias.data)
+        copied.extend([id(src.weight), id(src.bias)])
 
     g = midas.generation
     put(ref.pg.conv_in, g.conv_in)
     put(ref.pg.conv_out, g.conv_out)
     for r, m in zip(ref.pg.layers, g.layers):
-        assert r.conv_dilated_1.dilation == m.conv_large.dilation and r.conv_dilated_2.dilation == m.conv_small.dilation
         put(r.conv_dilated_1, m.conv_large)  # 2^(L-1-l), first in the concatenation in both
         put(r.conv_dilated_2, m.conv_small)  # 2^l
         put(r.conv_fusion, m.fusion)
@@ -178,9 +183,10 @@ def copy_midas_weights(midas: nn.Module, ref: ReferenceMSTCN) -> None:
         put(rs.conv_in, ms.conv_in)
         put(rs.conv_out, ms.conv_out)
         for r, m in zip(rs.layers, ms.layers):
-            assert r.conv_dilated.dilation == m.conv_dilated.dilation
             put(r.conv_dilated, m.conv_dilated)
             put(r.conv_1x1, m.conv_1x1)
+    if sorted(copied) != sorted(id(p) for p in midas.parameters()):
+        raise SystemExit("the reference does not hold every midas parameter exactly once")
 
 
 # ---------------------------------------------------------------- data, checks, timings
