@@ -10,6 +10,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import RESULTS, machine_info  # noqa: E402
 from report_align import align_section  # noqa: E402
+from report_reference import reference_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -40,6 +41,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_pedal_gt.py --duration 10   # pedal ground truth from video",
             ".venv/bin/python benchmarks/bench_train.py      # simulate + align 15 trials; MS-TCN++ / transformer",
             ".venv/bin/python benchmarks/bench_train.py --louo   # one JIGSAWS-sized LOUO fold of MS-TCN++",
+            ".venv/bin/python benchmarks/bench_mstcn_reference.py --threads 1   # MS-TCN++ vs a reference loop",
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
             ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
@@ -298,7 +300,8 @@ def batch_section(b: dict) -> list[str]:
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
-    quick = [name for name in ("startup", "record", "align", "train", "soak", "soak-short", "batch") if (load(name) or {}).get("quick")]
+    quick = [name for name in ("startup", "record", "align", "train", "soak", "soak-short", "mstcn_reference", "batch",
+                               "export") if (load(name) or {}).get("quick")]
     if quick:
         lines += [f"**Smoke run** (`--quick`) for {', '.join(quick)}: short sizes, not for comparison.", ""]
     for name, section in (("record", record_section), ("align", align_section), ("pedal_gt", pedal_section),
@@ -307,6 +310,8 @@ def main() -> None:
         lines += section(result) if result else [f"## {name}: no results yet (run its script)", ""]
         if name == "train" and load("train_louo"):
             lines += train_louo_section(load("train_louo"))
+        if name == "train" and load("mstcn_reference"):
+            lines += reference_section(load("mstcn_reference"))
     lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     startup = load("startup")
     lines += startup_section(startup) if startup else ["## startup: no results yet (run its script)", ""]

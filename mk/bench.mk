@@ -1,6 +1,6 @@
 # `make bench`: every benchmark in benchmarks/ (reproducible timings, never tests), then BENCHMARKS.md at the
 # repository root from benchmarks/results/*.json. Included from the Makefile (needs $(BIN) and `install`).
-#   make bench                    full run, with a 5-minute soak (about 20-25 minutes on 2 idle cores)
+#   make bench                    full run, with a 5-minute soak (about 25-30 minutes on 2 idle cores)
 #   make bench BENCH_QUICK=1      smoke run of every script (about 7 minutes; the soak records 2 minutes)
 #   make bench SOAK_MIN=10        the soak inside bench at another length (results/soak-short.json)
 #   make soak                     the 30-minute soak alone (results/soak.json, .png), then BENCHMARKS.md
@@ -21,6 +21,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_pedal_gt.py --duration $(_BENCH_PEDAL_S) > /dev/null
 	$(BIN)/python benchmarks/bench_train.py $(_BENCH_FLAG) > /dev/null
 	$(if $(BENCH_QUICK),,$(BIN)/python benchmarks/bench_train.py --louo > /dev/null)
+	$(BIN)/python benchmarks/bench_mstcn_reference.py --threads 1 $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/report.py
 
 soak: install
