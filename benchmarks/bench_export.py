@@ -13,7 +13,6 @@ grow with session length: streams are read and written a piece at a time.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import subprocess
 import sys

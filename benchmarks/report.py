@@ -11,6 +11,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import RESULTS, machine_info  # noqa: E402
 from report_align import align_section  # noqa: E402
 from report_reference import reference_section  # noqa: E402
+from report_batch import batch_section, export_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -44,6 +45,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_mstcn_reference.py --threads 1   # MS-TCN++ vs a reference loop",
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
             ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
+            ".venv/bin/python benchmarks/bench_export.py     # export to MCAP / Parquet / XDF, 10 and 60 min",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -282,21 +284,6 @@ def startup_section(s: dict) -> list[str]:
                     "parser).", ""]
 
 
-def batch_section(b: dict) -> list[str]:
-    m, n = b["machine"], b["sessions"]
-    lines = ["## 7. Batch throughput: one call for many sessions vs one call each (`bench_batch.py`)", "",
-             f"{n} copies of one {b['session_seconds']}-s simulated session; `midas CMD S1 .. S{n}` once against "
-             f"{n} `midas CMD Si` run one after another (a shell loop), outputs removed between runs. Load average "
-             f"{b['load_average_1min_before_after'][0]}–{b['load_average_1min_before_after'][1]}, {m['date_utc']}.", "",
-             "| command | one call s | sessions/s | loop s | sessions/s | one call faster by | fixed cost per process s |",
-             "|---|---|---|---|---|---|---|"]
-    for name, c in b["cases"].items():
-        lines.append(f"| `midas {name}` | {c['one_call_s']} | {c['one_call_sessions_per_s']} | {c['loop_s']} | "
-                     f"{c['loop_sessions_per_s']} | {c['speedup']}x | {c['fixed_cost_per_process_s']} |")
-    return lines + ["", "The fixed cost is the interpreter, typer and the command's imports (numpy and the align code; "
-                    "`verify` adds pandas): paid once per call, so scripts should pass many sessions to one call.", ""]
-
-
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
@@ -317,6 +304,8 @@ def main() -> None:
     lines += startup_section(startup) if startup else ["## startup: no results yet (run its script)", ""]
     batch = load("batch")
     lines += batch_section(batch) if batch else ["## batch: no results yet (run its script)", ""]
+    export = load("export")
+    lines += export_section(export) if export else ["## export: no results yet (run its script)", ""]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
 

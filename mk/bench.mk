@@ -18,6 +18,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_soak.py --minutes $(or $(SOAK_MIN),5) --name soak-short $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_align.py $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_batch.py $(_BENCH_FLAG) > /dev/null
+	$(BIN)/python benchmarks/bench_export.py $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_pedal_gt.py --duration $(_BENCH_PEDAL_S) > /dev/null
 	$(BIN)/python benchmarks/bench_train.py $(_BENCH_FLAG) > /dev/null
 	$(if $(BENCH_QUICK),,$(BIN)/python benchmarks/bench_train.py --louo > /dev/null)

@@ -1,0 +1,39 @@
+"""BENCHMARKS.md sections for batch throughput (bench_batch.py) and export (bench_export.py)."""
+
+from __future__ import annotations
+
+
+def batch_section(b: dict) -> list[str]:
+    m, n = b["machine"], b["sessions"]
+    lines = ["## 7. Batch throughput: one call for many sessions vs one call each (`bench_batch.py`)", "",
+             f"{n} copies of one {b['session_seconds']}-s simulated session; `midas CMD S1 .. S{n}` once against "
+             f"{n} `midas CMD Si` run one after another (a shell loop), outputs removed between runs. Load average "
+             f"{b['load_average_1min_before_after'][0]}–{b['load_average_1min_before_after'][1]}, {m['date_utc']}.", "",
+             "| command | one call s | sessions/s | loop s | sessions/s | one call faster by | fixed cost per process s |",
+             "|---|---|---|---|---|---|---|"]
+    for name, c in b["cases"].items():
+        lines.append(f"| `midas {name}` | {c['one_call_s']} | {c['one_call_sessions_per_s']} | {c['loop_s']} | "
+                     f"{c['loop_sessions_per_s']} | {c['speedup']}x | {c['fixed_cost_per_process_s']} |")
+    return lines + ["", "The fixed cost is the interpreter, typer and the command's imports (numpy and the align code; "
+                    "`verify` adds pandas): paid once per call, so scripts should pass many sessions to one call.", ""]
+
+
+def export_section(e: dict) -> list[str]:
+    m = e["machine"]
+    lines = ["## 8. Export of long sessions (`bench_export.py`)", "",
+             "bench_align's session (EmHT 4 x 240 Hz, FPS 9 ch x 250 Hz, HandKP 30 Hz, video clock 30 fps), one "
+             "`midas export SESSION --format F` process per format: wall seconds of the whole process, its own "
+             "peak resident memory (VmHWM) and the files written. Streams are read and written a piece at a "
+             f"time, so memory should not grow with length. Load average {e['load_average_1min_before_after'][0]}–"
+             f"{e['load_average_1min_before_after'][1]}, {m['date_utc']}.", "",
+             "| session | stream CSV MB | format | wall s | peak RSS MiB | output MB |", "|---|---|---|---|---|---|"]
+    for run in e["runs"]:
+        for fmt, f in run["formats"].items():
+            lines.append(f"| {run['minutes']:g} min | {run['stream_csv_mb']} | {fmt} | {f['wall_s']} | "
+                         f"{f['peak_rss_mib']} | {f['output_mb']} |")
+    if len(e["runs"]) >= 2:
+        a, b = e["runs"][0], e["runs"][-1]
+        growth = ", ".join(f"{fmt} {a['formats'][fmt]['peak_rss_mib']} -> {b['formats'][fmt]['peak_rss_mib']} MiB"
+                           for fmt in a["formats"])
+        lines += ["", f"Peak memory, {a['minutes']:g} -> {b['minutes']:g} min: {growth}."]
+    return lines + [""]
