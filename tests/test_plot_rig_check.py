@@ -89,3 +89,24 @@ def test_rig_check_needs_a_rig_or_simulate() -> None:
     result = midas("rig", "check")
     assert result.returncode == 2
     assert "--simulate" in result.stderr
+
+
+def test_plot_draws_markers_as_lines_not_as_a_panel(tmp_path: Path) -> None:
+    from helpers.cli import SPEC
+    from midas_cli.clock import HostClock
+    from midas_cli.record.markers import events_spec
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    clock = HostClock.anchored_now()
+    events = events_spec()
+    writer = SessionWriter.create(tmp_path, SessionMetadata("7", "demo", 1), clock,
+                                  {"demo": {"kind": "test"}, "operator": {"kind": "operator"}}, [SPEC, events])
+    t0 = clock.now_ns()
+    writer.append("demo", SPEC.format_rows([(i, t0 + i * 10_000_000, i * 0.5) for i in range(200)]))
+    writer.append("events", events.format_rows([(0, t0 + 500_000_000, 'needle "in", 1', "mark"),
+                                                (1, t0 + 1_200_000_000, "knot", "key")]))
+    writer.finalize("complete", "test", t0 + 2_000_000_000, {})
+    report = json.loads(midas("plot", str(writer.folder), "--json", check=True).stdout)
+    panels = {p["name"]: p for p in report["panels"]}
+    assert "events" not in panels, "marker text is not drawn as a signal"
+    assert panels["markers"] == {"name": "markers", "stream": "events", "shows": "2 marker(s), dotted"}

@@ -26,6 +26,17 @@ def pyplot(what: str = "plots", otherwise: str = " (or run with --no-plots)"):
     return plt
 
 
+def draw_markers(axes: list, t_s, texts: list[str]) -> None:
+    """Markers (the events stream) as dotted purple lines on every axis, their text on the first."""
+    for ax in axes:
+        for x in t_s:
+            ax.axvline(x, color="tab:purple", lw=0.8, ls=":", zorder=0)
+    for x, text in zip(t_s, texts):
+        label = text if len(text) <= 28 else text[:27] + "…"
+        axes[0].annotate(label, (x, 0.98), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
+                         va="top", ha="right", color="tab:purple")
+
+
 def trajectory_figure(table: AlignedTable, hand: str, sources: dict[str, str], path: Path, title: str) -> Path | None:
     """Six rows (X, Y, Z, roll, pitch, yaw) by two columns: MTM (left) and PSM (right), each with the
     source calibrated onto it (``sources``: target "mtm"/"psm" -> column prefix, e.g. ``emht_mtm_rigid``)

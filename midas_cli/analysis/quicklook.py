@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from midas_cli.analysis.figures import pyplot
+from midas_cli.analysis.figures import draw_markers, pyplot
 from midas_cli.session.labels import list_label_sets, read_frame_labels
 from midas_cli.session.outputs import out_target, replacing, session_target
 from midas_cli.session.reader import Session
@@ -77,6 +77,7 @@ def quicklook(session_path: Path | str, out: Path | str | None = None, dpi: int 
     title = Path(session_path).resolve().name
     target = default_out(session_path) if out is None else out_target(out)
     streams = {name: _read(session, name, start_ns) for name in session.stream_names}
+    events = streams.pop("events", None)  # markers: dotted lines on every panel, not a panel of their own
     gaps = [g for name in streams for g in _seq_gaps(session, name, streams[name])] + _outages(session, start_ns)
     labels = _labels(session, streams.get("video"))
 
@@ -101,6 +102,9 @@ def quicklook(session_path: Path | str, out: Path | str | None = None, dpi: int 
         _label_panel(axes[-1], *labels)
         result.panels.append({"name": "labels", "stream": None, "shows": "labels/gestures.csv on the video clock"})
     result.gaps = gaps
+    if events is not None and len(events.t):
+        draw_markers(axes, events.t, ["" if t is None else str(t) for t in events.table["text"]])
+        result.panels.append({"name": "markers", "stream": "events", "shows": f"{len(events.t)} marker(s), dotted"})
     _legend_for_gaps(axes[0], gaps)
     axes[-1].set_xlabel("session time (s since the session start)")
     end_s = _end_s(session, streams)
