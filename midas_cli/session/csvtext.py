@@ -74,6 +74,19 @@ def separator_mask(raw: np.ndarray) -> np.ndarray:
     return commas & ((seen - at_line_start) % 2 == 0)
 
 
+def separators_per_line(separators: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """Per line (each ending at one of ``ends``), how many of the bool ``separators`` it holds: summed per
+    line (a cumulative sum over the whole file would make an int64 array eight times the file's size)."""
+    import numpy as np
+
+    if not len(ends):
+        return np.zeros(0, dtype=np.int64)
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    counts = np.add.reduceat(separators, starts, dtype=np.int64)
+    counts[starts == ends] = 0  # an empty line: reduceat gives the element at its start, not 0
+    return counts
+
+
 def count_separators(line: bytes) -> int:
     """Field separators in one line (commas outside quotes)."""
     return sum(part.count(b",") for part in line.split(b'"')[::2])

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from midas_cli.session.csvtext import count_separators, separator_mask
+from midas_cli.session.csvtext import count_separators, separator_mask, separators_per_line
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.values import read_regular_file
 
@@ -118,9 +118,7 @@ def _lines_with_wrong_width(body: bytes, width: int) -> list[int]:
     if not body:
         return []
     raw = np.frombuffer(body, dtype=np.uint8)
-    commas = np.cumsum(separator_mask(raw))
-    ends = np.flatnonzero(raw == ord("\n"))
-    per_line = np.diff(np.concatenate(([0], commas[ends])))
+    per_line = separators_per_line(separator_mask(raw), np.flatnonzero(raw == ord("\n")))
     return [int(i) + 1 for i in np.flatnonzero(per_line != width - 1)[:20]]
 
 

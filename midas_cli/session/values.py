@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from midas_cli.errors import SessionError
-from midas_cli.session.csvtext import TEXT_FIELD, separator_mask, split_fields, unquote_text
+from midas_cli.session.csvtext import TEXT_FIELD, separator_mask, separators_per_line, split_fields, unquote_text
 from midas_cli.session.schema import Column, StreamSpec
 
 if TYPE_CHECKING:
@@ -169,8 +169,7 @@ def _check_widths(body: bytes, spec: StreamSpec, path: Path) -> None:
     width = len(spec.columns)
     raw = np.frombuffer(body, dtype=np.uint8)
     ends = np.flatnonzero(raw == ord("\n"))
-    commas = np.cumsum(separator_mask(raw), dtype=np.int64)[ends]
-    per_line = np.diff(commas, prepend=0) + 1
+    per_line = separators_per_line(separator_mask(raw), ends) + 1
     wrong = np.flatnonzero(per_line != width)
     if len(wrong):
         first = int(wrong[0])
