@@ -90,7 +90,8 @@ def run_record(duration_s: float) -> dict:
             "recorder_cpu_s": round(cpu_s, 2), "recorder_cpu_percent_of_one_core": round(100 * cpu_s / wall, 1),
             "cpu_note": "recorder + its worker processes (RUSAGE_CHILDREN), including ~2 s Python start-up",
             "steady_cpu_percent_of_one_core": steady,
-            "streams": {name: stream_figures(name, entry, summaries) for name, entry in manifest["streams"].items()}}
+            "streams": {name: stream_figures(name, entry, summaries) for name, entry in manifest["streams"].items()
+                        if name != "events"}}  # the operator's markers: none in a benchmark
 
 
 def steady_state_cpu(proc: subprocess.Popen, duration_s: float) -> dict:
@@ -177,14 +178,18 @@ def _display_like_load(recorder, duration_s: float) -> None:
 def summarise_stamps(stamps: list) -> dict:
     """Per stream, from (stream, received_ns, committed_ns[rows], write_ns, t_host_ns[rows]) stamps.
     ``read_to_writer_thread_ms``: a row's read -> its worker's write starts (the worker is the writer
-    now; the key keeps report.py's name); ``write_ms``: the append; ``read_to_committed_ms``: the
+    now; the key keeps report.py's name); ``write_ms``: one append (the mean over a message's appends);
+    ``read_to_committed_ms``: the
     recorded latency; ``committed_to_recorder_ms``: the bookkeeping hop, after the rows are on disk."""
     result = {}
     for stream in sorted({s[0] for s in stamps}):
         rows = [s for s in stamps if s[0] == stream]
-        to_write = np.concatenate([(r[2] - r[3] - r[4]) / 1e6 for r in rows])
+        # a message gathers the appends of up to 50 ms (record/worker.py BOOKKEEPING_EVERY_S); the rows of
+        # one append share its commit time, so appends = distinct commit times, each taking the mean write
+        appends = [max(1, len(np.unique(r[2]))) for r in rows]
+        to_write = np.concatenate([(r[2] - r[3] / n - r[4]) / 1e6 for r, n in zip(rows, appends)])
         latency = np.concatenate([(r[2] - r[4]) / 1e6 for r in rows])
-        write = np.array([r[3] / 1e6 for r in rows])
+        write = np.array([r[3] / n / 1e6 for r, n in zip(rows, appends)])
         hop = np.array([(r[1] - int(r[2][-1])) / 1e6 for r in rows])
         spread = np.array([(r[4][-1] - r[4][0]) / 1e6 for r in rows])
         sizes = np.array([len(r[4]) for r in rows])
@@ -201,14 +206,14 @@ def pump_window(urls: dict[str, str], seconds: float) -> dict:
     ``_pump``, appending to scratch stream files) with a queue that only stamps: latency from a row's
     host read to its append returning, i.e. the whole recorded latency without the other devices."""
     from midas_cli.clock import HostClock
-    from midas_cli.devices.registry import create_device
+    from midas_cli.devices.registry import DeviceContext, create_device
     from midas_cli.record.worker import WorkerJob, WorkerOutput, _pump
 
     result: dict = {"flush": "rows written by the worker as soon as a read returns them"}
     with tempfile.TemporaryDirectory(prefix="midas-bench-pump-") as tmp:
         for name, url in urls.items():
             clock = HostClock.anchored_now()
-            device = create_device(name, url, clock, clock.now_ns(), 0)
+            device = create_device(name, url, DeviceContext(clock, clock.now_ns(), 0))
             files = {spec.name: Path(tmp) / f"{spec.name}.csv" for spec in device.streams}
             for spec in device.streams:
                 files[spec.name].write_text(spec.header_line())
