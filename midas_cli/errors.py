@@ -26,3 +26,9 @@ class SessionError(MidasError):
     """A session folder or data file is missing, malformed or inconsistent."""
 
     exit_code = 4
+
+
+class UnitsFailedError(MidasError):
+    """Units of a batch run (one session, one fold...) failed; the others' results are kept."""
+
+    exit_code = 4

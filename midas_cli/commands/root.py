@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "export": ("export", "export", "command"),
     "plot": ("plot", "plot", "command"),
     "rig": ("rig", "app", "group"),
+    "jobs": ("jobs", "app", "group"),
     "doctor": ("doctor", "doctor", "command"),
     "config": ("config_cmd", "config", "command"),
 }
@@ -57,6 +58,7 @@ COMMAND_SUMMARIES: dict[str, str] = {
     "features": "Extract learned features from recordings.",
     "extract": "Derive streams from recorded data (offline).",
     "rig": "Check a rig's devices before recording.",
+    "jobs": "Follow batch runs (--executor local|slurm): each unit's state, log and error.",
 }
 
 # `midas --help`'s description (typer's app callback takes it as its help).
