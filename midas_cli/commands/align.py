@@ -82,6 +82,7 @@ def align(
         masked = ", ".join(f"{k} {v:.1%}" for k, v in r["masked_fraction"].items())
         table.add_row(Path(r["session"]).name, str(r["frames"]), str(r["columns"]), masked,
                       ", ".join(f"{Path(c).stem} ({m})" for c, m in r["calibration_models"].items()) or "—")
-    out.print(table)
+    if results:
+        out.print(table)
     ex.raise_failed(outcome, "sessions")
 

@@ -11,11 +11,13 @@ after it has rendered the others' results (``raise_failed``).
 from __future__ import annotations
 
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Callable, Iterator, Optional, Sequence
 
 import typer
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from midas_cli.commands.common import error_line
 from midas_cli.commands.progress import progress_display
@@ -87,32 +89,43 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
 class Outcome:
     """Every unit's result in plan order (None where it has none), and the failed units' states."""
 
-    run_dir: Path
+    run_dir: Optional[Path]  # None: a temporary one, gone
     results: list[Any]
     failed: list[Any]
     submitted: Optional[str] = None  # the SLURM job id when not waited for
 
 
 def run_plan(task: str, units: Sequence[Any], choice: ExecutorChoice, label: str,
-             extra: Optional[dict[str, Any]] = None) -> Outcome:
+             extra: Optional[dict[str, Any]] = None, progress: Any = None) -> Outcome:
     """Run ``units`` of ``task`` with ``choice``; ``extra`` keyword arguments go to the task function when
-    units run in this process (a progress callback)."""
+    units run in this process (a progress callback); ``progress``: the caller's open progress display."""
     from midas_cli.jobs.rundir import RunDir, fingerprint
 
     if choice.run_dir is not None:
-        return _run_in(RunDir(choice.run_dir), task, units, choice, label, extra)
+        return _run_in(RunDir(choice.run_dir), task, units, choice, label, extra, progress)
     if choice.executor == "slurm":
         key = fingerprint(task, sorted(u.name for u in units), [u.args for u in units][:1])
-        return _run_in(RunDir(RUNS_FOLDER / f"{task}-{key}"), task, units, choice, label, extra)
+        return _run_in(RunDir(RUNS_FOLDER / f"{task}-{key}"), task, units, choice, label, extra, progress)
     with tempfile.TemporaryDirectory(prefix=f"midas-{task}-") as tmp:
-        outcome = _run_in(RunDir(tmp), task, units, choice, label, extra)
+        outcome = _run_in(RunDir(tmp), task, units, choice, label, extra, progress)
         for status in outcome.failed:
             status.log = None  # the temporary run folder goes: the error line says it all
+        outcome.run_dir = None
         return outcome
 
 
+@contextmanager
+def _display(given: Any) -> Iterator[Any]:
+    if given is not None:
+        yield given
+        return
+    with progress_display(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                          TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn()) as progress:
+        yield progress
+
+
 def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, label: str,
-            extra: Optional[dict[str, Any]]) -> Outcome:
+            extra: Optional[dict[str, Any]], shown: Any) -> Outcome:
     from midas_cli import config
     from midas_cli.jobs import slurm, status
     from midas_cli.jobs.local import run_local
@@ -133,8 +146,8 @@ def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, la
     if todo and choice.executor == "local":
         run_dir.add_submission({"executor": "local", "units": todo, "submitted": now_utc(), "jobs": choice.jobs})
         fn = task_function(task)
-        with progress_display() as progress:
-            bar = progress.add_task(label, total=len(todo))
+        with _display(shown) as progress:
+            bar = progress.add_task(label, total=len(todo), info="")
             run_local(run_dir, todo, fn, choice.jobs, on_unit=lambda k, ok: progress.advance(bar), **(extra or {}))
     elif todo:
         entry = slurm.submit(run_dir, task, todo, settings)
@@ -144,18 +157,18 @@ def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, la
                    f"follow with: midas jobs status {run_dir.path}")
         if not choice.wait:
             return Outcome(run_dir.path, [], [], submitted=job_id)
-        _wait(run_dir, todo, job_id, label)
+        _wait(run_dir, todo, job_id, label, shown)
     found = status.statuses(run_dir)
     results = [(run_dir.read_marker(s.index, "done") or {}).get("result") if s.state == "done" else None
                for s in found]
     return Outcome(run_dir.path, results, [s for s in found if s.state != "done"])
 
 
-def _wait(run_dir, todo: list[int], job_id: str, label: str) -> None:
+def _wait(run_dir, todo: list[int], job_id: str, label: str, shown: Any) -> None:
     from midas_cli.jobs import status
 
-    with progress_display() as progress:
-        bar = progress.add_task(label, total=len(todo))
+    with _display(shown) as progress:
+        bar = progress.add_task(label, total=len(todo), info="")
 
         def update(found) -> None:
             n = status.counts(found)
@@ -177,8 +190,9 @@ def raise_failed(outcome: Outcome, what: str = "units") -> None:
     for s in outcome.failed:
         where = f" (log {s.log})" if s.log and s.state == "failed" else ""
         parts.append(f"{s.name}: {s.state}" + (f": {s.error}" if s.error else "") + where)
+    kept = f" (run folder {outcome.run_dir})" if outcome.run_dir else ""
     raise UnitsFailedError(f"{len(outcome.failed)} of {len(outcome.results)} {what} did not finish; the others' "
-                           f"results are kept (run folder {outcome.run_dir}); " + "; ".join(parts))
+                           f"results are kept{kept}: " + "; ".join(parts))
 
 
 def submitted_line(outcome: Outcome) -> None:

@@ -44,12 +44,12 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
     run_dir.clear(index)
     run_dir.write_marker(index, "running", {"unit": index, "name": unit.name, "host": socket.gethostname(),
                                             "pid": os.getpid(), "started": now_utc(), **slurm_ids()})
-    handler = None
+    handler, root_level = None, logging.getLogger().level
     if log_to_file:
         handler = logging.FileHandler(run_dir.log(index), encoding="utf-8")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         logging.getLogger().addHandler(handler)
-        logging.getLogger().setLevel(min(logging.getLogger().level or logging.INFO, logging.INFO))
+        logging.getLogger().setLevel(min(root_level or logging.INFO, logging.INFO))
     started = time.monotonic()
     try:
         log.info("unit %d (%s) starts on %s", index, unit.name, socket.gethostname())
@@ -64,9 +64,10 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
     except Exception as exc:  # Ctrl-C or a SLURM signal leaves no marker: the status says it ended
         message = str(exc) if isinstance(exc, MidasError) else f"{type(exc).__name__}: {exc}"
         line = last_line(message) or type(exc).__name__
+        # INFO: into the unit's log (and onto stderr with --debug); the command reports the failure itself
         if not isinstance(exc, MidasError):
-            log.error("unit %d (%s) failed:\n%s", index, unit.name, traceback.format_exc())
-        log.error("unit %d (%s) failed: %s", index, unit.name, line)
+            log.info("unit %d (%s) failed:\n%s", index, unit.name, traceback.format_exc())
+        log.info("unit %d (%s) failed: %s", index, unit.name, line)
         run_dir.write_marker(index, "failed", {"unit": index, "name": unit.name, "fingerprint": unit.fingerprint,
                                                "finished": now_utc(), "error": line, "log": str(run_dir.log(index)),
                                                "host": socket.gethostname(), **slurm_ids()})
@@ -75,4 +76,5 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
         run_dir.clear(index, ("running",))
         if handler is not None:
             logging.getLogger().removeHandler(handler)
+            logging.getLogger().setLevel(root_level)
             handler.close()
