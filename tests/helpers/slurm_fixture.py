@@ -119,7 +119,37 @@ def _node_idle(env: dict[str, str]) -> bool:
     return result.returncode == 0 and result.stdout.strip().rstrip("*") in ("idle", "mixed", "allocated")
 
 
-def _stop(processes: list[subprocess.Popen]) -> None:
+def _drain(env: dict[str, str], deadline_s: float = 60.0) -> None:
+    """Wait for the queue to empty (a finished task's step daemon reports to slurmctld before it goes:
+    stopping the controller first leaves it retrying), cancelling what is left at the deadline."""
+    deadline = time.monotonic() + deadline_s
+    while time.monotonic() < deadline:
+        result = subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True, env=env, timeout=30)
+        if result.returncode != 0 or not result.stdout.strip():
+            return
+        time.sleep(0.5)
+    subprocess.run(["scancel", "--full", "--user", getpass.getuser()], capture_output=True, env=env, timeout=30)
+    time.sleep(2)
+
+
+def _step_daemons(root: Path) -> list[int]:
+    """slurmstepd processes of this cluster (each holds slurmd's log, in ``root``, open)."""
+    log = str(root / "log" / "slurmd.log")
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            if "slurmstepd" not in (proc / "cmdline").read_bytes().decode(errors="replace"):
+                continue
+            if any(os.readlink(fd).startswith(log) for fd in (proc / "fd").iterdir()):
+                found.append(int(proc.name))
+        except OSError:
+            continue
+    return found
+
+
+def _stop(processes: list[subprocess.Popen], root: Path) -> None:
     for process in reversed(processes):
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGTERM)
@@ -129,6 +159,11 @@ def _stop(processes: list[subprocess.Popen]) -> None:
         except subprocess.TimeoutExpired:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait(timeout=10)
+    for pid in _step_daemons(root):  # one stuck without its controller: nothing else would end it
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 def start_cluster(root: Path) -> Iterator[SlurmCluster]:
@@ -166,8 +201,9 @@ def start_cluster(root: Path) -> Iterator[SlurmCluster]:
                 _unavailable(f"the node did not come up ({', '.join(dead) or 'timeout'}):\n" + cluster.log_tail())
             time.sleep(0.3)
         yield cluster
+        _drain(env)
     finally:
-        _stop(processes)
+        _stop(processes, root)
 
 
 @pytest.fixture(scope="session")
