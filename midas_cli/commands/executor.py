@@ -82,6 +82,9 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
     if task == "train-fold":
         from midas_cli.models.cv_units import run_unit
         return run_unit
+    if task == "simulate-trial":
+        from midas_cli.simulate.dataset_units import run_unit
+        return run_unit
     raise ConfigError(f"unknown unit task {task!r} in the run folder (a newer midas wrote it?)")
 
 
@@ -104,7 +107,7 @@ def run_plan(task: str, units: Sequence[Any], choice: ExecutorChoice, label: str
     if choice.run_dir is not None:
         return _run_in(RunDir(choice.run_dir), task, units, choice, label, extra, progress)
     if choice.executor == "slurm":
-        key = fingerprint(task, sorted(u.name for u in units), [u.args for u in units][:1])
+        key = fingerprint(task, sorted(u.name for u in units))  # not the options: a change makes units stale
         return _run_in(RunDir(RUNS_FOLDER / f"{task}-{key}"), task, units, choice, label, extra, progress)
     with tempfile.TemporaryDirectory(prefix=f"midas-{task}-") as tmp:
         outcome = _run_in(RunDir(tmp), task, units, choice, label, extra, progress)
