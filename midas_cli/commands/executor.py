@@ -82,6 +82,9 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
     if task == "train-fold":
         from midas_cli.models.cv_units import run_unit
         return run_unit
+    if task == "pedals-gt":
+        from midas_cli.analysis.pedal_video.units import run_unit
+        return run_unit
     if task == "simulate-trial":
         from midas_cli.simulate.dataset_units import run_unit
         return run_unit
@@ -117,13 +120,19 @@ def run_plan(task: str, units: Sequence[Any], choice: ExecutorChoice, label: str
         return outcome
 
 
+def unit_progress():
+    """The progress display of a batch run (what, bar, n/total, info, elapsed, ETA); every task needs an
+    ``info`` field."""
+    return progress_display(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
+
+
 @contextmanager
 def _display(given: Any) -> Iterator[Any]:
     if given is not None:
         yield given
         return
-    with progress_display(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                          TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn()) as progress:
+    with unit_progress() as progress:
         yield progress
 
 
@@ -194,8 +203,12 @@ def raise_failed(outcome: Outcome, what: str = "units") -> None:
         where = f" (log {s.log})" if s.log and s.state == "failed" else ""
         parts.append(f"{s.name}: {s.state}" + (f": {s.error}" if s.error else "") + where)
     kept = f" (run folder {outcome.run_dir})" if outcome.run_dir else ""
-    raise UnitsFailedError(f"{len(outcome.failed)} of {len(outcome.results)} {what} did not finish; the others' "
-                           f"results are kept{kept}: " + "; ".join(parts))
+    error = UnitsFailedError(f"{len(outcome.failed)} of {len(outcome.results)} {what} did not finish; the others' "
+                             f"results are kept{kept}: " + "; ".join(parts))
+    codes = {s.exit_code for s in outcome.failed}
+    if None not in codes and codes <= {2, 3, 4}:  # every unit failed on a usage/device/data error: say which
+        error.exit_code = max(codes)
+    raise error
 
 
 def submitted_line(outcome: Outcome) -> None:

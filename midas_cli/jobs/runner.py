@@ -70,6 +70,7 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
         log.info("unit %d (%s) failed: %s", index, unit.name, line)
         run_dir.write_marker(index, "failed", {"unit": index, "name": unit.name, "fingerprint": unit.fingerprint,
                                                "finished": now_utc(), "error": line, "log": str(run_dir.log(index)),
+                                               "exit_code": getattr(exc, "exit_code", 1),
                                                "host": socket.gethostname(), **slurm_ids()})
         raise
     finally:

@@ -32,6 +32,7 @@ class UnitStatus:
     job: str | None = None
     host: str | None = None
     seconds: float | None = None
+    exit_code: int | None = None  # a failed unit's error kind (midas exit codes); None: killed, never ran
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -87,6 +88,7 @@ def unit_status(run_dir: RunDir, unit: Unit, in_queue: dict[int, tuple[str, str]
     failed = run_dir.read_marker(k, "failed")
     if failed is not None and k not in in_queue:
         status.state, status.error, status.host = "failed", failed.get("error"), failed.get("host")
+        status.exit_code = failed.get("exit_code")
         status.log = failed.get("log") or log
         return status
     running = run_dir.read_marker(k, "running")
