@@ -20,7 +20,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from midas_cli.commands.common import error_line
-from midas_cli.commands.progress import progress_display
+from midas_cli.commands.progress import progress_display, progress_interval_s
 from midas_cli.errors import ConfigError, UnitsFailedError
 
 PANEL = "Executor"
@@ -82,6 +82,9 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
     if task == "train-fold":
         from midas_cli.models.cv_units import run_unit
         return run_unit
+    if task == "ablation-cell":
+        from midas_cli.models.ablation_units import run_unit
+        return run_unit
     if task == "pedals-gt":
         from midas_cli.analysis.pedal_video.units import run_unit
         return run_unit
@@ -107,6 +110,7 @@ def run_plan(task: str, units: Sequence[Any], choice: ExecutorChoice, label: str
     units run in this process (a progress callback); ``progress``: the caller's open progress display."""
     from midas_cli.jobs.rundir import RunDir, fingerprint
 
+    progress_interval_s()  # a bad MIDAS_PROGRESS_INTERVAL_S is a usage error before any work, shown or not
     if choice.run_dir is not None:
         return _run_in(RunDir(choice.run_dir), task, units, choice, label, extra, progress)
     if choice.executor == "slurm":
@@ -158,9 +162,12 @@ def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, la
     if todo and choice.executor == "local":
         run_dir.add_submission({"executor": "local", "units": todo, "submitted": now_utc(), "jobs": choice.jobs})
         fn = task_function(task)
-        with _display(shown) as progress:
-            bar = progress.add_task(label, total=len(todo), info="")
-            run_local(run_dir, todo, fn, choice.jobs, on_unit=lambda k, ok: progress.advance(bar), **(extra or {}))
+        if len(todo) == 1 and shown is None:  # one unit: its own progress (if any) says it all
+            run_local(run_dir, todo, fn, 1, **(extra or {}))
+        else:
+            with _display(shown) as progress:
+                bar = progress.add_task(label, total=len(todo), info="")
+                run_local(run_dir, todo, fn, choice.jobs, on_unit=lambda k, ok: progress.advance(bar), **(extra or {}))
     elif todo:
         entry = slurm.submit(run_dir, task, todo, settings)
         run_dir.add_submission({**entry, "submitted": now_utc()})

@@ -255,33 +255,53 @@ def ablation(
     device: str = DEVICE_OPT,
     out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Train every model x grid row and write the paper-style table.
 
-    The table's columns: Acc, F1, Prec., Rec.
+    The table's columns: Acc, F1, Prec., Rec. Each (model, row) cell is a unit of --executor local
+    (--jobs N) or slurm (one array task per cell); the run folder is OUT/jobs/ unless --run-dir says
+    otherwise, and a re-run trains only the cells not done.
 
     Example: midas train ablation sessions/ --models transformer,mstcn --grid "emht:pos,ori,vel:exclude-clutch;mtm:pos,ori,vel,grasper:exclude-clutch" --epochs 50 --out results/gestures
     """
-    from midas_cli.models.ablation import parse_grid, run_ablation
+    from midas_cli.models.ablation import check_ablation, finish_ablation, parse_grid
+    from midas_cli.models.ablation_units import TASK, plan_units
     from midas_cli.models.train import TrainConfig
+    from midas_cli.session.outputs import out_folder
 
+    if device == "cuda" and executor == "slurm" and slurm_gpus is None:
+        from midas_cli.config import section
+
+        slurm_gpus = section("slurm").get("gpus") or 1
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
     paths = session_paths(sessions)
     rows = parse_grid(grid)
-    model_list = list(_split_list(models))
-    if baseline and "baseline" not in model_list:
-        model_list.append("baseline")
     fold_index = _parse_fold(fold)
     base = TrainConfig(split=split, fold=fold_index or 0, validation=val, epochs=epochs, seed=seed, device=device)
+    model_list = check_ablation(list(_split_list(models)), base, fold_index is None, baseline)
+    out_folder(out_dir)
+    if choice.run_dir is None:
+        choice.run_dir = out_dir / "jobs"
+    units = plan_units(paths, rows, model_list, base, out_dir, cv=fold_index is None)
     with _progress() as progress:
-        runs = progress.add_task("ablation runs", total=len(rows) * len(model_list), info="")
-        epoch_update = _epoch_progress(progress, "epochs")
-
-        def on_run(label: str, k: int, n: int) -> None:
-            progress.update(runs, completed=k - 1, info=label)
-
-        report = run_ablation(paths, rows, model_list, base, out_dir, on_run, epoch_update, cv=fold_index is None,
-                              baseline=baseline)
-        progress.update(runs, completed=len(rows) * len(model_list))
+        extra = {"progress": _epoch_progress(progress, "epochs")} \
+            if choice.executor == "local" and choice.jobs == 1 else None
+        outcome = ex.run_plan(TASK, units, choice, "ablation runs", extra, progress)
+    if outcome.submitted:
+        ex.submitted_line(outcome)
+        return
+    ex.raise_failed(outcome, "ablation cells")
+    report = finish_ablation(out_dir, outcome.results, base, fold_index is None)
     if as_json:
         print_json(report)
         return

@@ -10,7 +10,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable
 
-from midas_cli.errors import ConfigError, MidasError
+from midas_cli.errors import ConfigError, MidasError, SessionError, disk_full, disk_full_message
 from midas_cli.jobs.rundir import RunDir, Unit, last_line, now_utc
 
 log = logging.getLogger(__name__)
@@ -62,7 +62,12 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
         log.info("unit %d (%s) done in %.1f s", index, unit.name, done["seconds"])
         return done
     except Exception as exc:  # Ctrl-C or a SLURM signal leaves no marker: the status says it ended
-        message = str(exc) if isinstance(exc, MidasError) else f"{type(exc).__name__}: {exc}"
+        full = disk_full(exc)
+        if full is not None:  # as the CLI says it for a single run: not a bug, no room
+            message, code = disk_full_message(full), SessionError.exit_code
+        else:
+            message = str(exc) if isinstance(exc, MidasError) else f"{type(exc).__name__}: {exc}"
+            code = getattr(exc, "exit_code", 1)
         line = last_line(message) or type(exc).__name__
         # INFO: into the unit's log (and onto stderr with --debug); the command reports the failure itself
         if not isinstance(exc, MidasError):
@@ -70,7 +75,7 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
         log.info("unit %d (%s) failed: %s", index, unit.name, line)
         run_dir.write_marker(index, "failed", {"unit": index, "name": unit.name, "fingerprint": unit.fingerprint,
                                                "finished": now_utc(), "error": line, "log": str(run_dir.log(index)),
-                                               "exit_code": getattr(exc, "exit_code", 1),
+                                               "exit_code": code,
                                                "host": socket.gethostname(), **slurm_ids()})
         raise
     finally:
