@@ -82,6 +82,9 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
     if task == "train-fold":
         from midas_cli.models.cv_units import run_unit
         return run_unit
+    if task == "extract-handkp":
+        from midas_cli.devices.rgbd.handkp_units import run_unit
+        return run_unit
     if task == "ablation-cell":
         from midas_cli.models.ablation_units import run_unit
         return run_unit
