@@ -164,12 +164,6 @@ class RunDir:
         write_json(self.path / SUBMISSIONS, [*self.submissions(), entry])
 
 
-def last_line(text: str) -> str:
-    """The last non-blank line of ``text`` ('' when none)."""
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[-1] if lines else ""
-
-
 def log_error_line(path: Path, max_bytes: int = 65536) -> str:
     """The last line of a log that looks like an error (else its last line)."""
     try:

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from midas_cli.errors import ConfigError, MidasError, SessionError, disk_full, disk_full_message
-from midas_cli.jobs.rundir import RunDir, Unit, last_line, now_utc
+from midas_cli.jobs.rundir import RunDir, Unit, now_utc
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ def run_unit(run_dir: RunDir, index: int, fn: TaskFn, log_to_file: bool = True, 
         else:
             message = str(exc) if isinstance(exc, MidasError) else f"{type(exc).__name__}: {exc}"
             code = getattr(exc, "exit_code", 1)
-        line = last_line(message) or type(exc).__name__
+        line = next((x.strip() for x in message.splitlines() if x.strip()), type(exc).__name__)  # its headline
         # INFO: into the unit's log (and onto stderr with --debug); the command reports the failure itself
         if not isinstance(exc, MidasError):
             log.info("unit %d (%s) failed:\n%s", index, unit.name, traceback.format_exc())
