@@ -137,3 +137,16 @@ def test_train_folds_on_slurm_match_a_local_run(slurm, tmp_path):
     assert folds(tmp_path / "local") == folds(tmp_path / "remote")
     submissions = json.loads((tmp_path / "remote" / "jobs" / "submissions.json").read_text())
     assert submissions[0]["executor"] == "slurm" and submissions[0]["units"] == [0, 1, 2]
+
+
+def test_simulate_dataset_on_slurm_writes_the_same_sessions_as_locally(slurm, tmp_path):
+    common = ["simulate", "dataset", "--platform", "raven-ii", "--trials", "2", "--max-seconds", "5", "--seed", "4"]
+    local = midas(*common, "--out", str(tmp_path / "local"), check=True, timeout=WAIT_S)
+    remote = midas(*common, "--out", str(tmp_path / "remote"), "--executor", "slurm", "--run-dir",
+                   str(tmp_path / "run"), env=slurm_env(slurm, tmp_path), timeout=WAIT_S)
+    assert remote.returncode == 0, remote.stderr + slurm.log_tail()
+    names = [Path(p).name for p in local.stdout.split()]
+    assert names == [Path(p).name for p in remote.stdout.split()] and len(names) == 2
+    for name in names:
+        for stream in (tmp_path / "local" / name / "streams").glob("*.csv"):
+            assert stream.read_bytes() == (tmp_path / "remote" / name / "streams" / stream.name).read_bytes()
