@@ -55,7 +55,7 @@ def test_slurm_settings_flags_over_config_and_the_script():
     assert (settings.time, settings.mem, settings.gpus, settings.partition) == ("00:05:00", "2G", 1, "gpu")
     text = script(RunDir("/shared/run"), "align", [0, 1, 2, 5, 7, 8], settings)
     assert "#SBATCH --array=0-2,5,7-8%4" in text and "#SBATCH --gres=gpu:1" in text
-    assert "#SBATCH --output=/shared/run/logs/unit-%a.log" in text and "#SBATCH --account=lab" in text
+    assert '#SBATCH --output="/shared/run/logs/unit-%a.log"' in text and "#SBATCH --account=lab" in text
     assert text.rstrip().endswith('jobs run-unit /shared/run --unit "$SLURM_ARRAY_TASK_ID"')
     assert array_spec([3], None) == "3"
     for bad in ({"time": "soon"}, {"mem": "lots"}, {"array_parallelism": 0}, {"gpus": -1}):

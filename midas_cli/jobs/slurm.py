@@ -87,10 +87,13 @@ def array_spec(indices: Sequence[int], parallelism: int | None) -> str:
 
 def script(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSettings) -> str:
     """The batch script of one submission."""
+    if '"' in str(run_dir.path) or "\n" in str(run_dir.path):
+        raise ConfigError(f"run folder {str(run_dir.path)!r}: a path with a double quote or a line break cannot go "
+                          "into an sbatch script; choose another --run-dir")
     command = [sys.executable, "-m", "midas_cli", "jobs", "run-unit", str(run_dir.path), "--unit"]
     lines = ["#!/bin/bash", f"#SBATCH --job-name=midas-{task}",
              f"#SBATCH --array={array_spec(indices, settings.array_parallelism)}",
-             f"#SBATCH --output={run_dir.path / 'logs' / 'unit-%a.log'}",
+             f"#SBATCH --output=\"{run_dir.path / 'logs' / 'unit-%a.log'}\"",  # quoted: a folder name may hold spaces
              *(f"#SBATCH {option}" for option in settings.sbatch_options()),
              "# one unit of a midas run folder per array task (midas jobs status RUN_DIR shows them)",
              f"exec {shlex.join(command)} \"$SLURM_ARRAY_TASK_ID\""]
