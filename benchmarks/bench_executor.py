@@ -2,8 +2,8 @@
 and through a one-node SLURM (the tests' cluster, tests/helpers/slurm_fixture.py), the overhead each
 unit pays, and what that projects to on 100 nodes. Not a test: nothing is asserted.
 
-    .venv/bin/python benchmarks/bench_executor.py            # 12 sessions of 2 minutes -> results/executor.json
-    .venv/bin/python benchmarks/bench_executor.py --quick    # 6 sessions of 0.5 minutes
+    .venv/bin/python benchmarks/bench_executor.py            # 12 x 2-minute and 6 x 20-minute sessions
+    .venv/bin/python benchmarks/bench_executor.py --quick    # 6 x 0.5-minute sessions
 
 Every mode aligns the same sessions with a fresh run folder (``--run-dir``), so the done markers give
 each unit's own time (``seconds``: inside the unit, after the process's imports). **Overhead per unit**
@@ -59,42 +59,47 @@ def run_mode(name: str, sessions: list[Path], extra: list[str], slots: int, env:
             "load_1min_before_after": [load_before, load_average()]}
 
 
+def measure(work: Path, n: int, minutes: float, cluster_env: dict[str, str]) -> dict:
+    """Every mode on ``n`` sessions of ``minutes``."""
+    root = work / f"data-{n}x{minutes:g}"
+    sessions = [bench_align.write_session(root / f"s{i}", minutes, seed=i) for i in range(n)]
+    env = {**os.environ, "MIDAS_PROGRESS_INTERVAL_S": "60"}
+    midas(["align", str(sessions[0])], env)  # warm the page cache and the interpreter's files once
+    modes = [run_mode("local, 1 worker", sessions, ["--jobs", "1"], 1, env, root),
+             run_mode("local, 2 workers", sessions, ["--jobs", "2"], 2, env, root),
+             run_mode("one-node SLURM", sessions, ["--executor", "slurm"], os.cpu_count() or 1,
+                      {**env, **cluster_env}, root)]
+    startup = [midas(["jobs", "run-unit", str(root / "run-one-node SLURM"), "--unit", "0"], {**env, **cluster_env})
+               for _ in range(3)]
+    slurm = modes[-1]
+    per_unit = slurm["unit_mean_s"] + slurm["overhead_per_unit_s"]
+    return {"sessions": n, "session_minutes": minutes, "modes": modes,
+            "task_startup_s": round(statistics.median(startup), 3),
+            "projection": {"nodes": PROJECT_NODES, "cores_per_node": PROJECT_CORES, "unit_s": round(per_unit, 3),
+                           "sessions_per_hour": round(PROJECT_NODES * PROJECT_CORES * 3600 / per_unit)}}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sessions", type=int, default=12)
-    parser.add_argument("--minutes", type=float, default=2.0)
     parser.add_argument("--quick", action="store_true")
     options = parser.parse_args()
-    n, minutes = (6, 0.5) if options.quick else (options.sessions, options.minutes)
+    sizes = [(6, 0.5)] if options.quick else [(12, 2.0), (6, 20.0)]
     from helpers.slurm_fixture import start_cluster
 
     with tempfile.TemporaryDirectory(prefix="midas-bench-executor-") as tmp:
         work = Path(tmp)
-        sessions = [bench_align.write_session(work / "data" / f"s{i}", minutes, seed=i) for i in range(n)]
-        env = {**os.environ, "MIDAS_PROGRESS_INTERVAL_S": "60"}
-        midas(["align", str(sessions[0])], env)  # warm the page cache and the interpreter's files once
-        modes = [run_mode("local, 1 worker", sessions, ["--jobs", "1"], 1, env, work),
-                 run_mode("local, 2 workers", sessions, ["--jobs", "2"], 2, env, work)]
         cluster_gen = start_cluster(work / "slurm")
         cluster = next(cluster_gen)
         try:
-            slurm_env = {**env, **cluster.env}
-            modes.append(run_mode("one-node SLURM", sessions, ["--executor", "slurm"], os.cpu_count() or 1,
-                                  slurm_env, work))
-            run_dir = work / "run-one-node SLURM"
-            startup = [midas(["jobs", "run-unit", str(run_dir), "--unit", "0"], slurm_env) for _ in range(3)]
+            runs = [measure(work, n, minutes, {"SLURM_CONF": cluster.env["SLURM_CONF"]}) for n, minutes in sizes]
         finally:
             for _ in cluster_gen:
                 pass
-    slurm = modes[-1]
-    per_unit = slurm["unit_mean_s"] + slurm["overhead_per_unit_s"]
-    report = {"quick": options.quick, "machine": machine_info(), "sessions": n, "session_minutes": minutes,
-              "session_streams": "EmHT 4 x 240 Hz, FPS 9 ch x 250 Hz, HandKP 30 Hz, video clock 30 fps",
-              "modes": modes, "task_startup_s": round(statistics.median(startup), 3),
-              "projection": {"nodes": PROJECT_NODES, "cores_per_node": PROJECT_CORES,
-                             "unit_s": round(per_unit, 3),
-                             "sessions_per_hour": round(PROJECT_NODES * PROJECT_CORES * 3600 / per_unit)}}
-    write_result("executor", report)
+    write_result("executor", {"quick": options.quick, "machine": machine_info(),
+                              "session_streams": "EmHT 4 x 240 Hz, FPS 9 ch x 250 Hz, HandKP 30 Hz, video clock 30 fps",
+                              "slurm": "one node = this machine (controller and compute), sched/builtin, "
+                                       "select/cons_tres CR_CPU, no cgroups (tests/helpers/slurm_fixture.py)",
+                              "runs": runs})
 
 
 if __name__ == "__main__":
