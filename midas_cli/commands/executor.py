@@ -82,6 +82,9 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
     if task == "train-fold":
         from midas_cli.models.cv_units import run_unit
         return run_unit
+    if task == "image-features":
+        from midas_cli.models.image_features_units import run_unit
+        return run_unit
     if task == "extract-handkp":
         from midas_cli.devices.rgbd.handkp_units import run_unit
         return run_unit
@@ -165,7 +168,7 @@ def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, la
     if todo and choice.executor == "local":
         run_dir.add_submission({"executor": "local", "units": todo, "submitted": now_utc(), "jobs": choice.jobs})
         fn = task_function(task)
-        if len(todo) == 1 and shown is None:  # one unit: its own progress (if any) says it all
+        if len(todo) == 1:  # one unit: its own progress (if any) says it all
             run_local(run_dir, todo, fn, 1, **(extra or {}))
         else:
             with _display(shown) as progress:
