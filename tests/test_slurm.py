@@ -18,7 +18,6 @@ from helpers.cli import midas
 from helpers.gesture_sessions import write_gesture_session
 from midas_cli.session.derived import read_aligned
 
-pytest_plugins = ("helpers.slurm_fixture",)
 pytestmark = pytest.mark.slurm
 WAIT_S = 300  # a loaded CI machine is slow; nothing here assumes speed
 
