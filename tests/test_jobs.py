@@ -98,3 +98,20 @@ def test_align_with_a_run_folder_resumes_and_reports_a_failed_session(sessions, 
 def test_executor_options_are_checked(sessions, extra, needle):
     result = midas("align", str(sessions[0]), *extra)
     assert result.returncode == 2 and needle in result.stderr
+
+
+def test_a_slurm_task_that_left_the_queue_without_a_marker_is_failed(tmp_path, monkeypatch):
+    from midas_cli.jobs import slurm
+
+    run = RunDir(tmp_path / "run")
+    run.write_plan(Plan("double", [Unit("a", {"x": 1}, "f"), Unit("b", {"x": 2}, "f"), Unit("c", {"x": 3}, "f")]))
+    run.add_submission({"executor": "slurm", "job_id": "41", "units": [0, 1, 2]})
+    run.write_marker(0, "running", {"host": "node7", "pid": 1, "job_id": "41", "task_id": "0"})
+    run.log(0).write_text("step\nslurmstepd: error: *** JOB 41 ON node7 CANCELLED AT 2026-01-01 DUE TO TIME LIMIT ***\n")
+    monkeypatch.setattr(slurm, "queued", lambda job: {2: "PENDING"})
+    found = statuses(run)
+    assert [s.state for s in found] == ["failed", "failed", "queued"]
+    assert "ended without a result" in found[0].error and "TIME LIMIT" in found[0].error
+    assert "without starting the unit" in found[1].error
+    monkeypatch.setattr(slurm, "queued", lambda job: None)  # squeue cannot be asked: nothing concluded
+    assert [s.state for s in statuses(run)] == ["running", "queued", "queued"]
