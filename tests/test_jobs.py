@@ -115,3 +115,20 @@ def test_a_slurm_task_that_left_the_queue_without_a_marker_is_failed(tmp_path, m
     assert "without starting the unit" in found[1].error
     monkeypatch.setattr(slurm, "queued", lambda job: None)  # squeue cannot be asked: nothing concluded
     assert [s.state for s in statuses(run)] == ["running", "queued", "queued"]
+
+
+def test_every_units_module_is_registered_for_run_unit():
+    import importlib
+
+    from midas_cli.commands.executor import task_function
+
+    modules = ["analysis.align_units", "models.cv_units", "models.ablation_units", "simulate.dataset_units",
+               "analysis.pedal_video.units", "devices.rgbd.handkp_units", "models.image_features_units"]
+    tasks = set()
+    for name in modules:
+        module = importlib.import_module(f"midas_cli.{name}")
+        assert task_function(module.TASK) is module.run_unit, name
+        tasks.add(module.TASK)
+    assert len(tasks) == len(modules)
+    with pytest.raises(ConfigError, match="unknown unit task"):
+        task_function("nope")
