@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from typing import Any, Callable, Sequence
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, Sequence
 
 from midas_cli.jobs.rundir import RunDir
 from midas_cli.jobs.runner import TaskFn, run_unit
@@ -39,9 +41,25 @@ def run_local(run_dir: RunDir, indices: Sequence[int], fn: TaskFn, jobs: int = 1
     # spawn, not fork: a forked copy of a process that has started threads (torch, the align readers) can
     # deadlock; each worker imports what it needs once and runs several units
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(jobs, len(indices)), mp_context=context) as pool:
+    workers = min(jobs, len(indices))
+    with _threads_per_worker(workers), \
+            ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
         futures = {pool.submit(_run_quietly, run_dir, k, fn): k for k in indices}
         for future in as_completed(futures):
             ok = future.result()
             if on_unit:
                 on_unit(futures[future], ok)
+
+
+@contextmanager
+def _threads_per_worker(workers: int) -> Iterator[None]:
+    """OMP_NUM_THREADS for the workers spawned meanwhile (numpy, torch, OpenCV read it at import): the
+    CPUs shared out, so N workers do not each start a thread per CPU. A value already set is kept."""
+    if "OMP_NUM_THREADS" in os.environ:
+        yield
+        return
+    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // workers))
+    try:
+        yield
+    finally:
+        del os.environ["OMP_NUM_THREADS"]

@@ -96,6 +96,8 @@ def script(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSe
              f"#SBATCH --output=\"{run_dir.path / 'logs' / 'unit-%a.log'}\"",  # quoted: a folder name may hold spaces
              *(f"#SBATCH {option}" for option in settings.sbatch_options()),
              "# one unit of a midas run folder per array task (midas jobs status RUN_DIR shows them)",
+             "# numpy, torch and OpenCV threads: the CPUs SLURM gave the task, not the whole node's",
+             'export OMP_NUM_THREADS="${OMP_NUM_THREADS:-${SLURM_CPUS_PER_TASK:-1}}"',
              f"exec {shlex.join(command)} \"$SLURM_ARRAY_TASK_ID\""]
     return "\n".join(lines) + "\n"
 
