@@ -132,3 +132,30 @@ def test_every_units_module_is_registered_for_run_unit():
     assert len(tasks) == len(modules)
     with pytest.raises(ConfigError, match="unknown unit task"):
         task_function("nope")
+
+
+def test_an_ablation_cell_trained_on_other_data_is_moved_aside_and_trained_again(tmp_path):
+    from helpers.gesture_sessions import write_gesture_session
+    from midas_cli.commands.executor import task_function
+    from midas_cli.models.ablation import GridRow
+    from midas_cli.models.ablation_units import TASK, plan_units
+    from midas_cli.models.train import TrainConfig
+
+    sessions = [write_gesture_session(tmp_path / "data", "B", k + 1, n_frames=120, seed=k) for k in range(2)]
+    base = TrainConfig(split="loto", fold=0, epochs=1, seed=1)
+    out, run = tmp_path / "out", RunDir(tmp_path / "run")
+
+    def cell() -> dict:
+        unit = plan_units(sessions, [GridRow(("emht",), ("pos",), False)], ["baseline"], base, out, cv=False)[0]
+        run.write_plan(Plan(TASK, [unit]))
+        return run_unit(run, 0, task_function(TASK))
+
+    first = cell()
+    assert first["result"]["model"] == "Baseline (LR)" and (out / "runs" / "baseline__emht__pos").is_dir()
+    assert cell()["finished"] == first["finished"]  # same data: skipped
+    labels = sessions[1] / "labels" / "gestures.csv"
+    lines = labels.read_text().splitlines()
+    labels.write_text("\n".join(lines[:1] + [line.replace("G2", "G3") for line in lines[1:]]) + "\n")
+    cell()
+    assert (out / "runs" / "baseline__emht__pos.stale-0" / "metrics.json").is_file()
+    assert (out / "runs" / "baseline__emht__pos" / "metrics.json").is_file()

@@ -37,7 +37,8 @@ RUN_DIR_OPT = typer.Option(None, "--run-dir", rich_help_panel=PANEL, file_okay=F
                            "inputs (`midas jobs status RUN_DIR`). Default with slurm: midas-runs/<task>-<key>/ "
                            "here; local: a temporary folder.")
 NO_WAIT_OPT = typer.Option(False, "--no-wait", rich_help_panel=PANEL, help="slurm: submit, print the run folder "
-                           "and return at once (follow it with `midas jobs status`).")
+                           "and return at once (follow it with `midas jobs status`; the same command run again "
+                           "afterwards skips the done units and prints or writes the collected results).")
 PARTITION_OPT = typer.Option(None, "--slurm-partition", rich_help_panel=PANEL, help="SLURM partition.")
 TIME_OPT = typer.Option(None, "--slurm-time", rich_help_panel=PANEL, help="Time limit per unit, e.g. 01:00:00.")
 MEM_OPT = typer.Option(None, "--slurm-mem", rich_help_panel=PANEL, help="Memory per unit, e.g. 8G.")

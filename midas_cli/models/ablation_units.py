@@ -4,8 +4,9 @@ The submitting command writes the table from the cells' results once every unit 
 
 A unit's fingerprint covers the sessions (each one's ``derived/aligned.json``, which names its
 alignment run, and its ``labels/`` files), the cell, the training configuration and the midas version.
-A cell's run folder trained with another configuration is moved aside (``<name>.stale-<n>``) and
-trained again; one with the same configuration is reused (as an interrupted ablation always did).
+A cell's run folder trained with another configuration or on other data is moved aside
+(``<name>.stale-<n>``) and trained again; one with the same configuration and data is reused (as an
+interrupted ablation always did).
 """
 
 from __future__ import annotations
@@ -17,8 +18,10 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from midas_cli import __version__
+from midas_cli.errors import MidasError
 from midas_cli.jobs.rundir import Unit, file_digest, fingerprint
 from midas_cli.models.ablation import MODEL_TITLES, GridRow, run_cell
+from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.train import TrainConfig
 
 TASK = "ablation-cell"
@@ -48,16 +51,25 @@ def plan_units(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequen
     return units
 
 
-def _trained_otherwise(run_dir: Path, config: TrainConfig, cv: bool) -> bool:
-    """``run_dir`` (or, cross-validated, its first fold) records another training configuration."""
-    record = run_dir / ("fold-0" if cv else "") / "run.json"
+def _trained_otherwise(run_dir: Path, config: TrainConfig, cv: bool, sessions: Sequence[Path], row: GridRow) -> bool:
+    """``run_dir`` (or, cross-validated, any of its folds) records another training configuration or other
+    data (``Dataset.fingerprint``: the sessions' frames, inputs and labels) than this cell would train on."""
+    records = sorted(run_dir.glob("fold-*/run.json")) if cv else [run_dir / "run.json"]
     try:
-        recorded = json.loads(record.read_text(encoding="utf-8"))["train_config"]
-    except (OSError, ValueError, KeyError):
+        recorded = [json.loads(p.read_text(encoding="utf-8")) for p in records if p.is_file()]
+    except (OSError, ValueError):
+        return True
+    if not recorded:
         return False
-    wanted = asdict(config.resolved())
     ignore = ("device", "fold")
-    return {k: v for k, v in recorded.items() if k not in ignore} != {k: v for k, v in wanted.items() if k not in ignore}
+    wanted = {k: v for k, v in asdict(config.resolved()).items() if k not in ignore}
+    if any({k: v for k, v in r.get("train_config", {}).items() if k not in ignore} != wanted for r in recorded):
+        return True
+    try:
+        data = build_dataset(sessions, DatasetConfig(row.modalities, row.features, exclude_clutch=row.exclude_clutch))
+    except MidasError:
+        return False  # the cell will be skipped with this error anyway
+    return any(r.get("data_fingerprint") != data.fingerprint() for r in recorded)
 
 
 def run_unit(args: dict[str, Any], progress: Callable[[int, int, dict], None] | None = None) -> dict[str, Any]:
@@ -66,11 +78,12 @@ def run_unit(args: dict[str, Any], progress: Callable[[int, int, dict], None] | 
     base = TrainConfig(**args["train_config"])
     out_dir = Path(args["out_dir"])
     run_dir = out_dir / "runs" / f"{args['model']}__{row.slug()}"
-    if run_dir.exists() and _trained_otherwise(run_dir, replace(base, model=args["model"]), args["cv"]):
+    sessions = [Path(p) for p in args["sessions"]]
+    if run_dir.exists() and _trained_otherwise(run_dir, replace(base, model=args["model"]), args["cv"], sessions, row):
         n = 0
         while run_dir.with_name(f"{run_dir.name}.stale-{n}").exists():
             n += 1
         log.warning("%s was trained with other settings: moved to %s.stale-%d, training again", run_dir, run_dir.name, n)
         run_dir.rename(run_dir.with_name(f"{run_dir.name}.stale-{n}"))
-    cell = run_cell([Path(s) for s in args["sessions"]], args["model"], row, base, out_dir, progress, args["cv"])
+    cell = run_cell(sessions, args["model"], row, base, out_dir, progress, args["cv"])
     return {"result": cell, "outputs": [] if "skipped" in cell else [str(run_dir)]}
