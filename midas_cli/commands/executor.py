@@ -29,7 +29,7 @@ RUNS_FOLDER = Path("midas-runs")
 
 EXECUTOR_OPT = typer.Option("local", "--executor", rich_help_panel=PANEL, help="local (this machine, --jobs "
                             "workers) or slurm (one SLURM array task per unit; settings from --slurm-* or the "
-                            "config's [slurm] section).")
+                            "\\[slurm] section of the config file).")
 JOBS_OPT = typer.Option(1, "--jobs", "-j", rich_help_panel=PANEL, help="Local executor: units run in parallel "
                         "(worker processes).")
 RUN_DIR_OPT = typer.Option(None, "--run-dir", rich_help_panel=PANEL, file_okay=False, help="Run folder: plan, "
