@@ -159,3 +159,14 @@ def test_an_ablation_cell_trained_on_other_data_is_moved_aside_and_trained_again
     cell()
     assert (out / "runs" / "baseline__emht__pos.stale-0" / "metrics.json").is_file()
     assert (out / "runs" / "baseline__emht__pos" / "metrics.json").is_file()
+
+
+def test_a_run_larger_than_the_clusters_max_array_size_is_refused(tmp_path, monkeypatch):
+    from midas_cli.jobs import slurm
+
+    run = RunDir(tmp_path / "run")
+    run.write_plan(Plan("double", [Unit(str(k), {"x": k}, "f") for k in range(12)]))
+    monkeypatch.setattr(slurm, "max_array_size", lambda: 10)
+    with pytest.raises(ConfigError, match="12 units but the cluster's MaxArraySize is 10"):
+        slurm.submit(run, "double", list(range(12)), SlurmSettings())
+    assert not list(run.path.glob("slurm-*.sh"))

@@ -110,8 +110,27 @@ def _tool(name: str) -> str:
     return path
 
 
+def max_array_size() -> int | None:
+    """The cluster's MaxArraySize (array task ids must stay below it; SLURM's default is 1001), or None
+    when ``scontrol`` cannot say."""
+    scontrol = shutil.which("scontrol")
+    if scontrol is None:
+        return None
+    try:
+        result = subprocess.run([scontrol, "show", "config"], capture_output=True, text=True, timeout=SBATCH_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        return None
+    match = re.search(r"^MaxArraySize\s*=\s*(\d+)", result.stdout, re.MULTILINE)
+    return int(match[1]) if match else None
+
+
 def submit(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSettings) -> dict[str, Any]:
     """Write the script and sbatch it; the submission record (job id, units, script)."""
+    limit = max_array_size()
+    if limit is not None and max(indices) >= limit:
+        raise ConfigError(f"this run has {max(indices) + 1} units but the cluster's MaxArraySize is {limit} (array "
+                          f"task ids 0..{limit - 1}): run the inputs in batches of at most {limit}, each with its own "
+                          "--run-dir, or ask the cluster's admin to raise MaxArraySize")
     number = len(run_dir.submissions())
     path = run_dir.path / f"slurm-{number}.sh"
     path.write_text(script(run_dir, task, indices, settings), encoding="utf-8")
