@@ -177,7 +177,7 @@ def start_cluster(root: Path) -> Iterator[SlurmCluster]:
     if user != "root":
         _unavailable("slurmd must run as root to start jobs (this test runs as "
                      f"{user})")
-    conf = write_config(root, node, os.cpu_count() or 1, user)
+    conf = write_config(root, node, len(os.sched_getaffinity(0)), user)  # nproc: never more than the node has
     env = {**os.environ, "SLURM_CONF": str(conf)}
     for name in ("SLURM_JOB_ID", "SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID"):  # a test run inside a SLURM job
         env.pop(name, None)
