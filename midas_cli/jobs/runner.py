@@ -7,7 +7,6 @@ import os
 import socket
 import time
 import traceback
-from pathlib import Path
 from typing import Any, Callable
 
 from midas_cli.errors import ConfigError, MidasError, SessionError, disk_full, disk_full_message
