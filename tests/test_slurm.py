@@ -137,14 +137,15 @@ def test_train_folds_on_slurm_match_a_local_run(slurm, tmp_path):
     submissions = json.loads((tmp_path / "remote" / "jobs" / "submissions.json").read_text())
     assert submissions[0]["executor"] == "slurm" and submissions[0]["units"] == [0, 1, 2]
 
-    ablation = ["train", "ablation", str(data), "--models", "baseline-mlp", "--grid", "emht:pos;emht:pos,vel",
+    ablation = ["train", "ablation", str(data), "--models", "baseline-mlp", "--grid", "emht:pos,vel",
                 "--split", "loto", "--fold", "1", "--epochs", "1", "--seed", "3", "--json"]
     table = midas(*ablation, "--out", str(tmp_path / "ablation"), "--executor", "slurm", env=env, timeout=WAIT_S)
     assert table.returncode == 0, table.stderr + slurm.log_tail()
     report = json.loads(table.stdout)
-    assert [r["features"] for r in report["results"]] == ["pos.", "pos., vel.", "pos.", "pos., vel."]  # + baseline
+    assert [(r["model"], r["features"]) for r in report["results"]] == [("Baseline (MLP)", "pos., vel."),
+                                                                         ("Baseline (LR)", "pos., vel.")]
     assert (tmp_path / "ablation" / "table.md").is_file()
-    assert len(json.loads((tmp_path / "ablation" / "jobs" / "plan.json").read_text())["units"]) == 4
+    assert len(json.loads((tmp_path / "ablation" / "jobs" / "plan.json").read_text())["units"]) == 2
 
 
 def test_simulate_dataset_on_slurm_writes_the_same_sessions_as_locally(slurm, tmp_path):
