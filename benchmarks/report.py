@@ -12,6 +12,7 @@ from machine import RESULTS, machine_info  # noqa: E402
 from report_align import align_section  # noqa: E402
 from report_reference import reference_section  # noqa: E402
 from report_batch import batch_section, export_section  # noqa: E402
+from report_executor import executor_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -46,6 +47,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
             ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
             ".venv/bin/python benchmarks/bench_export.py     # export to MCAP / Parquet / XDF, 10 and 60 min",
+            ".venv/bin/python benchmarks/bench_executor.py   # align through --jobs 1, 2 and a one-node SLURM",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -308,12 +310,12 @@ def startup_section(s: dict) -> list[str]:
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
-    quick = [name for name in ("startup", "record", "align", "train", "soak", "soak-short", "mstcn_reference", "batch",
-                               "export") if (load(name) or {}).get("quick")]
+    quick = [name for name in ("startup", "record", "align", "train", "executor", "soak", "soak-short",
+                               "mstcn_reference", "batch", "export") if (load(name) or {}).get("quick")]
     if quick:
         lines += [f"**Smoke run** (`--quick`) for {', '.join(quick)}: short sizes, not for comparison.", ""]
     for name, section in (("record", record_section), ("align", align_section), ("pedal_gt", pedal_section),
-                          ("train", train_section)):
+                          ("train", train_section), ("executor", executor_section)):
         result = load(name)
         lines += section(result) if result else [f"## {name}: no results yet (run its script)", ""]
         if name == "train" and load("train_louo"):

@@ -5,6 +5,9 @@
 #   make gestures-table GESTURES_EPOCHS=5 GESTURES_GRID="emht:pos,ori,vel:exclude-clutch"   quick look
 # The dataset and its .simulated stamp are the same as `make tables` uses, so both share one simulation.
 # Runs already in $(GESTURES_DIR)/runs/ are reused (delete the folder to retrain).
+#   make gestures-table EXECUTOR=slurm SLURM_ARGS="--slurm-partition gpu --slurm-time 02:00:00"
+#                                              every (model, row) cell a SLURM array task (and the
+#                                              sessions not aligned yet one align array)
 TABLES_DIR ?= results
 TABLES_SEED ?= 1
 MIDAS_BIN ?= $(BIN)/midas
@@ -15,6 +18,10 @@ GESTURES_EPOCHS ?= 50
 GESTURES_SPLIT ?= gesture
 GESTURES_DEVICE ?= cpu
 GESTURES_GRID ?=
+EXECUTOR ?= local
+SLURM_ARGS ?=
+$(if $(filter $(EXECUTOR),local slurm),,$(error EXECUTOR must be local or slurm, not '$(EXECUTOR)'))
+_GESTURES_EXECUTOR = --executor $(EXECUTOR) $(if $(filter slurm,$(EXECUTOR)),$(SLURM_ARGS),)
 
 .PHONY: gestures-table
 
@@ -23,10 +30,11 @@ gestures-table: install
 		$(MIDAS_BIN) simulate dataset --platform raven-ii --trials 15 --seed $(TABLES_SEED) \
 			--out $(GESTURES_DATA) > /dev/null && touch $(GESTURES_DATA)/.simulated || exit 1; \
 	fi
-	@for s in $(GESTURES_DATA)/*/; do \
-		[ -f "$$s/derived/aligned.json" ] || $(MIDAS_BIN) align "$$s" > /dev/null || exit 1; \
-	done
+	@todo=""; for s in $(GESTURES_DATA)/*/; do \
+		[ -f "$$s/derived/aligned.json" ] || todo="$$todo $$s"; \
+	done; \
+	if [ -n "$$todo" ]; then $(MIDAS_BIN) align $$todo $(_GESTURES_EXECUTOR) > /dev/null || exit 1; fi
 	$(MIDAS_BIN) train ablation $(GESTURES_DATA) --models $(GESTURES_MODELS) --epochs $(GESTURES_EPOCHS) \
 		--split $(GESTURES_SPLIT) --device $(GESTURES_DEVICE) $(if $(GESTURES_GRID),--grid "$(GESTURES_GRID)",) \
-		--out $(GESTURES_DIR) > /dev/null
+		$(_GESTURES_EXECUTOR) --out $(GESTURES_DIR) > /dev/null
 	@echo "gesture table: $(GESTURES_DIR)/table.md (.tex, .csv)"

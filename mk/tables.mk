@@ -7,12 +7,20 @@
 # It ends with the gesture-recognition table (mk/gestures.mk: training on CPU takes a while; see
 # GESTURES_EPOCHS / GESTURES_GRID / GESTURES_DEVICE=cuda there).
 # Per-session steps (align) are separate targets, so `make -j N` runs N sessions at once.
+#   make tables EXECUTOR=slurm SLURM_ARGS="--slurm-time 00:20:00"
+#                                          simulation and align as SLURM job arrays (one task per trial /
+#                                          session; README "Running on a cluster"), run folders under
+#                                          $(TABLES_DIR)/jobs/; calibration and eval run here
 TABLES_DIR ?= results
 TABLES_SEED ?= 1
 TABLES_RAVEN_TRIALS ?= 15
 TABLES_DAVINCI_TRIALS ?= 17
 TABLES_MAX_SECONDS ?=
 MIDAS_BIN ?= $(BIN)/midas
+EXECUTOR ?= local
+SLURM_ARGS ?=
+$(if $(filter $(EXECUTOR),local slurm),,$(error EXECUTOR must be local or slurm, not '$(EXECUTOR)'))
+_EXECUTOR_ARGS = --executor $(EXECUTOR) $(if $(filter slurm,$(EXECUTOR)),$(SLURM_ARGS),)
 _TABLES_SIM := $(TABLES_DIR)/simulated
 _TABLES_LIMIT := $(if $(TABLES_MAX_SECONDS),--max-seconds $(TABLES_MAX_SECONDS),)
 
@@ -33,7 +41,8 @@ tables: install $(if $(DATA),,$(_TABLES_SIM)/raven-ii/.simulated $(_TABLES_SIM)/
 
 $(_TABLES_SIM)/%/.simulated:
 	$(MIDAS_BIN) simulate dataset --platform $* --seed $(TABLES_SEED) --out $(@D) $(_TABLES_LIMIT) \
-		--trials $(if $(filter raven-ii,$*),$(TABLES_RAVEN_TRIALS),$(TABLES_DAVINCI_TRIALS)) > /dev/null
+		--trials $(if $(filter raven-ii,$*),$(TABLES_RAVEN_TRIALS),$(TABLES_DAVINCI_TRIALS)) \
+		$(_EXECUTOR_ARGS) $(if $(filter slurm,$(EXECUTOR)),--run-dir $(TABLES_DIR)/jobs/simulate-$*,) > /dev/null
 	touch $@
 
 # ---- one dataset (invoked recursively once its session folders exist) -------------------------------
@@ -62,15 +71,26 @@ $(TABLES_DATA)/.calibrated: $(_SESSIONS:%=%/manifest.json)
 	fi
 	touch $@
 
+ifeq ($(EXECUTOR),slurm)
+# one job array for every session of the dataset; its run folder skips the sessions done
+_ALIGN_DONE := $(_RESULTS)/.aligned
+$(_ALIGN_DONE): $(_SESSIONS:%=%/manifest.json) $(TABLES_DATA)/.calibrated
+	mkdir -p $(_RESULTS)
+	$(MIDAS_BIN) align $(_SESSIONS) $(_EXECUTOR_ARGS) --run-dir $(TABLES_DIR)/jobs/align-$(TABLES_NAME) > /dev/null
+	touch $@
+else
+_ALIGN_DONE := $(_ALIGNED)
+endif
+
 %/derived/aligned.json: %/manifest.json $(TABLES_DATA)/.calibrated
 	$(MIDAS_BIN) align $* > /dev/null
 
-$(_RESULTS)/.correlation: $(_ALIGNED)
+$(_RESULTS)/.correlation: $(_ALIGN_DONE)
 	mkdir -p $(_RESULTS)
 	if $(_HAS_ROBOT); then $(MIDAS_BIN) eval correlation $(_SESSIONS) --out $(_RESULTS) > $(_RESULTS)/correlation.txt; fi
 	touch $@
 
-$(_RESULTS)/pedals.md: $(_ALIGNED)
+$(_RESULTS)/pedals.md: $(_ALIGN_DONE)
 	mkdir -p $(_RESULTS)
 	$(MIDAS_BIN) eval pedals $(_SESSIONS) --out $(_RESULTS) > $(_RESULTS)/pedals.txt
 	$(MIDAS_BIN) calibrate fps-optimize $(_SESSIONS) --out $(_RESULTS)/fps_optimized.json > $(_RESULTS)/fps_optimized.txt

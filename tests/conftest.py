@@ -9,7 +9,8 @@ import pytest
 
 from helpers.cli import SHARED_DATA, write_session
 
-pytest_plugins = ("helpers.trakstar",)  # the `emulator` fixture (trakSTAR on a pty)
+pytest_plugins = ("helpers.trakstar",  # the `emulator` fixture (trakSTAR on a pty)
+                  "helpers.slurm_fixture")  # the `slurm` fixture (a one-node SLURM, session-scoped)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:

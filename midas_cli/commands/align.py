@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from midas_cli.analysis.align import METHODS, AlignOptions, align_and_write, parse_clock
+from midas_cli.analysis.align import METHODS, AlignOptions, parse_clock
+from midas_cli.commands import executor as ex
 from midas_cli.commands.common import err, error_line, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG, renamed_option, take_renamed
-from midas_cli.commands.progress import progress_display
-from midas_cli.errors import ConfigError
 
 
 def align(
@@ -30,11 +27,19 @@ def align(
     model: str = typer.Option("best", "--calibration-model", help="Calibration model to use downstream (eval): "
                               "best (the winner of calibrate's held-out comparison), rigid or mlp. Both models' "
                               "columns are written; the choice is recorded in derived/aligned.json."),
-    jobs: int = typer.Option(1, "--jobs", "-j", help="Sessions aligned in parallel (worker processes)."),
     csv: bool = typer.Option(False, "--csv", help="Also write derived/aligned.csv (6 significant digits; "
                              "slow for long sessions: the npz holds the exact values). Without it, an "
                              "aligned.csv left by an earlier run is removed."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Align each session's streams onto its video frame clock.
 
@@ -51,41 +56,33 @@ def align(
     Example: midas align sessions/*/ --downsample 10 --jobs 2
 
     Example (a watch-only session, or a video clock covering a fraction): midas align SESSION --clock 30
+
+    Example (one SLURM array task per session; a re-run skips the sessions done): midas align data/*/ --executor slurm --slurm-time 00:20:00 --run-dir runs/align
     """
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    from midas_cli.analysis.align_units import TASK, plan_units
+
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
     downsample = take_renamed(downsample, rate, "--rate", "--downsample", error_line)
     options = AlignOptions(method=method, rate_hz=downsample, clock_hz=parse_clock(clock), model=model)
-    results = _run(sessions, options, jobs, csv)
+    outcome = ex.run_plan(TASK, plan_units(sessions, options, csv), choice, "aligning sessions")
+    if outcome.submitted:
+        ex.submitted_line(outcome)
+        return
+    results = [{**r, "session": str(given)} for given, r in zip(sessions, outcome.results) if r is not None]
     for r in results:
         for warning in r["warnings"]:
             err.print(f"midas: warning: {r['session']}: {warning}", markup=False, highlight=False, soft_wrap=True)
     if as_json:
         print_json(results)
+        ex.raise_failed(outcome, "sessions")
         return
     table = Table("session", "frames", "columns", "masked (per stream)", "calibrations", header_style="bold")
     for r in results:
         masked = ", ".join(f"{k} {v:.1%}" for k, v in r["masked_fraction"].items())
         table.add_row(Path(r["session"]).name, str(r["frames"]), str(r["columns"]), masked,
                       ", ".join(f"{Path(c).stem} ({m})" for c, m in r["calibration_models"].items()) or "—")
-    out.print(table)
+    if results:
+        out.print(table)
+    ex.raise_failed(outcome, "sessions")
 
-
-def _run(sessions: list[Path], options: AlignOptions, jobs: int, csv: bool) -> list[dict[str, Any]]:
-    """Align each session (in ``jobs`` processes), with a progress bar on stderr; input order kept."""
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-               TimeRemainingColumn())
-    results: dict[Path, dict[str, Any]] = {}
-    with progress_display(*columns, transient=True) as progress:
-        task = progress.add_task("aligning sessions", total=len(sessions))
-        if jobs == 1:
-            for path in sessions:
-                results[path] = align_and_write(path, options, csv)
-                progress.advance(task)
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futures = {pool.submit(align_and_write, path, options, csv): path for path in sessions}
-                for future in as_completed(futures):
-                    results[futures[future]] = future.result()
-                    progress.advance(task)
-    return [results[p] for p in sessions]

@@ -7,22 +7,32 @@ from typing import Optional
 
 import typer
 
+from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.commands.progress import progress_display
 
 app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)
 
 
 @app.command()
 def handkp(
-    session: Path = typer.Argument(..., help="Session recorded with a stereo camera (uvc://, zed://, sim://rgbd)."),
+    sessions: list[Path] = typer.Argument(..., help="Session(s) recorded with a stereo camera (uvc://, zed://, "
+                                          "sim://rgbd).", file_okay=False),
     detector: str = typer.Option("mediapipe", "--detector", help="mediapipe, or truth (simulated sessions only)."),
     device: Optional[str] = typer.Option(None, "--device", help="The stereo camera device, if there are several."),
     stream: str = typer.Option("handkp", "--stream", help="Name of the HandKP stream to add."),
     force: bool = typer.Option(False, "--force", help="Replace a HandKP stream an earlier extraction added."),
     mirrored: bool = typer.Option(False, "--mirrored", help="The camera image is mirrored (MediaPipe handedness)."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Detect fingertips in the stereo frames and add the HandKP stream.
 
@@ -31,16 +41,28 @@ def handkp(
     add the HandKP stream to the session (missed hands are empty fields, never zeros).
 
     Example: midas extract handkp sessions/suturing_S1_T1_20250101T120000Z --detector mediapipe
-    """
-    from midas_cli.devices.rgbd.handkp import extract_handkp
 
-    with progress_display(transient=True) as bar:
-        task = bar.add_task("extracting hand keypoints", total=None)
-        result = extract_handkp(session, detector, device, stream, force, mirrored,
-                                progress=lambda done, total: bar.update(task, completed=done, total=total))
-    if as_json:
-        print_json(result.to_json())
+    Example (one SLURM array task per session): midas extract handkp data/*/ --executor slurm --slurm-time 01:00:00 --run-dir runs/handkp
+    """
+    from midas_cli.devices.rgbd.handkp_units import TASK, plan_units
+
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
+    units = plan_units(sessions, detector, device, stream, force, mirrored)
+    with ex.unit_progress() as progress:
+        frames = progress.add_task("extracting hand keypoints", total=None, info="")
+        extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total)} \
+            if choice.executor == "local" and choice.jobs == 1 else None
+        outcome = ex.run_plan(TASK, units, choice, "sessions", extra, progress)
+    if outcome.submitted:
+        ex.submitted_line(outcome)
         return
-    out.print(f"{result.stream}: {result.frames} frames from {result.device}, hands detected left "
-              f"{result.detected['left']} right {result.detected['right']}, {result.keypoints_with_depth} "
-              f"fingertips with depth", markup=False, highlight=False)
+    results = [r for r in outcome.results if r is not None]
+    if as_json:
+        print_json(results[0] if len(sessions) == 1 and results else results)
+    else:
+        for result in results:
+            out.print(f"{result['stream']}: {result['frames']} frames from {result['device']}, hands detected left "
+                      f"{result['detected']['left']} right {result['detected']['right']}, "
+                      f"{result['keypoints_with_depth']} fingertips with depth", markup=False, highlight=False)
+    ex.raise_failed(outcome, "sessions")

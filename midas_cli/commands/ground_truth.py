@@ -3,19 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Any, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from midas_cli.commands import executor as ex
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION
-from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
-
-if TYPE_CHECKING:
-    from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest, GroundTruthResult, JobFailure
 
 app = typer.Typer(help="Ground truth read from recordings (pedal states from the console video).",
                   no_args_is_help=True)
@@ -29,12 +25,20 @@ def pedals(
     layout: str = typer.Option("davinci-xi", "--layout", help="Built-in layout name or a layout TOML file."),
     view: str = typer.Option("auto", "--view", help="auto (left half of side-by-side stereo), left or full."),
     min_duration: int = typer.Option(1, "--min-duration", help="Drop state changes lasting fewer frames."),
-    jobs: int = typer.Option(1, "--jobs", "-j", help="Videos processed in parallel (worker processes)."),
     preview: Optional[int] = typer.Option(None, "--preview", help="Frame index (0-based): draw the regions "
                                           "and their states on that frame instead of extracting."),
     out_path: Optional[Path] = typer.Option(None, "--out", help="PNG for --preview; CSV for one bare video "
                                             "(default: <video>.pedals_gt.csv beside it)."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Read pedal states from the console video into derived/pedals_gt.csv.
 
@@ -44,28 +48,38 @@ def pedals(
 
     Example: midas ground-truth pedals sessions/suturing_S1_T1_20260101T120000Z --min-duration 2
     """
-    from midas_cli.analysis.pedal_video.ground_truth import (
-        GroundTruthRequest, GroundTruthResult, JobFailure, result_dict,
-    )
+    from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest
     from midas_cli.analysis.pedal_video.layout import load_layout
+    from midas_cli.analysis.pedal_video.units import TASK, plan_units
 
     if preview is not None:
         _preview(inputs, layout, view, preview, out_path, as_json)
         return
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
     if out_path is not None and len(inputs) > 1:
         raise ConfigError("--out names one output file: give one video, or leave --out out")
     requests = [GroundTruthRequest(p, layout, view, min_duration, out_path) for p in inputs]
     load_layout(layout)  # a bad layout is one usage error, not one failure per input
-    outcomes = _run_with_progress(requests, jobs)
-    failures = [o for o in outcomes if isinstance(o, JobFailure)]
+    with ex.unit_progress() as progress:
+        frames = progress.add_task("frames", total=None, info="")
+        extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total or None)} \
+            if choice.executor == "local" and choice.jobs == 1 else None
+        outcome = ex.run_plan(TASK, plan_units(requests), choice, "videos", extra, progress)
+    if outcome.submitted:
+        ex.submitted_line(outcome)
+        return
+    results = [{**r, "input": str(given)} if r else
+               {"ok": False, "input": str(given), "message": next(f.error for f in outcome.failed if f.name == given.name)}
+               for given, r in zip(inputs, outcome.results)]
+    for r in results:
+        if r["ok"]:
+            err.print(f"midas: {r['input']}: {r['frames']} frames -> {r['csv']}", markup=False)
     if as_json:
-        print_json([result_dict(o) for o in outcomes])
+        print_json(results)
     else:
-        _render([o for o in outcomes if isinstance(o, GroundTruthResult)])
-    for failure in failures:
-        err.print(f"midas: error: {failure.input}: {failure.message}", markup=False, highlight=False)
-    if failures:
-        raise typer.Exit(max(f.exit_code for f in failures))
+        _render([r for r in results if r["ok"]])
+    ex.raise_failed(outcome, "inputs")
 
 
 def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: Optional[Path], as_json: bool) -> None:
@@ -87,28 +101,13 @@ def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: O
     out.print(str(path), markup=False)
 
 
-def _run_with_progress(requests: list[GroundTruthRequest], jobs: int) -> list[GroundTruthResult | JobFailure]:
-    from midas_cli.analysis.pedal_video.ground_truth import GroundTruthResult, run_many
-
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    with progress_display(*columns) as progress:
-        tasks = [progress.add_task(r.input.name, total=None) for r in requests]
-
-        def update(index: int, done: int, total: int) -> None:
-            progress.update(tasks[index], completed=done, total=total or None)
-        outcomes = run_many(requests, jobs, update)
-    for outcome in outcomes:
-        if isinstance(outcome, GroundTruthResult):
-            err.print(f"midas: {outcome.input}: {outcome.frames} frames -> {outcome.csv}", markup=False)
-    return outcomes
-
-
-def _render(results: list[GroundTruthResult]) -> None:
+def _render(results: list[dict[str, Any]]) -> None:
     if not results:
         return
-    pedals = list(results[0].pressed_fraction)
+    pedals = list(results[0]["pressed_fraction"])
     table = Table("input", "frames", "processed frames/s", "x real time", *[f"{p} %" for p in pedals], "output", header_style="bold")
     for r in results:
-        table.add_row(Path(r.input).name, str(r.frames), f"{r.speed_fps:.0f}", f"{r.speed_fps / REAL_TIME_FPS:.1f}",
-                      *[f"{100 * r.pressed_fraction.get(p, 0):.1f}" for p in pedals], r.csv)
+        table.add_row(Path(r["input"]).name, str(r["frames"]), f"{r['speed_fps']:.0f}",
+                      f"{r['speed_fps'] / REAL_TIME_FPS:.1f}",
+                      *[f"{100 * r['pressed_fraction'].get(p, 0):.1f}" for p in pedals], r["csv"])
     out.print(table)

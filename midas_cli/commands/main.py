@@ -7,7 +7,6 @@ get here: ``root.answer_without_typer`` answers them from a static table, withou
 
 from __future__ import annotations
 
-import errno
 import importlib
 import logging
 import sys
@@ -18,7 +17,7 @@ import typer
 from midas_cli import __version__
 from midas_cli.commands.common import STDERR_LOG, error_line
 from midas_cli.commands.root import COMMANDS, ROOT_HELP
-from midas_cli.errors import MidasError, SessionError
+from midas_cli.errors import MidasError, SessionError, disk_full, disk_full_message
 
 _state = {"debug": False}
 
@@ -79,24 +78,9 @@ def run() -> None:
     except Exception as exc:  # the one place that turns surprises into exit code 1
         if _state["debug"]:
             traceback.print_exc()
-        full = _disk_full(exc)
+        full = disk_full(exc)
         if full is not None:  # not midas's bug: the disk is full or read-only, wherever it was hit
-            error_line(f"midas: error: disk full / read-only: {full.filename or 'the output folder'} "
-                       f"({full.strerror or errno.errorcode.get(full.errno, full.errno)}); free space and run again")
+            error_line(f"midas: error: {disk_full_message(full)}")
             sys.exit(SessionError.exit_code)
         error_line(f"midas: internal error: {type(exc).__name__}: {exc} (run with --debug for a traceback)")
         sys.exit(1)
-
-
-DISK_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS}
-
-
-def _disk_full(exc: BaseException) -> OSError | None:
-    """The OSError saying the disk is full, over quota or read-only, in ``exc`` or what it was raised from."""
-    seen: set[int] = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
-            return exc
-        exc = exc.__cause__ or exc.__context__
-    return None

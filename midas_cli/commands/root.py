@@ -35,6 +35,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "replay": ("replay", "replay", "command"),
     "plot": ("plot", "plot", "command"),
     "rig": ("rig", "app", "group"),
+    "jobs": ("jobs", "app", "group"),
     "doctor": ("doctor", "doctor", "command"),
     "config": ("config_cmd", "config", "command"),
 }
@@ -63,6 +64,7 @@ COMMAND_SUMMARIES: dict[str, str] = {
     "features": "Extract learned features from recordings.",
     "extract": "Derive streams from recorded data (offline).",
     "rig": "Check a rig's devices before recording.",
+    "jobs": "Follow batch runs (--executor local|slurm): each unit's state, log and error.",
 }
 
 # `midas --help`'s description (typer's app callback takes it as its help).

@@ -7,6 +7,7 @@ from typing import Any, Optional
 
 import typer
 
+from midas_cli.commands import executor as ex
 from midas_cli.commands.common import err, non_negative, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
@@ -25,11 +26,19 @@ def dataset(
     latency_ms: float = typer.Option(40.0, "--latency-ms", callback=non_negative, help="True EmHT latency in ms."),
     distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative, help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
     max_seconds: Optional[float] = typer.Option(None, "--max-seconds", callback=positive, help="Cut each trial to this length (s)."),
-    jobs: int = typer.Option(1, "--jobs", "-j", help="Trials generated in parallel (worker processes)."),
     difficulty: str = typer.Option("real", "--difficulty", help="real (subjects differ in speed, style and "
                                    "handedness; blended gestures, pauses, unlabelled stretches, sensor placement) "
                                    "or easy (every subject moves alike)."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Write a simulated dataset with known ground truth, one session per trial.
 
@@ -37,20 +46,29 @@ def dataset(
     labels, calibration truth and, on the da Vinci, derived/pedals_gt.csv).
 
     Example: midas simulate dataset --out sessions --platform davinci-xi --trials 4 --seed 1
-    """
-    from midas_cli.simulate.dataset import generate_dataset, trial_configs
 
+    Example (one SLURM array task per trial): midas simulate dataset --out data/raven --platform raven-ii --trials 200 --executor slurm --run-dir runs/sim-raven
+    """
+    from midas_cli.simulate.dataset import trial_configs
+    from midas_cli.simulate.dataset_units import TASK, plan_units
+
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
     configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
                            difficulty)
-
-    def report(result: dict[str, Any]) -> None:
+    outcome = ex.run_plan(TASK, plan_units(configs), choice, "simulating trials")
+    if outcome.submitted:
+        ex.submitted_line(outcome)
+        return
+    results: list[dict[str, Any]] = [r for r in outcome.results if r is not None]
+    for result in results:
         err.print(f"midas: simulated {result['path']} ({result['duration_s']:.1f} s)", markup=False)
-    results = generate_dataset(configs, jobs, report)
     if as_json:
         print_json(results)
-        return
-    for result in results:
-        out.print(result["path"], markup=False)
+    else:
+        for result in results:
+            out.print(result["path"], markup=False)
+    ex.raise_failed(outcome, "trials")
 
 
 @app.command("console-video")

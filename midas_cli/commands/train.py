@@ -9,6 +9,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from midas_cli.commands import executor as ex
 from midas_cli.commands.common import error_line, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSION_TREES_ARG, renamed_option, take_renamed
 from midas_cli.commands.progress import progress_display
@@ -133,12 +134,25 @@ def gestures(
     out_dir: Path = typer.Option(..., "--out", help="New run folder (config, split, metrics, checkpoint, plots)."),
     eval_only: Optional[Path] = typer.Option(None, "--eval-only", help="Evaluate this checkpoint.pt on its test split."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser.
 
-    Metrics go to stdout.
+    Metrics go to stdout. With --fold all, each fold is a unit of --executor local (--jobs N) or slurm
+    (one array task per fold; --device cuda asks each for a GPU); the run folder is OUT/jobs/ unless
+    --run-dir says otherwise, and a re-run trains only the folds not done.
 
     Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
+
+    Example (leave one user out, every fold a SLURM task with a GPU): midas train gestures data/jigsaws/ --split louo --fold all --device cuda --executor slurm --slurm-time 02:00:00 --out runs/louo
     """
     from midas_cli.models import cv
     from midas_cli.models.splits import GROUP_SPLITS
@@ -148,7 +162,21 @@ def gestures(
     fold_index = _parse_fold(fold)
     if fold_index is None and split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
+    if device == "cuda" and executor == "slurm" and slurm_gpus is None:
+        from midas_cli.config import section
+
+        slurm_gpus = section("slurm").get("gpus") or 1  # a CUDA fold asks SLURM for a GPU
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
+    if fold_index is not None and (executor != "local" or jobs != 1 or run_dir is not None):
+        raise ConfigError("--executor, --jobs and --run-dir run the folds of --fold all; one fold is one run")
     paths = session_paths(sessions)
+    if eval_only is None and fold_index is None:
+        _train_folds(paths, data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise),
+                     TrainConfig(model=model, split=split, fold=0, validation=val, epochs=epochs, seed=seed,
+                                 device=device, shuffle_labels=shuffle_labels),
+                     out_dir, cv.BASELINE if baseline else None, choice, as_json)
+        return
     with _progress() as progress:
         if eval_only is not None:
             result = evaluate_checkpoint(paths, eval_only, out_dir, device)
@@ -156,17 +184,7 @@ def gestures(
             data = data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise)
             config = TrainConfig(model=model, split=split, fold=fold_index or 0, validation=val, epochs=epochs,
                                  seed=seed, device=device, shuffle_labels=shuffle_labels)
-            if fold_index is None:
-                folds = progress.add_task("folds", total=None, info="")
-                report = cv.run_cv(paths, data, config, out_dir, baseline=cv.BASELINE if baseline else None,
-                                   on_fold=lambda label, k, n: progress.update(folds, completed=k - 1, total=n,
-                                                                               info=label),
-                                   progress=_epoch_progress(progress, f"{model} epochs"))
-            else:
-                result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
-    if eval_only is None and fold_index is None:
-        _render_cv(report, out_dir, as_json)
-        return
+            result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
     cv_root = out_dir.parent.parent if out_dir.parent.name == cv.BASELINE else out_dir.parent
     if eval_only is None and split in GROUP_SPLITS and out_dir.name == f"fold-{fold_index}" and cv.complete(cv_root):
         cv.summarise(cv_root)  # the last fold of a cluster run: aggregate
@@ -175,6 +193,25 @@ def gestures(
         print_json({"run": str(result.out_dir), "test": result.metrics["test"]["summary"]})
         return
     _render_metrics(result.metrics, result.out_dir)
+
+
+def _train_folds(paths: list[Path], data, config, out_dir: Path, baseline: Optional[str], choice, as_json: bool) -> None:
+    """--fold all: every fold (and baseline fold) a unit of the chosen executor, then cv.json / cv.md."""
+    from midas_cli.models import cv
+    from midas_cli.models.cv_units import TASK, plan_units
+
+    units = plan_units(paths, data, config, out_dir, baseline)
+    if choice.run_dir is None:
+        choice.run_dir = out_dir / "jobs"
+    with _progress() as progress:  # epochs of the fold training in this process (local, --jobs 1)
+        extra = {"progress": _epoch_progress(progress, f"{config.model} epochs")} \
+            if choice.executor == "local" and choice.jobs == 1 else None
+        outcome = ex.run_plan(TASK, units, choice, f"{config.model} folds", extra, progress)
+    if outcome.submitted:
+        ex.submitted_line(outcome)
+        return
+    ex.raise_failed(outcome, "folds")
+    _render_cv(cv.summarise(out_dir), out_dir, as_json)
 
 
 def _render_cv(report: dict, root: Path, as_json: bool) -> None:
@@ -218,33 +255,53 @@ def ablation(
     device: str = DEVICE_OPT,
     out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
     as_json: bool = JSON_OPTION,
+    executor: str = ex.EXECUTOR_OPT,
+    jobs: int = ex.JOBS_OPT,
+    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
+    no_wait: bool = ex.NO_WAIT_OPT,
+    slurm_partition: Optional[str] = ex.PARTITION_OPT,
+    slurm_time: Optional[str] = ex.TIME_OPT,
+    slurm_mem: Optional[str] = ex.MEM_OPT,
+    slurm_gpus: Optional[int] = ex.GPUS_OPT,
+    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
 ) -> None:
     """Train every model x grid row and write the paper-style table.
 
-    The table's columns: Acc, F1, Prec., Rec.
+    The table's columns: Acc, F1, Prec., Rec. Each (model, row) cell is a unit of --executor local
+    (--jobs N) or slurm (one array task per cell); the run folder is OUT/jobs/ unless --run-dir says
+    otherwise, and a re-run trains only the cells not done.
 
     Example: midas train ablation sessions/ --models transformer,mstcn --grid "emht:pos,ori,vel:exclude-clutch;mtm:pos,ori,vel,grasper:exclude-clutch" --epochs 50 --out results/gestures
     """
-    from midas_cli.models.ablation import parse_grid, run_ablation
+    from midas_cli.models.ablation import check_ablation, finish_ablation, parse_grid
+    from midas_cli.models.ablation_units import TASK, plan_units
     from midas_cli.models.train import TrainConfig
+    from midas_cli.session.outputs import out_folder
 
+    if device == "cuda" and executor == "slurm" and slurm_gpus is None:
+        from midas_cli.config import section
+
+        slurm_gpus = section("slurm").get("gpus") or 1
+    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
+                                slurm_array_parallelism)
     paths = session_paths(sessions)
     rows = parse_grid(grid)
-    model_list = list(_split_list(models))
-    if baseline and "baseline" not in model_list:
-        model_list.append("baseline")
     fold_index = _parse_fold(fold)
     base = TrainConfig(split=split, fold=fold_index or 0, validation=val, epochs=epochs, seed=seed, device=device)
+    model_list = check_ablation(list(_split_list(models)), base, fold_index is None, baseline)
+    out_folder(out_dir)
+    if choice.run_dir is None:
+        choice.run_dir = out_dir / "jobs"
+    units = plan_units(paths, rows, model_list, base, out_dir, cv=fold_index is None)
     with _progress() as progress:
-        runs = progress.add_task("ablation runs", total=len(rows) * len(model_list), info="")
-        epoch_update = _epoch_progress(progress, "epochs")
-
-        def on_run(label: str, k: int, n: int) -> None:
-            progress.update(runs, completed=k - 1, info=label)
-
-        report = run_ablation(paths, rows, model_list, base, out_dir, on_run, epoch_update, cv=fold_index is None,
-                              baseline=baseline)
-        progress.update(runs, completed=len(rows) * len(model_list))
+        extra = {"progress": _epoch_progress(progress, "epochs")} \
+            if choice.executor == "local" and choice.jobs == 1 else None
+        outcome = ex.run_plan(TASK, units, choice, "ablation runs", extra, progress)
+    if outcome.submitted:
+        ex.submitted_line(outcome)
+        return
+    ex.raise_failed(outcome, "ablation cells")
+    report = finish_ablation(out_dir, outcome.results, base, fold_index is None)
     if as_json:
         print_json(report)
         return

@@ -4,8 +4,9 @@ gesture tables (Appendix B, "Peg Transfer gesture recognition ablation using dif
 A grid row is written ``MODALITIES:FEATURES[:exclude-clutch]``: modalities joined with ``+``
 (``emht+image``), feature sets with ``,`` (``pos,ori,vel``); ``exclude-clutch`` drops clutch windows
 (the paper's default; its "-NC" rows keep them). Every (model, row) is one training run in
-``OUT/runs/<model>__<row slug>/``; a run folder that already holds ``metrics.json`` is reused, so an
-interrupted ablation resumes. Rows whose data are missing (no MTM on a da Vinci, no image features)
+``OUT/runs/<model>__<row slug>/``, a unit of a batch run (``ablation_units.py``: here or on SLURM); a
+run folder that already holds ``metrics.json`` of the same configuration is reused, so an interrupted
+ablation resumes. Rows whose data are missing (no MTM on a da Vinci, no image features)
 are listed as skipped with the reason. Scores are fractions of the test split (macro F1, precision,
 recall), as in the paper.
 
@@ -31,7 +32,7 @@ from midas_cli.errors import ConfigError, MidasError
 from midas_cli.models.data import DatasetConfig
 from midas_cli.models.splits import GROUP_SPLITS
 from midas_cli.models.train import MODELS, TrainConfig, train_run
-from midas_cli.session.outputs import out_folder, out_target, write_text
+from midas_cli.session.outputs import out_target, write_text
 
 log = logging.getLogger(__name__)
 
@@ -87,40 +88,39 @@ class GridRow:
         return ", ".join(names + (["RGB"] if "image" in self.modalities else []))
 
 
-def run_ablation(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequence[str], base: TrainConfig,
-                 out_dir: Path, on_run: Callable[[str, int, int], None] | None = None,
-                 progress: Callable[[int, int, dict], None] | None = None, cv: bool = False,
-                 baseline: bool = True) -> dict:
-    """Train every (model, row); write ``table.{md,tex,csv}`` and ``ablation.json``; return the results."""
+def check_ablation(models: Sequence[str], base: TrainConfig, cv: bool, baseline: bool) -> list[str]:
+    """The models to train (the baseline added unless ``baseline`` is False); ConfigError on a bad choice."""
     unknown = [m for m in models if m not in MODELS]
     if unknown or not models:
         raise ConfigError(f"--models {','.join(unknown or models)!r}: expected a comma list of {', '.join(MODELS)}")
     if cv and base.split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {base.split}")
-    models = list(models) + (["baseline"] if baseline and "baseline" not in models else [])
-    out_dir = out_folder(out_dir)
-    out_folder(out_dir / "runs")
-    results, skipped = [], []
-    jobs = [(model, row) for model in models for row in rows]
-    for k, (model, row) in enumerate(jobs, start=1):
-        if on_run:
-            on_run(f"{MODEL_TITLES[model]} {row.modality_title()} [{row.feature_title()}]", k, len(jobs))
-        try:
-            summary, dataset_title = _run_one(sessions, model, row, base, out_dir / "runs" / f"{model}__{row.slug()}",
-                                              progress, cv)
-        except MidasError as exc:
-            log.warning("ablation row %s / %s skipped: %s", model, row.slug(), exc)
-            skipped.append({"model": model, "row": row.slug(), "reason": str(exc)})
-            continue
-        results.append({"dataset": dataset_title, "model": MODEL_TITLES[model], "modality": row.modality_title(),
-                        "features": row.feature_title(), **summary})
+    return list(models) + (["baseline"] if baseline and "baseline" not in models else [])
+
+
+def run_cell(sessions: Sequence[Path], model: str, row: GridRow, base: TrainConfig, out_dir: Path,
+             progress: Callable[[int, int, dict], None] | None = None, cv: bool = False) -> dict:
+    """One (model, row) cell: its table row, or ``{"skipped": ...}`` when its data are missing."""
+    try:
+        summary, title = _run_one(sessions, model, row, base, Path(out_dir) / "runs" / f"{model}__{row.slug()}",
+                                  progress, cv)
+    except MidasError as exc:
+        log.warning("ablation row %s / %s skipped: %s", model, row.slug(), exc)
+        return {"skipped": {"model": model, "row": row.slug(), "reason": str(exc)}}
+    return {"dataset": title, "model": MODEL_TITLES[model], "modality": row.modality_title(),
+            "features": row.feature_title(), **summary}
+
+
+def finish_ablation(out_dir: Path, cells: Sequence[dict], base: TrainConfig, cv: bool) -> dict:
+    """Write ``table.{md,tex,csv}`` and ``ablation.json`` from the cells (in table order)."""
+    results = [c for c in cells if "skipped" not in c]
+    skipped = [c["skipped"] for c in cells if "skipped" in c]
     if not results:
         raise ConfigError(f"no ablation row could run ({len(skipped)} skipped; first reason: "
                           f"{skipped[0]['reason'] if skipped else 'empty grid'})")
-    report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__},
-              "cross_validation": cv}
+    report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__}, "cross_validation": cv}
     write_tables(out_dir, results, skipped)
-    write_text(out_target(out_dir / "ablation.json"), json.dumps(report, indent=2) + "\n")
+    write_text(out_target(Path(out_dir) / "ablation.json"), json.dumps(report, indent=2) + "\n")
     return report
 
 

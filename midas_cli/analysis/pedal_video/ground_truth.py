@@ -8,22 +8,18 @@ arm-swap frames from 0, and shifted their merge by one frame; here every table u
 from __future__ import annotations
 
 import logging
-import multiprocessing
-import queue as queue_module
 import time
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
-import cv2
 import pandas as pd
 
 from midas_cli import __version__
 from midas_cli.analysis.pedal_video.extract import PedalStates, debounce, extract_pedal_states
 from midas_cli.analysis.pedal_video.layout import load_layout
-from midas_cli.errors import ConfigError, MidasError, SessionError
+from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session.manifest import MANIFEST_NAME
 from midas_cli.session.outputs import out_target
 from midas_cli.session.pedals_gt import (pedals_gt_path, session_of_video, session_videos, video_frame_times,
@@ -32,7 +28,6 @@ from midas_cli.session.reader import Session
 
 log = logging.getLogger(__name__)
 
-JobProgress = Callable[[int, int, int], None]  # (job index, frames done, frames expected; 0 = unknown)
 ORIGINAL_NOTE = ("the original MiDAS scripts wrote energy pedals with 1-based 'Frame Num' and camera/arm-swap "
                  "pedals with 0-based 'obs_frame_idx'; midas uses 0-based frames everywhere")
 
@@ -65,13 +60,6 @@ class GroundTruthResult:
     def speed_fps(self) -> float:
         """Frames processed per second of wall time."""
         return self.frames / self.wall_s if self.wall_s > 0 else float("inf")
-
-
-@dataclass
-class JobFailure:
-    input: str
-    message: str
-    exit_code: int
 
 
 def resolve_input(path: Path, out: Path | None) -> tuple[Path, Path | None, Path]:
@@ -150,56 +138,3 @@ def _meta(request: GroundTruthRequest, states: PedalStates, video: Path, session
     }
 
 
-def run_many(requests: list[GroundTruthRequest], jobs: int = 1,
-             on_progress: JobProgress | None = None) -> list[GroundTruthResult | JobFailure]:
-    """Run every request; ``jobs`` > 1 processes several videos at once in worker processes.
-
-    A request that fails with a MidasError becomes a JobFailure (the others still run); anything else
-    is re-raised. Results are in request order.
-    """
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    progress = on_progress or (lambda i, done, total: None)
-    if jobs == 1 or len(requests) == 1:
-        return [_guarded(r, lambda done, total, i=i: progress(i, done, total)) for i, r in enumerate(requests)]
-    context = multiprocessing.get_context("spawn")
-    with context.Manager() as manager:
-        channel = manager.Queue()
-        with ProcessPoolExecutor(min(jobs, len(requests)), mp_context=context, initializer=_worker_init) as pool:
-            futures = [pool.submit(_worker, i, r, channel) for i, r in enumerate(requests)]
-            while not all(f.done() for f in futures):
-                _drain(channel, progress, wait_s=0.2)
-            _drain(channel, progress, wait_s=0.0)
-            return [f.result() for f in futures]
-
-
-def _guarded(request: GroundTruthRequest, on_progress: Callable[[int, int], None]) -> GroundTruthResult | JobFailure:
-    try:
-        return run_ground_truth(request, on_progress)
-    except MidasError as exc:
-        return JobFailure(str(request.input), str(exc), exc.exit_code)
-
-
-def _worker_init() -> None:
-    cv2.setNumThreads(1)  # one video per process: no thread oversubscription on small machines
-
-
-def _worker(index: int, request: GroundTruthRequest, channel: Any) -> GroundTruthResult | JobFailure:
-    return _guarded(request, lambda done, total: channel.put((index, done, total)))
-
-
-def _drain(channel: Any, progress: JobProgress, wait_s: float) -> None:
-    try:
-        item = channel.get(timeout=wait_s) if wait_s else channel.get_nowait()
-        while True:
-            progress(*item)
-            item = channel.get_nowait()
-    except queue_module.Empty:
-        return
-
-
-def result_dict(outcome: GroundTruthResult | JobFailure) -> dict[str, Any]:
-    """A JSON-ready dict of one outcome (``ok`` tells which kind)."""
-    if isinstance(outcome, JobFailure):
-        return {"ok": False, **asdict(outcome)}
-    return {"ok": True, **asdict(outcome), "speed_fps": round(outcome.speed_fps, 1)}

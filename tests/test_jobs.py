@@ -1,0 +1,172 @@
+"""Batch runs without SLURM (issue 16): run folders, done markers and fingerprints, stale and failed units,
+`midas jobs status`, the sbatch script a SLURM submission would use, and the executor options' checks.
+The same runs on a real SLURM are tests/test_slurm.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from helpers.analysis_sessions import raven_session
+from helpers.cli import midas
+from midas_cli.errors import ConfigError
+from midas_cli.jobs.rundir import Plan, RunDir, Unit
+from midas_cli.jobs.runner import run_unit
+from midas_cli.jobs.slurm import SlurmSettings, array_spec, script
+from midas_cli.jobs.status import statuses
+
+
+def double(args: dict) -> dict:
+    if args["x"] < 0:
+        raise ValueError(f"negative x: {args['x']}\nsecond line")
+    return {"result": 2 * args["x"], "outputs": []}
+
+
+def test_units_run_once_then_skip_until_their_fingerprint_changes(tmp_path):
+    run = RunDir(tmp_path / "run")
+    plan = run.write_plan(Plan("double", [Unit("a", {"x": 1}, "f1"), Unit("b", {"x": -1}, "f2")]))
+    assert run_unit(run, 0, double)["result"] == 2
+    with pytest.raises(ValueError):
+        run_unit(run, 1, double)
+    found = {s.name: s for s in statuses(run)}
+    assert found["a"].state == "done" and found["b"].state == "failed"
+    assert found["b"].error == "ValueError: negative x: -1"  # the headline, not the traceback's tail
+    assert found["b"].log == str(run.log(1)) and "negative x" in run.log(1).read_text()
+    calls = []
+    run_unit(run, 0, lambda args: calls.append(args) or {"result": 0})
+    assert calls == []  # done with the same fingerprint: skipped
+    run.write_plan(Plan("double", [Unit("a", {"x": 1}, "f1-changed"), plan.units[1]]))
+    assert statuses(run)[0].state == "stale"
+    run.write_marker(1, "running", {"host": os.uname().nodename, "pid": 2**22 + 12345})  # a dead process
+    run.clear(1, ("failed",))
+    assert statuses(run)[1].state == "failed" and "died" in statuses(run)[1].error
+    with pytest.raises(ConfigError, match="belongs to a 'double' run"):
+        run.write_plan(Plan("other", []))
+
+
+def test_slurm_settings_flags_over_config_and_the_script():
+    settings = SlurmSettings.merged({"time": "00:05:00", "gpus": None, "mem": None},
+                                    {"time": "01:00:00", "mem": "2G", "gpus": 1, "partition": "gpu",
+                                     "array_parallelism": 4, "account": "lab"})
+    assert (settings.time, settings.mem, settings.gpus, settings.partition) == ("00:05:00", "2G", 1, "gpu")
+    text = script(RunDir("/shared/run"), "align", [0, 1, 2, 5, 7, 8], settings)
+    assert "#SBATCH --array=0-2,5,7-8%4" in text and "#SBATCH --gres=gpu:1" in text
+    assert '#SBATCH --output="/shared/run/logs/unit-%a.log"' in text and "#SBATCH --account=lab" in text
+    assert text.rstrip().endswith('jobs run-unit /shared/run --unit "$SLURM_ARRAY_TASK_ID"')
+    assert array_spec([3], None) == "3"
+    for bad in ({"time": "soon"}, {"mem": "lots"}, {"array_parallelism": 0}, {"gpus": -1}):
+        with pytest.raises(ConfigError):
+            SlurmSettings(**bad)
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory) -> list[Path]:
+    root = tmp_path_factory.mktemp("jobs-sessions")
+    return [raven_session(root, trial=k, duration_s=3.0, seed=k) for k in (1, 2, 3)]
+
+
+def test_align_with_a_run_folder_resumes_and_reports_a_failed_session(sessions, tmp_path):
+    data = [Path(shutil.copytree(s, tmp_path / s.name)) for s in sessions]
+    broken = Path(shutil.copytree(sessions[0], tmp_path / "broken"))
+    (broken / "manifest.json").write_text("[]", encoding="utf-8")
+    run = tmp_path / "run"
+    args = ["align", str(data[0]), str(broken), str(data[1]), "--jobs", "2", "--run-dir", str(run)]
+    first = midas(*args, env={"MIDAS_PROGRESS_INTERVAL_S": "0"})
+    assert first.returncode == 4, first.stderr
+    assert "1 of 3 sessions did not finish" in first.stderr and "broken: failed" in first.stderr
+    assert "progress: aligning sessions: 3/3" in first.stderr
+    assert data[0].name in first.stdout and data[1].name in first.stdout  # the others' table
+    status = json.loads(midas("jobs", "status", str(run), "--json", check=True).stdout)
+    assert [u["state"] for u in status["units"]] == ["done", "failed", "done"]
+    assert status["units"][1]["log"] == str(run.resolve() / "logs" / "unit-1.log")
+    shutil.rmtree(broken)
+    shutil.copytree(sessions[2], broken)  # repaired
+    second = midas(*args, "--json")
+    assert second.returncode == 0, second.stderr
+    assert "2 of 3 units done already" in second.stderr and len(json.loads(second.stdout)) == 3
+    assert json.loads((run / "submissions.json").read_text())[-1]["units"] == [1]
+
+
+@pytest.mark.parametrize(("extra", "needle"), [(["--no-wait"], "--no-wait needs --executor slurm"),
+                                               (["--slurm-time", "1:00"], "--slurm-time needs --executor slurm"),
+                                               (["--executor", "slurm", "--jobs", "2"], "--jobs is for"),
+                                               (["--executor", "cloud"], "--executor must be")])
+def test_executor_options_are_checked(sessions, extra, needle):
+    result = midas("align", str(sessions[0]), *extra)
+    assert result.returncode == 2 and needle in result.stderr
+
+
+def test_a_slurm_task_that_left_the_queue_without_a_marker_is_failed(tmp_path, monkeypatch):
+    from midas_cli.jobs import slurm
+
+    run = RunDir(tmp_path / "run")
+    run.write_plan(Plan("double", [Unit("a", {"x": 1}, "f"), Unit("b", {"x": 2}, "f"), Unit("c", {"x": 3}, "f")]))
+    run.add_submission({"executor": "slurm", "job_id": "41", "units": [0, 1, 2]})
+    run.write_marker(0, "running", {"host": "node7", "pid": 1, "job_id": "41", "task_id": "0"})
+    run.log(0).write_text("step\nslurmstepd: error: *** JOB 41 ON node7 CANCELLED AT 2026-01-01 DUE TO TIME LIMIT ***\n")
+    monkeypatch.setattr(slurm, "queued", lambda job: {2: "PENDING"})
+    found = statuses(run)
+    assert [s.state for s in found] == ["failed", "failed", "queued"]
+    assert "ended without a result" in found[0].error and "TIME LIMIT" in found[0].error
+    assert "without starting the unit" in found[1].error
+    monkeypatch.setattr(slurm, "queued", lambda job: None)  # squeue cannot be asked: nothing concluded
+    assert [s.state for s in statuses(run)] == ["running", "queued", "queued"]
+
+
+def test_every_units_module_is_registered_for_run_unit():
+    import importlib
+
+    from midas_cli.commands.executor import task_function
+
+    modules = ["analysis.align_units", "models.cv_units", "models.ablation_units", "simulate.dataset_units",
+               "analysis.pedal_video.units", "devices.rgbd.handkp_units", "models.image_features_units"]
+    tasks = set()
+    for name in modules:
+        module = importlib.import_module(f"midas_cli.{name}")
+        assert task_function(module.TASK) is module.run_unit, name
+        tasks.add(module.TASK)
+    assert len(tasks) == len(modules)
+    with pytest.raises(ConfigError, match="unknown unit task"):
+        task_function("nope")
+
+
+def test_an_ablation_cell_trained_on_other_data_is_moved_aside_and_trained_again(tmp_path):
+    from helpers.gesture_sessions import write_gesture_session
+    from midas_cli.commands.executor import task_function
+    from midas_cli.models.ablation import GridRow
+    from midas_cli.models.ablation_units import TASK, plan_units
+    from midas_cli.models.train import TrainConfig
+
+    sessions = [write_gesture_session(tmp_path / "data", "B", k + 1, n_frames=120, seed=k) for k in range(2)]
+    base = TrainConfig(split="loto", fold=0, epochs=1, seed=1)
+    out, run = tmp_path / "out", RunDir(tmp_path / "run")
+
+    def cell() -> dict:
+        unit = plan_units(sessions, [GridRow(("emht",), ("pos",), False)], ["baseline"], base, out, cv=False)[0]
+        run.write_plan(Plan(TASK, [unit]))
+        return run_unit(run, 0, task_function(TASK))
+
+    first = cell()
+    assert first["result"]["model"] == "Baseline (LR)" and (out / "runs" / "baseline__emht__pos").is_dir()
+    assert cell()["finished"] == first["finished"]  # same data: skipped
+    labels = sessions[1] / "labels" / "gestures.csv"
+    lines = labels.read_text().splitlines()
+    labels.write_text("\n".join(lines[:1] + [line.replace("G2", "G3") for line in lines[1:]]) + "\n")
+    cell()
+    assert (out / "runs" / "baseline__emht__pos.stale-0" / "metrics.json").is_file()
+    assert (out / "runs" / "baseline__emht__pos" / "metrics.json").is_file()
+
+
+def test_a_run_larger_than_the_clusters_max_array_size_is_refused(tmp_path, monkeypatch):
+    from midas_cli.jobs import slurm
+
+    run = RunDir(tmp_path / "run")
+    run.write_plan(Plan("double", [Unit(str(k), {"x": k}, "f") for k in range(12)]))
+    monkeypatch.setattr(slurm, "max_array_size", lambda: 10)
+    with pytest.raises(ConfigError, match="12 units but the cluster's MaxArraySize is 10"):
+        slurm.submit(run, "double", list(range(12)), SlurmSettings())
+    assert not list(run.path.glob("slurm-*.sh"))
