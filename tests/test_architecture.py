@@ -45,7 +45,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "midas_cli"
 #   commands     the typer CLI
 #   __main__     entry point
 LAYERS: list[set[str]] = [
-    {"", "errors", "clock", "geometry", "config"},
+    {"", "errors", "clock", "geometry", "config", "processes"},
     {"jobs"},
     {"session"},
     {"devices", "synthetic"},

@@ -16,7 +16,8 @@ from midas_cli.devices.obs.connection import ObsConnection, resolve_password
 from midas_cli.devices.obs.frames import FrameClock, WrittenRows, check_recording, segment_files
 from midas_cli.devices.obs.marker import MarkerPlan, SyncMarker
 from midas_cli.devices.obs.profile import recover_stale
-from midas_cli.devices.obs.saved import SavedSettings, SettingsStore, process_start
+from midas_cli.devices.obs.saved import SavedSettings, SettingsStore
+from midas_cli.processes import process_start
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import parse_rig
 from midas_cli.errors import ConfigError, DeviceError

@@ -69,7 +69,7 @@ def stop(ctx: typer.Context,
     Example: midas ctl stop
     """
     from midas_cli.errors import SessionError
-    from midas_cli.record.control import process_alive
+    from midas_cli.processes import process_alive
     from midas_cli.session.manifest import load_manifest
 
     path = _socket(ctx.obj)

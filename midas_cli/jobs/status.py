@@ -9,7 +9,6 @@ memory limit, node failure, scancel) is failed too, with the log's last error li
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 from dataclasses import asdict, dataclass
@@ -17,6 +16,7 @@ from typing import Any, Callable, Sequence
 
 from midas_cli.jobs import slurm
 from midas_cli.jobs.rundir import RunDir, Unit, log_error_line
+from midas_cli.processes import process_alive
 
 TERMINAL = ("done", "failed")
 STATES = ("pending", "queued", "running", "done", "stale", "failed")
@@ -36,16 +36,6 @@ class UnitStatus:
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _job_tasks(run_dir: RunDir) -> tuple[dict[int, tuple[str, str]], dict[int, str]]:
@@ -102,7 +92,7 @@ def unit_status(run_dir: RunDir, unit: Unit, in_queue: dict[int, tuple[str, str]
             status.state = "failed"
             status.error = ("the SLURM task ended without a result (time or memory limit, node failure, scancel?): "
                             + (log_error_line(run_dir.log(k)) or "its log says nothing"))
-        elif running.get("host") == socket.gethostname() and not _pid_alive(int(running.get("pid", 0))):
+        elif running.get("host") == socket.gethostname() and not process_alive(int(running.get("pid", 0))):
             status.state, status.error = "failed", "its process died without a result (killed?)"
         else:
             status.state = "running"

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from midas_cli.errors import ConfigError, MidasError, SessionError
+from midas_cli.processes import process_alive
 
 log = logging.getLogger(__name__)
 
@@ -73,17 +74,6 @@ def running_recordings(folder: Path) -> list[Path]:
         elif _is_socket(path):
             path.unlink(missing_ok=True)
     return found
-
-
-def process_alive(pid: int) -> bool:
-    """True while process ``pid`` exists."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process: alive
-        return True
-    return True
 
 
 def _is_socket(path: Path) -> bool:

@@ -16,7 +16,6 @@ Messages go through a pipe (``record/link.py``): nothing a SIGKILL could leave b
 from __future__ import annotations
 
 import logging
-import os
 import queue
 import signal
 import sys
@@ -33,6 +32,7 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.base import Device
 from midas_cli.devices.registry import DeviceContext, create_device
 from midas_cli.errors import DeviceError, MidasError
+from midas_cli.processes import process_alive
 from midas_cli.record.link import StopSignal, WorkerLink
 from midas_cli.record.lsl_out import LiveOutlets
 from midas_cli.record.messages import DataBatch, DeviceEvent
@@ -229,22 +229,11 @@ def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
         sys.exit(status)
 
 
-def _alive(pid: int) -> bool:
-    """Is the recorder (``pid``) still there? (Its death also closes the stop line: belt and braces.)"""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _serve(job: WorkerJob, output: WorkerOutput, stop) -> None:
     """Open, pump, and reopen with exponential back-off until told to stop."""
     backoff = BACKOFF_START_S
     context = DeviceContext(output.clock, job.start_ns, job.seed, job.session_dir)  # one per worker: kept over reopens
-    while not stop.is_set() and _alive(job.parent_pid):
+    while not stop.is_set() and process_alive(job.parent_pid):
         try:
             device = create_device(job.device, job.url, context)
             info = device.open()
@@ -284,7 +273,7 @@ def _pump(device: Device, job: WorkerJob, output: WorkerOutput, stop) -> None:
         if now - last_data > job.stall_timeout_s:
             raise DeviceError(f"{job.device}: no data for {job.stall_timeout_s:.2f} s")
         if now - checked_alive >= ALIVE_EVERY_S:
-            if not _alive(job.parent_pid):
+            if not process_alive(job.parent_pid):
                 break
             checked_alive = now
     _flush(device, specs, device.finish(), output)

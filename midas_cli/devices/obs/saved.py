@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from midas_cli.errors import DeviceError
+from midas_cli.processes import process_start
 
 FORMAT = 1
 PREFIX = "obs-settings-"
@@ -32,34 +33,6 @@ def state_dir() -> Path:
     base = os.environ.get("XDG_STATE_HOME", "")
     root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "state"
     return root / "midas"
-
-
-def process_start(pid: int) -> str | None:
-    """When process ``pid`` started (clock ticks since boot, from /proc), None if there is no such
-    process or it has ended (a zombie: killed, not yet reaped, which is common in containers whose PID 1
-    reaps nobody); "" where /proc cannot tell (the PID alone then decides)."""
-    if not Path("/proc/self/stat").exists():  # no procfs (macOS)
-        return _pid_exists_without_proc(pid)
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return None
-    except OSError:
-        return _pid_exists_without_proc(pid)
-    fields = text[text.rindex(")") + 2 :].split()  # from field 3 of proc(5), counted after "pid (comm)"
-    if fields[0] in ("Z", "X"):  # ended: a zombie holds its PID and start time until its parent reaps it
-        return None
-    return fields[19]  # field 22: start time
-
-
-def _pid_exists_without_proc(pid: int) -> str | None:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return None
-    except PermissionError:  # exists, owned by another user
-        return ""
-    return ""
 
 
 @dataclass
