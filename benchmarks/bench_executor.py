@@ -38,8 +38,10 @@ PROJECT_CORES = 32  # a typical compute node; one unit per core (cpus_per_task =
 
 def midas(args: list[str], env: dict[str, str]) -> float:
     started = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "midas_cli", *args], check=True, env=env, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL)
+    result = subprocess.run([sys.executable, "-m", "midas_cli", *args], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    if result.returncode:
+        raise RuntimeError(f"midas {' '.join(args)} exited {result.returncode}: {result.stderr[-2000:]}")
     return time.perf_counter() - started
 
 
@@ -79,6 +81,32 @@ def measure(work: Path, n: int, minutes: float, cluster_env: dict[str, str]) -> 
                            "sessions_per_hour": round(PROJECT_NODES * PROJECT_CORES * 3600 / per_unit)}}
 
 
+def measure_folds(work: Path, trials: int, seconds: float, epochs: int, cluster_env: dict[str, str]) -> dict:
+    """`train gestures --split loto --fold all` (one unit per fold: a trial number held out) on a small
+    simulated Raven-II dataset, locally with 1 and 2 workers and through the one-node SLURM."""
+    data = work / "gestures"
+    env = {**os.environ, "MIDAS_PROGRESS_INTERVAL_S": "60"}
+    midas(["simulate", "dataset", "--platform", "raven-ii", "--trials", str(trials), "--subjects", "2",
+           "--max-seconds", f"{seconds:g}", "--out", str(data)], env)
+    midas(["align", *map(str, sorted(p for p in data.iterdir() if p.is_dir()))], env)
+    modes = []
+    for name, extra, slots, mode_env in (("local, 1 worker", ["--jobs", "1"], 1, env),
+                                         ("local, 2 workers", ["--jobs", "2"], 2, env),
+                                         ("one-node SLURM", ["--executor", "slurm"], os.cpu_count() or 1,
+                                          {**env, **cluster_env})):
+        out = work / f"folds-{name.replace(' ', '_').replace(',', '')}"
+        load_before = load_average()
+        wall = midas(["train", "gestures", str(data), "--split", "loto", "--fold", "all", "--epochs", str(epochs),
+                      "--out", str(out), *extra], mode_env)
+        seconds_each = unit_seconds(out / "jobs")
+        mean_unit = statistics.mean(seconds_each)
+        modes.append({"mode": name, "units": len(seconds_each), "slots": slots, "wall_s": round(wall, 2),
+                      "folds_per_hour": round(len(seconds_each) * 3600 / wall), "unit_mean_s": round(mean_unit, 3),
+                      "overhead_per_unit_s": round(wall * slots / len(seconds_each) - mean_unit, 3),
+                      "load_1min_before_after": [load_before, load_average()]})
+    return {"trials": trials, "trial_seconds": seconds, "epochs": epochs, "model": "mstcn", "modes": modes}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
@@ -91,7 +119,10 @@ def main() -> None:
         cluster_gen = start_cluster(work / "slurm")
         cluster = next(cluster_gen)
         try:
-            runs = [measure(work, n, minutes, {"SLURM_CONF": cluster.env["SLURM_CONF"]}) for n, minutes in sizes]
+            slurm_env = {"SLURM_CONF": cluster.env["SLURM_CONF"]}
+            runs = [measure(work, n, minutes, slurm_env) for n, minutes in sizes]
+            folds = measure_folds(work, 4 if options.quick else 8, 20.0 if options.quick else 60.0,
+                                  1 if options.quick else 5, slurm_env)
         finally:
             for _ in cluster_gen:
                 pass
@@ -99,7 +130,7 @@ def main() -> None:
                               "session_streams": "EmHT 4 x 240 Hz, FPS 9 ch x 250 Hz, HandKP 30 Hz, video clock 30 fps",
                               "slurm": "one node = this machine (controller and compute), sched/builtin, "
                                        "select/cons_tres CR_CPU, no cgroups (tests/helpers/slurm_fixture.py)",
-                              "runs": runs})
+                              "runs": runs, "folds": folds})
 
 
 if __name__ == "__main__":

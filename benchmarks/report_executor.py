@@ -46,4 +46,19 @@ def executor_section(r: dict) -> list[str]:
             "is unlikely to sustain (not measured here: one node), so the controller and the shared file "
             "system, not the nodes, would set the pace; several sessions per task (not implemented) would be "
             "the next step for short units.", ""]
+    folds = r.get("folds")
+    if folds:
+        out += ["", f"Training folds: `midas train gestures --split loto --fold all --epochs {folds['epochs']}` "
+                f"(MS-TCN++, one unit per fold) on {folds['trials']} simulated Raven-II trials of "
+                f"{folds['trial_seconds']:g} s:", "",
+                "| executor | slots | folds | wall s | folds / hour | unit s | overhead / unit s | load 1 min |",
+                "|---|---|---|---|---|---|---|---|"]
+        for m in folds["modes"]:
+            load = "–".join(f"{v:g}" for v in m["load_1min_before_after"])
+            out.append(f"| {m['mode']} | {m['slots']} | {m['units']} | {m['wall_s']:g} | {m['folds_per_hour']:,} | "
+                       f"{m['unit_mean_s']:g} | {m['overhead_per_unit_s']:g} | {load} |")
+        out += ["", "A fold is long next to a task's start-up, so SLURM's per-unit cost matters far less than for "
+                "align; 2 workers on 2 cores share them with torch's own threads. Pedal ground truth per hour "
+                "is not measured here (simulated datasets carry no console video; `bench_pedal_gt.py` times "
+                "one video)."]
     return out

@@ -45,6 +45,10 @@ def test_tiny_run_learns_and_writes_a_self_describing_folder(sessions, tmp_path)
     assert result.metrics["test"]["summary"]["accuracy"] > 0.4  # 4 classes: chance is 0.25
     assert (tmp_path / "run" / "plots" / "confusion.png").stat().st_size > 0
     assert list((tmp_path / "run" / "predictions").glob("*.csv"))
+    # metrics.json says "finished": cross-validation pools the folds' predictions as soon as every fold has
+    # it (on a cluster, while other folds are still writing), so it must be the run's last file
+    finished = (tmp_path / "run" / "metrics.json").stat().st_mtime_ns
+    assert all(p.stat().st_mtime_ns <= finished for p in (tmp_path / "run").rglob("*") if p.is_file())
 
 
 def test_same_seed_same_run_and_eval_only_reproduces(sessions, tmp_path):

@@ -348,13 +348,15 @@ def _write_run(out_dir: Path, run: dict, result: dict, model: torch.nn.Module, d
     if "val" in result:
         result["val"].pop("predictions")
     write_text(out_target(out_dir / "run.json"), json.dumps(run, indent=2) + "\n")
-    write_text(out_target(out_dir / "metrics.json"), json.dumps(result, indent=2) + "\n")
     if save_checkpoint:
         state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
         with replacing(out_target(out_dir / "checkpoint.pt")) as tmp:
             torch.save({**run, "state_dict": state}, tmp)
     _write_predictions(out_dir, dataset, test, preds)
     write_confusion_png(out_dir / "plots" / "confusion.png", np.asarray(result["test"]["confusion"]), dataset.classes)
+    # last: metrics.json says the run is finished (cross-validation pools every fold's predictions once
+    # each fold has it, from whichever fold ends last; folds run at once on a cluster)
+    write_text(out_target(out_dir / "metrics.json"), json.dumps(result, indent=2) + "\n")
 
 
 def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, preds: list[np.ndarray]) -> None:

@@ -103,6 +103,15 @@ PartitionName=debug Nodes={node} Default=YES MaxTime=INFINITE State=UP
     return conf
 
 
+def _die_with_parent() -> None:
+    """In the daemon, before exec: SIGTERM it when the process that started it dies (a test run or a
+    benchmark killed with SIGKILL would otherwise leave munged, slurmctld and slurmd running)."""
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 def _start_munge(root: Path, munged: str) -> subprocess.Popen:
     key = root / "munge" / "munge.key"
     key.write_bytes(os.urandom(1024))
@@ -111,7 +120,8 @@ def _start_munge(root: Path, munged: str) -> subprocess.Popen:
     return subprocess.Popen([munged, "--foreground", "--force", f"--key-file={key}",
                              f"--socket={root / 'munge' / 'munge.sock'}", f"--pid-file={root / 'run' / 'munged.pid'}",
                              f"--log-file={root / 'log' / 'munged.log'}", f"--seed-file={root / 'munge' / 'seed'}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, start_new_session=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, start_new_session=True,
+                            preexec_fn=_die_with_parent)
 
 
 def _node_idle(env: dict[str, str]) -> bool:
@@ -193,7 +203,7 @@ def start_cluster(root: Path) -> Iterator[SlurmCluster]:
             args = [found[daemon], "-D", "-f", str(conf)] + (["-i"] if daemon == "slurmctld" else [])
             log = open(root / "log" / f"{daemon}.stderr", "wb")
             processes.append(subprocess.Popen(args, env=env, stdout=log, stderr=subprocess.STDOUT,
-                                              start_new_session=True))
+                                              start_new_session=True, preexec_fn=_die_with_parent))
         cluster = SlurmCluster(root, conf, env)
         while not _node_idle(env):
             dead = [p.args[0] for p in processes if p.poll() is not None]
