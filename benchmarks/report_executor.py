@@ -60,5 +60,5 @@ def executor_section(r: dict) -> list[str]:
         out += ["", "A fold is long next to a task's start-up, so SLURM's per-unit cost matters far less than for "
                 "align; 2 workers on 2 cores share them with torch's own threads. Pedal ground truth per hour "
                 "is not measured here (simulated datasets carry no console video; `bench_pedal_gt.py` times "
-                "one video)."]
+                "one video).", ""]
     return out
