@@ -270,8 +270,12 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
         _wait_for_screen(name, 'marker: suture 1, "knot"')
         subprocess.run(["tmux", "send-keys", "-t", name, "Enter"], check=True)
         _wait_for_screen(name, "markers 1, last: suture 1")
+        subprocess.run(["tmux", "send-keys", "-t", name, "m"], check=True)  # a second one, never saved
+        subprocess.run(["tmux", "send-keys", "-t", name, "-l", "half typed"], check=True)
+        _wait_for_screen(name, "marker: half typed")
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
         screen = _wait_for_screen(name, str(tmp_path))
+        assert "marker being typed was not saved (the recording stopped before Enter): half typed" in screen
         session = Session.open(_only_session(tmp_path))
         assert session.status == "complete" and "Ctrl-C" in session.manifest["stop_reason"]
         events = session.read_stream("events")

@@ -130,6 +130,9 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
         run_until(recorder, duration, should_stop, on_tick)
         display.update(recorder.snapshot(duration, stopping=True))
         status, reason = ("interrupted", recorder.fatal_error) if recorder.fatal_error else stop.outcome()
+        if remote.prompt.text:  # typed on the live screen, never saved with Enter: say so, not silently drop it
+            display.message(f"midas: warning: the marker being typed was not saved (the recording stopped "
+                            f"before Enter): {remote.prompt.text}")
         manifest = recorder.stop(status, remote.finish(reason))
     display.final(manifest, recorder.path)
     if recorder.fatal_error:
