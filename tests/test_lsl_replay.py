@@ -155,6 +155,45 @@ def test_faster_replay_keeps_the_recorded_spacing_in_its_timestamps(tmp_path: Pa
     assert np.all(wrapped > 0)  # a new --loop pass goes on forward in time
 
 
+def test_markers_are_replayed_as_a_string_stream(tmp_path: Path) -> None:
+    """Every recording has an `events` stream (the operator's markers, text): replaying a session that holds
+    markers was an internal error ('could not convert string to float'); LSL's own marker streams are strings."""
+    import pylsl
+
+    from midas_cli.interop.lsl_replay import plan_replay, replay
+    from midas_cli.record.markers import events_spec
+
+    clock = HostClock.anchored_now()
+    events = events_spec()
+    writer = SessionWriter.create(tmp_path, SessionMetadata("7", "replay", 1), clock,
+                                  {"arm": {"kind": "kinematics"}, "operator": {"kind": "operator"}}, [ARM, events])
+    t0 = clock.now_ns()
+    writer.append("arm", ARM.format_rows([(i, t0 + i * 10_000_000, i * 0.5, 0.0) for i in range(100)]))
+    writer.append("events", events.format_rows([(0, t0 + 200_000_000, 'needle "in", 1', "key"),
+                                                (1, t0 + 700_000_000, "knot", "mark")]))
+    writer.finalize("complete", "test", t0 + 1_000_000_000, {})
+    plan = plan_replay(writer.folder, loop=True, delay_s=0.0)
+    stop = threading.Event()
+    player = threading.Thread(target=replay, args=(plan, stop.is_set), daemon=True)
+    player.start()
+    try:
+        found = pylsl.resolve_bypred(f"source_id='midas:{writer.folder.name}:events'", 1, 30)
+        assert found, "the markers were not announced"
+        inlet = pylsl.StreamInlet(found[0])
+        info = inlet.info(timeout=10)
+        assert info.channel_format() == pylsl.cf_string and info.channel_count() == 2
+        markers, deadline = [], time.monotonic() + 30
+        while len(markers) < 3 and time.monotonic() < deadline:
+            sample, _ = inlet.pull_sample(timeout=0.5)
+            if sample is not None:
+                markers.append(sample)
+        inlet.close_stream()
+    finally:
+        stop.set()
+        player.join(timeout=10)
+    assert len(markers) >= 3 and {tuple(m) for m in markers} <= {('needle "in", 1', "key"), ("knot", "mark")}
+
+
 def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
     import pylsl
 

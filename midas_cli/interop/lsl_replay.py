@@ -141,7 +141,10 @@ def _samples(session: Session, index: int, spec: StreamSpec) -> Iterator[tuple[i
     names = [c.name for c in channel_columns(spec)]
     for chunk in session.iter_stream(spec.name):
         times = chunk["t_host_ns"].to_numpy(np.int64).tolist()
-        values = chunk[names].to_numpy(dtype=np.float64, na_value=np.nan).tolist()
+        if spec.has_text:  # a string outlet (outlet.channel_format): each value as its CSV text, missing ""
+            values = chunk[names].astype("string").fillna("").to_numpy(dtype=object).tolist()
+        else:
+            values = chunk[names].to_numpy(dtype=np.float64, na_value=np.nan).tolist()
         for t, row in zip(times, values):
             yield t, index, row
 

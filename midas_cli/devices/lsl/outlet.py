@@ -7,7 +7,8 @@ Used by ``midas replay --to lsl`` (interop/lsl_replay.py) and ``midas record --l
   (stable: a consumer that resolves by source_id finds the stream again after a restart);
 * ``channel_format`` ``double64`` (ints are exact below 2**53; a missing value is NaN), one channel per
   data column: every column but ``seq`` and ``t_host_ns`` (a stream with no other column sends its
-  ``seq``);
+  ``seq``); a stream with a text column (the operator's ``events``: LSL's marker streams) is ``string``,
+  every value as its CSV text (a missing value is "");
 * ``nominal_srate`` = the manifest's nominal rate, 0 (irregular) for an event stream;
 * ``<desc><channels><channel><label/><unit/><type/><description/></channel>...`` from the columns,
   and ``<acquisition><manufacturer>midas</manufacturer>``.
@@ -25,6 +26,12 @@ from midas_cli.devices.lsl.device import import_pylsl
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 
 CHANNEL_FORMAT = "double64"
+TEXT_CHANNEL_FORMAT = "string"
+
+
+def channel_format(spec: StreamSpec) -> str:
+    """``string`` for a stream with a text column, else ``double64``."""
+    return TEXT_CHANNEL_FORMAT if spec.has_text else CHANNEL_FORMAT
 
 
 def source_id(session: str, stream: str) -> str:
@@ -43,7 +50,7 @@ def stream_info(spec: StreamSpec, kind: str, session: str) -> Any:
     pylsl = import_pylsl()
     columns = channel_columns(spec)
     info = pylsl.StreamInfo(spec.name, kind or spec.device, len(columns), spec.nominal_rate_hz or 0.0,
-                            CHANNEL_FORMAT, source_id(session, spec.name))
+                            channel_format(spec), source_id(session, spec.name))
     desc = info.desc()
     channels = desc.append_child("channels")
     for column in columns:
