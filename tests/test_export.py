@@ -68,9 +68,13 @@ def _check_mcap(session_path: Path, out: Path) -> None:
 def _check_parquet(session_path: Path, out: Path) -> None:
     session = Session.open(session_path)
     folder = out / session.manifest["session_id"]
+    metadata = session.manifest["metadata"]
     for name in session.stream_names:
-        back = pd.read_parquet(folder / f"{name}.parquet")
+        whole = pd.read_parquet(folder / f"{name}.parquet")
+        back = whole[[c.name for c in session.stream_spec(name).columns]]
         pd.testing.assert_frame_equal(back, session.read_stream(name), check_exact=True)
+        assert set(whole["session_id"]) <= {session.manifest["session_id"]}  # every row names its session
+        assert set(whole["task"]) <= {metadata.get("task")} and set(whole["trial"]) <= {metadata.get("trial")}
         raw = pd.read_csv(session.stream_path(name), keep_default_na=False, na_values=[""])  # the CSV as text -> numbers
         assert np.array_equal(back.to_numpy(np.float64, na_value=np.nan), raw.to_numpy(np.float64), equal_nan=True)
         assert back["t_host_ns"].dtype == np.int64 and back["t_host_ns"].equals(raw["t_host_ns"])
@@ -152,3 +156,43 @@ def test_imported_original_session_round_trips(tmp_path: Path) -> None:
     _check_mcap(session, tmp_path / "out")
     _check_parquet(session, tmp_path / "out")
     _check_xdf(session, tmp_path / "out")
+
+
+def _session_with_markers(root: Path, subject: str, trial: int, markers: list[str]) -> Path:
+    """A small session: a float stream with a nullable int column and the events stream (maybe empty)."""
+    from midas_cli.clock import HostClock
+    from midas_cli.record.markers import events_spec
+    from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    force = StreamSpec("force", "fps", (SEQ, T_HOST, Column("ch0", "float", "V"), Column("state", "int")), 100.0)
+    clock = HostClock.anchored_now()
+    writer = SessionWriter.create(root, SessionMetadata(subject, "knot", trial), clock, {}, [force, events_spec()])
+    t0 = clock.now_ns()
+    writer.append("force", force.format_rows([(k, t0 + k * 10_000_000, 0.5 * k, None if k % 2 else k)
+                                              for k in range(5)]))
+    if markers:
+        writer.append("events", events_spec().format_rows([(k, t0 + k, text, "mark")
+                                                           for k, text in enumerate(markers)]))
+    writer.finalize("complete", "test", t0 + 60_000_000, {})
+    return writer.folder
+
+
+def test_parquet_of_many_sessions_reads_as_one_table_in_duckdb(tmp_path: Path) -> None:
+    """Column types come from the declared columns, not the content: a session without markers still
+    types `text` as a string, so DuckDB reads every session's events at once; rows name their session."""
+    import duckdb
+
+    sessions = [_session_with_markers(tmp_path / "in", "7", 1, ["needle in", "knot"]),
+                _session_with_markers(tmp_path / "in", "8", 2, [])]
+    out = tmp_path / "out"
+    assert midas("export", *map(str, sessions), "--format", "parquet", "--out", str(out)).returncode == 0
+    events = duckdb.sql(f"select subject, trial, text from read_parquet('{out}/*/events.parquet') "
+                        "order by subject, seq").fetchall()
+    assert events == [("7", 1, "needle in"), ("7", 1, "knot")]
+    counts = duckdb.sql(f"select session_id, count(*), count(state), sum(ch0) from read_parquet("
+                        f"'{out}/*/force.parquet') group by session_id order by session_id").fetchall()
+    assert counts == sorted((Session.open(s).manifest["session_id"], 5, 3, 5.0) for s in sessions)
+    types = dict(duckdb.sql(f"select column_name, column_type from (describe select * from read_parquet("
+                            f"'{out}/*/events.parquet'))").fetchall())
+    assert types["text"] == types["source"] == types["subject"] == "VARCHAR" and types["trial"] == "BIGINT"
