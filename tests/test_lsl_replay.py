@@ -78,11 +78,12 @@ def _check_round_trip(source: Session, recorded: Session, stream: str, channels:
     """The recorded rows are consecutive source rows (wrapping at a --loop pass) with equal values, and
     consecutive LSL timestamps are as far apart as the source's host times (within one pass)."""
     src, got = source.read_stream(stream), recorded.read_stream(stream)
-    assert list(got.columns) == ["seq", "t_host_ns", "t_lsl_s", *channels]  # labels came through <desc>
+    assert list(got.columns) == ["seq", "t_host_ns", "t_lsl_s", "src_seq", *channels]  # labels came through <desc>
     first = np.flatnonzero(np.isclose(src[channels[0]].to_numpy(float), got[channels[0]].iloc[0], atol=1e-9))
     assert len(first) == 1
     at = (first[0] + np.arange(len(got))) % len(src)
     assert np.allclose(got[channels].to_numpy(float), src[channels].to_numpy(float)[at], atol=1e-9)
+    assert np.array_equal(got["src_seq"].to_numpy(float), src["seq"].to_numpy(float)[at])  # the sender's seq kept
     same_pass = np.diff(at) == 1
     src_gap = np.diff(src["t_host_ns"].to_numpy(np.int64)[at]) / 1e9
     got_gap = np.diff(got["t_lsl_s"].to_numpy(float))
@@ -102,7 +103,9 @@ def test_replayed_session_is_recorded_back_with_its_values_and_spacing(tmp_path:
         inlet = pylsl.StreamInlet(found[0])
         info = inlet.info(timeout=10)
         channel = info.desc().child("channels").child("channel")
-        assert (info.name(), info.type(), info.nominal_srate(), info.channel_count()) == ("arm", "kinematics", 100, 2)
+        assert (info.name(), info.type(), info.nominal_srate(), info.channel_count()) == ("arm", "kinematics", 100, 3)
+        assert channel.child_value("label") == "seq"  # the device's own counter first: gaps = lost samples
+        channel = channel.next_sibling()
         assert (channel.child_value("label"), channel.child_value("unit")) == ("x_mm", "mm")
         inlet.close_stream()
         result = record_until(tmp_path / "out", [
@@ -146,7 +149,7 @@ def test_faster_replay_keeps_the_recorded_spacing_in_its_timestamps(tmp_path: Pa
         player.join(timeout=10)
     src = source.read_stream("arm")
     x = src["x_mm"].to_numpy(float)
-    at = np.array([int(np.flatnonzero(np.isclose(x, s[0], atol=1e-9))[0]) for s in samples])
+    at = np.array([int(np.flatnonzero(np.isclose(x, s[1], atol=1e-9))[0]) for s in samples])  # s[0] is seq
     same_pass = np.diff(at) == 1
     src_gap = np.diff(src["t_host_ns"].to_numpy(np.int64)[at]) / 1e9
     assert same_pass.sum() >= 100 and not player.is_alive()
@@ -181,7 +184,9 @@ def test_markers_are_replayed_as_a_string_stream(tmp_path: Path) -> None:
         assert found, "the markers were not announced"
         inlet = pylsl.StreamInlet(found[0])
         info = inlet.info(timeout=10)
-        assert info.channel_format() == pylsl.cf_string and info.channel_count() == 2
+        # LSL's marker convention: type Markers, ONE string channel (marker-aware readers skip wider ones)
+        assert info.channel_format() == pylsl.cf_string and info.channel_count() == 1
+        assert info.type() == "Markers" and info.desc().child("midas").child_value("not_sent") == "seq,source"
         markers, deadline = [], time.monotonic() + 30
         while len(markers) < 3 and time.monotonic() < deadline:
             sample, _ = inlet.pull_sample(timeout=0.5)
@@ -191,14 +196,17 @@ def test_markers_are_replayed_as_a_string_stream(tmp_path: Path) -> None:
     finally:
         stop.set()
         player.join(timeout=10)
-    assert len(markers) >= 3 and {tuple(m) for m in markers} <= {('needle "in", 1', "key"), ("knot", "mark")}
+    assert len(markers) >= 3 and {tuple(m) for m in markers} <= {('needle "in", 1',), ("knot",)}
 
 
 def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
+    """Each stream's rows as written (the worker's outlets), and the operator's markers live (the
+    recorder's outlet: a Markers stream whose one channel is the text)."""
     import pylsl
 
     received: list[tuple[float, list[float]]] = []
-    state: dict = {}
+    state: dict = {"markers": []}
+    sock = tmp_path / "control.sock"
 
     def enough_received(out: Path) -> bool:
         if "inlet" not in state:
@@ -208,15 +216,25 @@ def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
                 return False
             state["inlet"] = pylsl.StreamInlet(found[0])
             state["info"] = state["inlet"].info(timeout=10)
+            assert midas("ctl", "--control", str(sock), "mark", "first bite").returncode == 0
+            markers = pylsl.resolve_bypred(f"source_id='midas:{sessions[0].parent.name}:events'", 1, 30)
+            state["markers_inlet"] = pylsl.StreamInlet(markers[0])
+            state["markers_info"] = state["markers_inlet"].info(timeout=10)
+            state["markers_inlet"].open_stream(timeout=10)  # connected: what is marked now reaches it
+            assert midas("ctl", "--control", str(sock), "mark", "knot, tied").returncode == 0
         samples, stamps = state["inlet"].pull_chunk(timeout=0.2)
         received.extend(zip(stamps, samples))
-        if len(received) < 100:
+        marker, _ = state["markers_inlet"].pull_sample(timeout=0.0)
+        state["markers"] += [marker] if marker else []
+        if len(received) < 100 or not state["markers"]:
             return False
         state["inlet"].close_stream()  # before the recording stops: no broken-off stream to report
+        state["markers_inlet"].close_stream()
         return True
 
-    result = record_until(tmp_path, ["--simulate", "--lsl-out", "--subject", "1", "--task", "lslout",
-                                     "--trial", "1", "--no-tui"], until=enough_received, timeout=120)
+    result = record_until(tmp_path / "out", ["--simulate", "--lsl-out", "--subject", "1", "--task", "lslout",
+                                             "--trial", "1", "--no-tui", "--control", str(sock)],
+                          until=enough_received, timeout=120)
     assert result.returncode == 0, result.stderr
     assert len(received) >= 100
     session = Session.open(result.stdout.strip().splitlines()[-1])
@@ -227,14 +245,18 @@ def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
         labels.append(channel.child_value("label"))
         units.append(channel.child_value("unit"))
         channel = channel.next_sibling()
-    assert labels == spec.column_names[2:] and units == [c.unit for c in spec.columns[2:]]
-    assert (info.name(), info.type(), info.nominal_srate()) == ("emht", "emht", 240)
+    channels = [c for c in spec.columns if c.name != "t_host_ns"]  # seq first, then the data columns
+    assert labels == [c.name for c in channels] and units == [c.unit for c in channels]
+    assert (info.name(), info.type(), info.nominal_srate()) == ("emht", "MoCap", 240)
+    assert ["knot, tied"] in state["markers"]  # sent after the consumer connected, as written
+    assert all(m in (["first bite"], ["knot, tied"]) for m in state["markers"])
+    assert state["markers_info"].type() == "Markers" and state["markers_info"].channel_count() == 1
     frame = session.read_stream("emht")
     times = frame["t_host_ns"].to_numpy(np.int64)
     stamps_ns = np.array([s for s, _ in received]) * 1e9 + session.manifest["clock"]["anchor_ns"]
     rows = np.clip(np.searchsorted(times, stamps_ns.round().astype(np.int64) - 1_000), 0, len(times) - 1)
     assert np.abs(times[rows] - stamps_ns).max() < 1_000  # each timestamp is a row's host time
-    values = frame[spec.column_names[2:]].to_numpy(float)[rows]
+    values = frame[[c.name for c in channels]].to_numpy(float)[rows]
     assert np.array_equal(values, np.array([v for _, v in received]), equal_nan=True)
 
 

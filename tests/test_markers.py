@@ -157,7 +157,9 @@ def test_text_columns_are_quoted_parsed_strictly_and_exported(tmp_path: Path) ->
     parquet = pd.read_parquet(tmp_path / "x" / writer.folder.name / "events.parquet")
     assert parquet["source"].tolist() == ["key", "mark", "ctl"]
     streams, _ = pyxdf.load_xdf(str(tmp_path / "x" / f"{writer.folder.name}.xdf"), synchronize_clocks=False)
-    assert [row[1] for row in streams[0]["time_series"]] == ['comma, "quote"', "ünïcode", ""]
+    # as LabRecorder would record `midas replay`: a Markers stream, one string channel, the text
+    assert streams[0]["info"]["type"] == ["Markers"] and streams[0]["info"]["channel_count"] == ["1"]
+    assert [row[0] for row in streams[0]["time_series"]] == ['comma, "quote"', "ünïcode", ""]
 
     text_spec = StreamSpec("t", "d", (SEQ, T_HOST, Column("text", "text")), None)
     header = text_spec.header_line().encode()

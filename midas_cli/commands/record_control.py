@@ -9,6 +9,7 @@ the recording proper cuts the streams at that time.
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -20,9 +21,11 @@ from midas_cli.commands.record_keys import Keyboard, MarkerPrompt, keyboard_avai
 from midas_cli.console import control_line
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.record.control import ControlServer, default_control_path
-from midas_cli.record.markers import EVENTS_STREAM, MarkerLog
+from midas_cli.record.markers import EVENTS_DEVICE, EVENTS_STREAM, MarkerLog
 from midas_cli.record.recorder import Recorder
 from midas_cli.record.status import RecorderSnapshot
+
+log = logging.getLogger(__name__)
 
 
 class RemoteControl:
@@ -48,10 +51,21 @@ class RemoteControl:
     def attach(self, recorder: Recorder) -> None:
         """The session exists: take markers and answer requests from now on."""
         self.recorder = recorder
-        self.markers = MarkerLog(recorder.writer, recorder.clock)
+        self.markers = MarkerLog(recorder.writer, recorder.clock, self._marker_outlet(recorder))
         if not self.armed:
             self.started_ns = recorder.writer.manifest["start"]["host_ns"]
         self.server.serve(self.handle)
+
+    @staticmethod
+    def _marker_outlet(recorder: Recorder) -> Optional[Callable[[Any, list[tuple]], None]]:
+        """With --lsl-out, the markers' outlet (record/lsl_out.py): a failure is logged, recording goes on."""
+        if not recorder.plan.lsl_out:
+            return None
+        from midas_cli.record.lsl_out import LiveOutlets
+
+        outlets = LiveOutlets(recorder.path.name, EVENTS_DEVICE, recorder.clock.anchor_ns,
+                              lambda message: log.warning("%s: %s", EVENTS_DEVICE, message))
+        return outlets.publish
 
     def watching(self, on_tick: Callable[[RecorderSnapshot], None]) -> Callable[[RecorderSnapshot], None]:
         """``on_tick`` that also keeps the latest snapshot for `ctl status`."""

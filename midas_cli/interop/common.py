@@ -21,6 +21,12 @@ def column_facts(session: Session, name: str) -> list[dict[str, Any]]:
     return [{"unit": column.unit, **column.to_manifest()} for column in session.stream_spec(name).columns]
 
 
+def device_kind(session: Session, name: str) -> str:
+    """The kind of the device that recorded stream ``name`` (the manifest's ``devices``), else its device name."""
+    spec = session.stream_spec(name)
+    return str((session.manifest.get("devices", {}).get(spec.device) or {}).get("kind") or spec.device)
+
+
 def units(session: Session, name: str) -> dict[str, str]:
     return {column.name: column.unit for column in session.stream_spec(name).columns}
 

@@ -30,8 +30,9 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 
 from midas_cli.devices.lsl.device import import_pylsl
-from midas_cli.devices.lsl.outlet import channel_columns, open_outlet, source_id
+from midas_cli.devices.lsl.outlet import channel_columns, open_outlet, source_id, stream_type
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.interop.common import device_kind
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
 
@@ -123,7 +124,7 @@ def _replay_stream(session: Session, name: str) -> ReplayStream:
     """The stream's first/last host time and rows: from the manifest, else read once."""
     spec = session.stream_spec(name)
     entry = session.manifest["streams"][name]
-    kind = str((session.manifest.get("devices", {}).get(spec.device) or {}).get("kind") or spec.device)
+    kind = device_kind(session, name)
     first, last, count = entry.get("first_t_host_ns"), entry.get("last_t_host_ns"), entry.get("samples")
     if not (isinstance(first, int) and isinstance(last, int) and isinstance(count, int)):
         first, last, count = None, None, 0
@@ -196,6 +197,6 @@ def _wait_until(when_s: float, clock: Callable[[], float], should_stop: Callable
 
 def describe(plan: ReplayPlan) -> list[dict[str, Any]]:
     """One entry per published stream: what a consumer resolves it by and what it carries."""
-    return [{"name": s.spec.name, "type": s.kind, "source_id": source_id(plan.name, s.spec.name),
+    return [{"name": s.spec.name, "type": stream_type(s.spec, s.kind), "source_id": source_id(plan.name, s.spec.name),
              "channels": len(channel_columns(s.spec)), "nominal_srate": s.spec.nominal_rate_hz or 0.0,
              "samples": s.samples} for s in plan.streams]

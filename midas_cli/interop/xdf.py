@@ -8,8 +8,8 @@ Layout (all integers little-endian): the magic ``XDF:``, then chunks, each
 
 * tag 1 FileHeader: XML ``<info><version>1.0</version>...``;
 * tag 2 StreamHeader: ``[StreamId: uint32][XML]``, one per midas stream: name, type, ``channel_count``,
-  ``nominal_srate`` (the manifest's nominal rate; 0 for an event stream), ``channel_format`` ``double64``,
-  ``source_id``, and ``<desc><channels><channel><label/><unit/><type/></channel>...`` from the manifest;
+  ``nominal_srate`` (the manifest's nominal rate; 0 for an event stream), ``channel_format``,
+  ``source_id`` ``midas:<session>:<stream>``, and ``<desc><channels><channel><label/><unit/><type/></channel>...`` from the manifest;
 * tag 3 Samples: ``[StreamId: uint32][NumSamples: varlen][samples]``, each sample
   ``[TimeStampBytes: 1 byte = 8][TimeStamp: double, seconds][values]``; a varlen number is
   ``[NumBytes: 1 byte, 1|4|8][the number]``. One Samples chunk per piece of the stream read;
@@ -22,9 +22,10 @@ timestamp, not a channel; int columns are exact below 2**53, a missing value is 
 midas session has one clock, the host clock of the recording computer (manifest ``clock``); every stream
 is already on it, so each offset is 0 s, written at the start, every ``OFFSET_EVERY_S`` and at the stop
 (what LabRecorder does for a stream recorded on the recording host), so that pyxdf's synchronisation
-leaves the times as they are. A stream with text columns (the markers of ``streams/events.csv``) is a
-``string`` stream: every column but ``t_host_ns`` a channel, numbers as their decimal text, a missing value
-"". Label sets are ``string`` streams (``labels/<name>``, one channel
+leaves the times as they are. Names, types, channels and ``source_id`` are those of the live outlets
+(devices/lsl/outlet.py: what LabRecorder would record from `midas replay --to lsl`): the operator's
+markers (``streams/events.csv``) are a ``Markers`` stream with one ``string`` channel, the text (a missing
+value ""), EmHT and hand keypoints are ``MoCap``. Label sets are ``string`` streams (``labels/<name>``, one channel
 ``label``, one sample per labelled frame at that frame's host time, ``nominal_srate`` 0).
 """
 
@@ -38,7 +39,8 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from midas_cli import __version__
-from midas_cli.interop.common import frame_clock, json_columns, label_sets
+from midas_cli.devices.lsl.outlet import channel_columns, channel_format, source_id, stream_type
+from midas_cli.interop.common import device_kind, frame_clock, json_columns, label_sets
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
 
@@ -128,11 +130,11 @@ def write_xdf(session: Session, target: Path) -> dict[str, Any]:
         for name in session.stream_names:
             stream_id += 1
             spec = session.stream_spec(name)
-            columns = [c for c in spec.columns if c.name != "t_host_ns"]
-            info = {"name": name, "type": spec.device, "channel_count": len(columns),
-                    "nominal_srate": spec.nominal_rate_hz or 0,
-                    "channel_format": "string" if spec.has_text else "double64",
-                    "source_id": f"{session_id}/{name}", "version": "1.1", "created_at": start_ns / 1e9,
+            columns = list(channel_columns(spec))  # as `midas replay` sends them (LabRecorder would get these)
+            info = {"name": name, "type": stream_type(spec, device_kind(session, name)),
+                    "channel_count": len(columns), "nominal_srate": spec.nominal_rate_hz or 0,
+                    "channel_format": channel_format(spec), "source_id": source_id(session_id, name),
+                    "version": "1.1", "created_at": start_ns / 1e9,
                     "uid": f"{session_id}/{name}", "session_id": session_id, "hostname": session.manifest.get(
                         "software", {}).get("host", "")}
             stream = _Stream(fh, stream_id, info, [{"label": c.name, "unit": c.unit, "type": c.dtype,
@@ -153,7 +155,7 @@ def write_xdf(session: Session, target: Path) -> dict[str, Any]:
             stream_id += 1
             name = f"labels/{labels.name}"
             stream = _Stream(fh, stream_id, {"name": name, "type": "Markers", "channel_count": 1, "nominal_srate": 0,
-                                             "channel_format": "string", "source_id": f"{session_id}/{name}",
+                                             "channel_format": "string", "source_id": source_id(session_id, name),
                                              "version": "1.1", "created_at": start_ns / 1e9},
                              [{"label": "label", "type": "gesture", "unit": ""}])
             times = labels.t_host_ns / 1e9

@@ -15,7 +15,9 @@ logs/midas.log, and that stream is no longer published; the recording goes on un
 The outlets are those of `midas replay` (devices/lsl/outlet.py): name, device kind as type, labels,
 units and nominal rate from the stream's spec, ``source_id`` ``midas:<session folder>:<stream>``; each
 sample's timestamp is its ``t_host_ns`` on the local LSL clock, ``(t_host_ns - anchor_ns) / 1e9``.
-An outlet is announced when its stream's first rows arrive.
+An outlet is announced when its stream's first rows arrive. The operator's markers are written by the
+recorder, not a worker: the recorder holds one more ``LiveOutlets`` for them (record/markers.py
+``MarkerLog(publish=...)``, made in commands/record_control.py), pushing each marker once it is fsynced.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ moment the recorder starts to stop, so every one lies within the session's span.
 from __future__ import annotations
 
 import threading
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable, Optional
 
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
@@ -57,11 +57,14 @@ def check_marker_text(text: str) -> str:
 
 class MarkerLog:
     """Appends markers to the session's events stream (thread-safe; the control socket's thread and the
-    keyboard's both call ``add``)."""
+    keyboard's both call ``add``). ``publish(spec, rows)``, when given (``--lsl-out``), gets each row
+    once it is on disk and must never raise (record/lsl_out.py ``LiveOutlets.publish``)."""
 
-    def __init__(self, writer: SessionWriter, clock: HostClock) -> None:
+    def __init__(self, writer: SessionWriter, clock: HostClock,
+                 publish: Optional[Callable[[StreamSpec, list[tuple]], None]] = None) -> None:
         self.writer = writer
         self.clock = clock
+        self.publish = publish
         self.spec = writer.specs[EVENTS_STREAM]
         self.count = 0
         self.last: dict[str, Any] | None = None
@@ -79,8 +82,11 @@ class MarkerLog:
             if self._closed:
                 raise SessionError("the recording is stopping; the marker was not written")
             t_host_ns = max(self.clock.now_ns(), self._last_ns + 1)  # strictly increasing
-            self.writer.append(EVENTS_STREAM, self.spec.format_rows([(self.count, t_host_ns, text, source)]))
+            rows = [(self.count, t_host_ns, text, source)]
+            self.writer.append(EVENTS_STREAM, self.spec.format_rows(rows))
             self.writer.sync_stream(EVENTS_STREAM)
+            if self.publish is not None:
+                self.publish(self.spec, rows)
             row = {"seq": self.count, "t_host_ns": t_host_ns, "text": text, "source": source}
             self.count += 1
             self._last_ns = t_host_ns

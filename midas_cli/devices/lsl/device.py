@@ -117,13 +117,14 @@ def layout_of(info) -> LslLayout:
 
 
 def channel_labels(info) -> tuple[str, ...]:
-    """Labels from the stream's <desc><channels> when each is a usable, unique column name that is not
-    one of the recorder's own (seq, t_host_ns, t_lsl_s: a replayed lsl:// session has a t_lsl_s
-    channel); else ch1..chN."""
+    """Labels from the stream's <desc><channels> when each is a usable, unique column name; one that is
+    one of the recorder's own columns (seq, t_host_ns, t_lsl_s: a midas outlet sends its own ``seq``, a
+    replayed lsl:// session a t_lsl_s) is kept as ``src_<label>``; else ch1..chN."""
     count = info.channel_count()
     labels, channel = [], info.desc().child("channels").child("channel")
     while not channel.empty() and len(labels) < count:
-        labels.append(channel.child_value("label"))
+        label = channel.child_value("label")
+        labels.append(f"src_{label}" if label in RESERVED_LABELS else label)
         channel = channel.next_sibling()
     usable = all(_LABEL_OK.match(x) and x not in RESERVED_LABELS for x in labels)
     if len(labels) == count and len(set(labels)) == count and usable:

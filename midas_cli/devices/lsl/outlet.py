@@ -1,17 +1,23 @@
 """Publish a midas stream as an LSL outlet: the one place that turns a ``StreamSpec`` into a StreamInfo.
 
-Used by ``midas replay --to lsl`` (interop/lsl_replay.py) and ``midas record --lsl-out``
-(record/lsl_out.py), so a consumer sees the same stream either way:
+Used by ``midas replay --to lsl`` (interop/lsl_replay.py), ``midas record --lsl-out`` (record/lsl_out.py,
+the operator's markers included) and, for the same names and channels, ``midas export --format xdf``
+(interop/xdf.py), so a consumer sees the same stream either way, and LabRecorder recording a replay
+gets what the XDF export holds. The field's conventions (the XDF meta-data specification):
 
-* name = the stream's name, type = its device's kind, ``source_id`` = ``midas:<session>:<stream>``
-  (stable: a consumer that resolves by source_id finds the stream again after a restart);
-* ``channel_format`` ``double64`` (ints are exact below 2**53; a missing value is NaN), one channel per
-  data column: every column but ``seq`` and ``t_host_ns`` (a stream with no other column sends its
-  ``seq``); a stream with a text column (the operator's ``events``: LSL's marker streams) is ``string``,
-  every value as its CSV text (a missing value is "");
+* name = the stream's name; type = ``Markers`` for the operator's markers (a stream with a text
+  column), ``MoCap`` for motion capture (EmHT, hand keypoints), else the device's kind;
+  ``source_id`` = ``midas:<session>:<stream>`` everywhere (stable: a consumer that resolves by
+  source_id finds the stream again after a restart);
+* numeric streams: ``channel_format`` ``double64`` (ints are exact below 2**53; a missing value is
+  NaN), one channel per column but ``t_host_ns`` (the time is the sample's timestamp): ``seq`` first,
+  the device's own counter (the video's frame index, gaps = lost samples), then the data columns;
+* marker streams: ONE ``string`` channel, the marker's text (marker-aware readers skip marker streams
+  with more channels); its ``seq`` is the sample order and its ``source`` (key / mark / ctl) stays in
+  the session's files, as ``<desc><midas><not_sent>`` says;
 * ``nominal_srate`` = the manifest's nominal rate, 0 (irregular) for an event stream;
 * ``<desc><channels><channel><label/><unit/><type/><description/></channel>...`` from the columns,
-  and ``<acquisition><manufacturer>midas</manufacturer>``.
+  ``<acquisition><manufacturer>midas</manufacturer>``, ``<midas><session/><stream/></midas>``.
 
 Times: a midas host time (Unix-epoch ns from CLOCK_MONOTONIC + the session's anchor, clock.py) is on
 the LSL clock (``pylsl.local_clock()`` = CLOCK_MONOTONIC) at ``(t_host_ns - anchor_ns) / 1e9`` s.
@@ -23,10 +29,12 @@ import math
 from typing import Any, Sequence
 
 from midas_cli.devices.lsl.device import import_pylsl
-from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+from midas_cli.session.schema import T_HOST, Column, StreamSpec
 
 CHANNEL_FORMAT = "double64"
 TEXT_CHANNEL_FORMAT = "string"
+MARKERS_TYPE = "Markers"
+MOCAP_KINDS = ("emht", "handkp")  # device kinds whose streams are typed MoCap
 
 
 def channel_format(spec: StreamSpec) -> str:
@@ -39,17 +47,25 @@ def source_id(session: str, stream: str) -> str:
     return f"midas:{session}:{stream}"
 
 
+def stream_type(spec: StreamSpec, kind: str) -> str:
+    """The LSL/XDF content type of ``spec`` from a device of kind ``kind`` (see the module docstring)."""
+    if spec.has_text:
+        return MARKERS_TYPE
+    return "MoCap" if kind in MOCAP_KINDS else (kind or spec.device)
+
+
 def channel_columns(spec: StreamSpec) -> tuple[Column, ...]:
     """The columns sent as channels, in order (see the module docstring)."""
-    data = tuple(c for c in spec.columns if c.name not in (SEQ.name, T_HOST.name))
-    return data or (spec.columns[0],)
+    if spec.has_text:
+        return (next(c for c in spec.columns if c.dtype == "text"),)
+    return tuple(c for c in spec.columns if c.name != T_HOST.name)
 
 
 def stream_info(spec: StreamSpec, kind: str, session: str) -> Any:
     """The ``pylsl.StreamInfo`` describing ``spec`` (device kind ``kind``) of session ``session``."""
     pylsl = import_pylsl()
     columns = channel_columns(spec)
-    info = pylsl.StreamInfo(spec.name, kind or spec.device, len(columns), spec.nominal_rate_hz or 0.0,
+    info = pylsl.StreamInfo(spec.name, stream_type(spec, kind), len(columns), spec.nominal_rate_hz or 0.0,
                             channel_format(spec), source_id(session, spec.name))
     desc = info.desc()
     channels = desc.append_child("channels")
@@ -61,6 +77,12 @@ def stream_info(spec: StreamSpec, kind: str, session: str) -> Any:
         if column.description:
             channel.append_child_value("description", column.description)
     desc.append_child("acquisition").append_child_value("manufacturer", "midas")
+    midas = desc.append_child("midas")
+    midas.append_child_value("session", session)
+    midas.append_child_value("stream", spec.name)
+    not_sent = [c.name for c in spec.columns if c not in columns and c.name != T_HOST.name]
+    if not_sent:
+        midas.append_child_value("not_sent", ",".join(not_sent))
     return info
 
 
@@ -69,12 +91,15 @@ def open_outlet(spec: StreamSpec, kind: str, session: str) -> Any:
     return import_pylsl().StreamOutlet(stream_info(spec, kind, session))
 
 
-def row_values(spec: StreamSpec, rows: Sequence[Sequence[Any]]) -> list[list[float]]:
+def row_values(spec: StreamSpec, rows: Sequence[Sequence[Any]]) -> list[list[Any]]:
     """The channel values of ``rows`` (full rows: seq, t_host_ns, ...) as the stream's CSV holds them:
     a float rounded to its column's decimals (``round`` and the CSV's ``{:.Nf}`` round alike), an int
-    as an int; None -> NaN. A live consumer sees what a later replay of the file sends."""
+    as an int; None -> NaN (a marker's text as it is, None -> ""). A live consumer sees what a later
+    replay of the file sends."""
     columns = channel_columns(spec)
     at = [spec.column_names.index(c.name) for c in columns]
+    if spec.has_text:
+        return [["" if row[i] is None else str(row[i]) for i in at] for row in rows]
     digits = [None if c.dtype == "int" else c.decimals for c in columns]
     return [[math.nan if row[i] is None else float(int(row[i])) if d is None else round(float(row[i]), d)
              for i, d in zip(at, digits)] for row in rows]
