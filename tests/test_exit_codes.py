@@ -229,3 +229,19 @@ def test_progress_line_without_a_total_says_the_eta_is_unknown():
     assert progress_line("hand keypoints", 7, None, 65.0) == \
         "midas: progress: hand keypoints: 7 done, elapsed 00:01:05, ETA unknown"
     assert progress_line("x", 0, 5, 0.0).endswith("ETA unknown")
+
+
+@pytest.mark.parametrize("args, needles", [
+    (["export", "{d}", "--formt", "mcap", "--out", "{d}/x"], ["export:", "--formt", "--format"]),
+    (["session", "verify"], ["session verify:", "Missing argument"]),
+    (["record", "--simulate", "--duration", "abc"], ["record:", "--duration"]),
+    (["bogus"], ["No such command", "bogus"]),
+])
+def test_click_usage_errors_are_one_line_and_a_hint(tmp_path, args, needles):
+    """A typo in an option was a usage line and a 3-line box; now one `midas: error:` line, then the hint."""
+    result = midas(*(a.format(d=tmp_path) for a in args))
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 2, result.stderr
+    assert lines[0].startswith("midas: error: ") and all(n in lines[0] for n in needles), lines[0]
+    assert lines[1].startswith("Try 'midas") and lines[1].endswith(" -h' for help.")
+    assert not (tmp_path / "x").exists() and not result.stdout

@@ -64,9 +64,35 @@ def _invoked_command(argv: list[str]) -> str | None:
     return first if first in COMMANDS else None
 
 
+def _usage_error(exc: Exception) -> int:
+    """Click's usage error as one line plus a hint (click's own is a usage line and a 3-line box);
+    returns its exit code (2). A command group run without arguments has printed its help already."""
+    if type(exc).__name__ != "NoArgsIsHelpError":
+        ctx = getattr(exc, "ctx", None)
+        where = ctx.command_path if ctx is not None else "midas"
+        command = where.removeprefix("midas").strip()
+        message = " ".join(str(exc.format_message()).split())  # type: ignore[attr-defined]
+        error_line(f"midas: error: {command + ': ' if command else ''}{message}")
+        error_line(f"Try '{where} -h' for help.")
+    return int(getattr(exc, "exit_code", 2))
+
+
 def run() -> None:
+    from typer._click.exceptions import ClickException, UsageError
+    from typer.exceptions import Abort
+
     try:
-        build_app(_invoked_command(sys.argv[1:]))(prog_name="midas")
+        code = build_app(_invoked_command(sys.argv[1:]))(prog_name="midas", standalone_mode=False)
+        if isinstance(code, int) and code:  # typer.Exit(N) (no command returns a number)
+            sys.exit(code)
+    except UsageError as exc:
+        sys.exit(_usage_error(exc))
+    except ClickException as exc:
+        error_line(f"midas: error: {' '.join(exc.format_message().split())}")
+        sys.exit(exc.exit_code)
+    except Abort:
+        error_line("midas: interrupted")
+        sys.exit(130)
     except KeyboardInterrupt:  # Ctrl-C before a command installed its own handling: no traceback
         error_line("midas: interrupted")
         sys.exit(130)
