@@ -151,3 +151,32 @@ def test_the_fast_path_prints_the_static_help(tmp_path: Path) -> None:
                             timeout=120, env=env, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stdout == root_help(100)
+
+
+# As if torch were not installed (the console laptop's `pip install midas-cli`, no [train] extra).
+_NO_TORCH = """import runpy, sys
+sys.modules["torch"] = None
+sys.argv = ["midas", *sys.argv[1:]]
+runpy.run_module("midas_cli", run_name="__main__", alter_sys=True)
+"""
+
+
+def _without_torch(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", _NO_TORCH, *args], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "NO_COLOR": "1"})
+
+
+def test_recording_needs_no_torch_and_training_says_how_to_get_it(tmp_path: Path) -> None:
+    """torch is the `train` extra: record, verify and export run without it; a command that needs it is one
+    line naming the extra, exit 2 (it was an internal error)."""
+    made = _without_torch("record", "--simulate", "--duration", "1", "--no-tui", "--out", str(tmp_path / "s"),
+                          "--subject", "1", "--task", "t", "--trial", "1")
+    assert made.returncode == 0, made.stderr
+    session = made.stdout.strip().splitlines()[-1]
+    assert _without_torch("session", "verify", session).returncode == 0
+    assert _without_torch("export", session, "--format", "parquet", "--out", str(tmp_path / "x")).returncode == 0
+    train = _without_torch("train", "gestures", session, "--out", str(tmp_path / "run"))
+    lines = train.stderr.strip().splitlines()
+    assert train.returncode == 2 and len(lines) == 1, train.stderr
+    assert "PyTorch" in lines[0] and "pip install 'midas-cli[train]'" in lines[0]
+    assert not (tmp_path / "run").exists()

@@ -39,6 +39,9 @@ def doctor(
     for saved in facts["obs_saved_settings"]:
         out.print(_saved_settings_line(saved), markup=False, soft_wrap=True)
     gpu = facts["gpu"]
+    if not gpu.get("torch"):
+        out.print("PyTorch: not installed (recording needs none; train, features image and the calibration MLP "
+                  "do: pip install 'midas-cli[train]')", markup=False)
     out.print(f"GPU: {', '.join(gpu['devices']) if gpu.get('cuda') else 'none (CPU only)'}", markup=False)
     out.print(f"disk free here: {human_bytes(facts['disk_free_bytes'])}", markup=False)
 

@@ -17,7 +17,7 @@ import typer
 from midas_cli import __version__
 from midas_cli.commands.common import STDERR_LOG, error_line
 from midas_cli.commands.root import COMMANDS, ROOT_HELP
-from midas_cli.errors import MidasError, SessionError, disk_full, disk_full_message
+from midas_cli.errors import ConfigError, MidasError, SessionError, disk_full, disk_full_message
 
 _state = {"debug": False}
 
@@ -104,6 +104,10 @@ def run() -> None:
     except Exception as exc:  # the one place that turns surprises into exit code 1
         if _state["debug"]:
             traceback.print_exc()
+        if isinstance(exc, ModuleNotFoundError) and (exc.name or "").split(".")[0] == "torch":
+            error_line(f"midas: error: {_invoked_command(sys.argv[1:]) or 'this command'} needs PyTorch, which "
+                       f"this installation left out: pip install 'midas-cli[train]' (`make install` has it)")
+            sys.exit(ConfigError.exit_code)
         full = disk_full(exc)
         if full is not None:  # not midas's bug: the disk is full or read-only, wherever it was hit
             error_line(f"midas: error: {disk_full_message(full)}")
