@@ -180,3 +180,20 @@ def test_recording_needs_no_torch_and_training_says_how_to_get_it(tmp_path: Path
     assert train.returncode == 2 and len(lines) == 1, train.stderr
     assert "PyTorch" in lines[0] and "pip install 'midas-cli[train]'" in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("words, cword, expected", [
+    ("midas exp", 1, "export"), ("midas session ve", 2, "verify"), ("midas export --fo", 2, "--format")])
+def test_shell_completion_answers_from_the_commands(words: str, cword: int, expected: str) -> None:
+    """Completion was switched off; bash's request (what `midas --install-completion` wires up) is
+    answered from the real commands, not by the static root help."""
+    env = {**os.environ, "COMP_WORDS": words, "COMP_CWORD": str(cword), "_MIDAS_COMPLETE": "complete_bash"}
+    result = subprocess.run([sys.executable, "-m", "midas_cli"], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == [expected]
+
+
+def test_completion_script_is_offered() -> None:
+    result = subprocess.run([sys.executable, "-m", "midas_cli", "--show-completion", "bash"], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0 and "_MIDAS_COMPLETE=complete_bash" in result.stdout

@@ -43,7 +43,7 @@ def build_app(only: str | None = None) -> typer.Typer:
     """The CLI with every command, or with just ``only`` (what `run` uses, to import one module)."""
     app = typer.Typer(
         no_args_is_help=True,
-        add_completion=False,
+        add_completion=True,
         pretty_exceptions_enable=False,
         context_settings={"help_option_names": ["-h", "--help"]},
     )

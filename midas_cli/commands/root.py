@@ -79,16 +79,20 @@ Exit codes: 0 ok, 1 internal, 2 usage, 3 device, 4 session/data."""
 ROOT_OPTIONS: tuple[tuple[str, str, str], ...] = (
     ("--debug", "", "Show tracebacks and debug logging."),
     ("--version", "", "Print the version."),
+    ("--install-completion", "", "Install completion for the current shell."),
+    ("--show-completion", "", "Show completion for the current shell, to copy it or customize the installation."),
     ("--help", "-h", "Show this message and exit."),
 )
 
 _HELP_FLAGS = {"--help", "-h"}
-MIN_STATIC_WIDTH = 50  # narrower, rich squeezes typer's columns its own way: let typer draw it
+MIN_STATIC_WIDTH = 55  # narrower, rich squeezes typer's columns its own way: let typer draw it
 
 
 def answer_without_typer(argv: list[str]) -> int | None:
     """Print the answer to `midas [--debug] --version|--help` (or bare `midas`) and return the exit
-    status; None for anything else, which the typer app handles."""
+    status; None for anything else, which the typer app handles (a shell's completion request too)."""
+    if any(name.endswith("_COMPLETE") for name in os.environ):  # `_MIDAS_COMPLETE=...`: typer's completion
+        return None
     flags = set(argv) - {"--debug"}
     if flags == {"--version"}:
         sys.stdout.write(f"midas {__version__}\n")
