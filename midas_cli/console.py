@@ -10,7 +10,7 @@ import sys
 from typing import Any
 
 from rich.columns import Columns
-from rich.console import Console, Group
+from rich.console import Console, ConsoleOptions, Group, RenderResult
 from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
@@ -19,7 +19,7 @@ from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 
 STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan", "opening": "cyan",
                "stopped": "dim"}
-BAR_WIDTH = 16
+BAR_WIDTH = 8  # the pedal bars: narrow enough that pedals and EmHT sit side by side in 80 columns
 STALE_PANEL_S = 1.0  # a panel whose last sample is older than this is marked stale
 
 
@@ -75,26 +75,44 @@ def _age_text(age: float | None) -> str:
 
 
 def dashboard(snapshot: RecorderSnapshot, control: Text | None = None) -> Group:
-    """The live TUI (fits an 80-column SSH terminal): header, ``control`` (markers: ``control_line``; under
-    the header, so a short terminal never crops it), device health, pedal bars, EmHT positions."""
-    top = (_header(snapshot),) if control is None else (_header(snapshot), control)
-    return Group(*top, _device_table(snapshot), _device_errors(snapshot), Columns(_live_panels(snapshot)))
+    """The live TUI, laid out for an 80x24 SSH terminal (the simulated rig's every pedal included): a
+    one-line header, the session's path (from the start; shortened on the left to fit), ``control``
+    (markers: ``control_line``; near the top, so a short terminal never crops it), device health,
+    then the pedal bars and EmHT positions side by side."""
+    top: list[Any] = [_header(snapshot), _PathLine(snapshot.session_path)]
+    if control is not None:
+        top.append(control)
+    errors = _device_errors(snapshot)
+    return Group(*top, _device_table(snapshot), *([errors] if errors.plain else []),
+                 Columns(_live_panels(snapshot)))
+
+
+class _PathLine:
+    """``session <path>`` on one line: a path too long for the terminal loses its start, not its end
+    (the session's own folder name)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> RenderResult:
+        room = max(options.max_width - len("session "), 1)
+        path = self.path if len(self.path) <= room else "…" + self.path[-(room - 1):]
+        yield Text.assemble(("session ", "dim"), path, no_wrap=True, overflow="crop")
 
 
 def _header(snapshot: RecorderSnapshot) -> Text:
-    total = "" if snapshot.duration_s is None else f" / {clock_text(snapshot.duration_s)}"
-    state = "  [stopping…]" if snapshot.stopping else "  (Ctrl-C to stop)"
+    total = "" if snapshot.duration_s is None else f"/{clock_text(snapshot.duration_s)}"
+    state = "  [stopping…]" if snapshot.stopping else "  Ctrl-C stops"
     return Text.assemble(
-        ("● REC ", "bold red"), (snapshot.session_id, "bold"),
-        f"   elapsed {clock_text(snapshot.elapsed_s)}{total}",
-        f"   disk free {human_bytes(snapshot.disk_free_bytes)}",
-        f"   writing {human_bytes(snapshot.write_rate_bps)}/s", (state, "dim"),
+        ("● REC ", "bold red"), f"elapsed {clock_text(snapshot.elapsed_s)}{total}",
+        f"  disk free {human_bytes(snapshot.disk_free_bytes)}",
+        f"  {human_bytes(snapshot.write_rate_bps)}/s", (state, "dim"), no_wrap=True, overflow="ellipsis",
     )
 
 
 def _device_table(snapshot: RecorderSnapshot) -> Table:
-    table = Table(expand=False, header_style="bold", caption="rate: measured / nominal Hz; age: last sample",
-                  caption_justify="left", pad_edge=False)
+    # rate: measured / nominal; age: last sample. No outer edge: two lines more for the pedals at 80x24
+    table = Table(expand=False, header_style="bold", pad_edge=False, show_edge=False)
     for column in ("device", "state", "rate Hz", "samples", "age", "drop", "corr", "miss", "reconn"):
         table.add_column(column, justify="left" if column in ("device", "state") else "right", no_wrap=True,
                          min_width=len(column))
@@ -131,7 +149,7 @@ def _live_panels(snapshot: RecorderSnapshot) -> list[Panel]:
                 continue
             stale = _staleness(device, stream)
             if device.kind == "fps":
-                body, title = _pedal_bars(stream.latest, device.labels, bool(stale)), f"{device.name}: pedals"
+                body, title = _pedal_bars(stream.latest, device.labels, bool(stale)), f"{device.name}: pedals (V, ● pressed)"
             else:
                 body, title = _emht_positions(stream.latest, device.labels), f"{device.name}: positions (mm)"
             panels.append(Panel(body, title=title + (f" [{stale}]" if stale else ""), expand=False,
@@ -154,7 +172,7 @@ def _pedal_bars(latest: dict[str, Any], labels: dict[str, str], stale: bool = Fa
     table.add_column(no_wrap=True)
     table.add_column(no_wrap=True, min_width=BAR_WIDTH)
     table.add_column(no_wrap=True, justify="right")
-    table.add_column(no_wrap=True, min_width=7)
+    table.add_column(no_wrap=True, min_width=1)
     from midas_cli.devices.pedals import adc_to_volts  # numpy: here, so `midas session ...` never loads it
 
     channel = 1
@@ -163,8 +181,7 @@ def _pedal_bars(latest: dict[str, Any], labels: dict[str, str], stale: bool = Fa
         filled = int(round(volts / 5.0 * BAR_WIDTH))
         pressed = latest.get(f"ch{channel}_pressed") == 1 and not stale
         bar = Text("█" * filled + "·" * (BAR_WIDTH - filled), "bold magenta" if pressed else "magenta")
-        table.add_row(labels.get(str(channel), f"P{channel}"), bar, f"{volts:4.2f} V",
-                      Text("PRESSED" if pressed else "", "bold"))
+        table.add_row(labels.get(str(channel), f"P{channel}"), bar, f"{volts:4.2f}V", Text("●" if pressed else "", "bold"))
         channel += 1
     return table
 

@@ -251,19 +251,45 @@ def test_a_failing_device_is_reconnected_while_others_record(tmp_path: Path) -> 
     assert "lost" in result.stderr
 
 
+def _check_layout(screen: str, width: int, session: Path) -> None:
+    """Nothing cropped: the header on one line, the session's path from the start, every device row,
+    all 9 pedals (the da Vinci names and the two unnamed ones) and the 4 EmHT sensors."""
+    lines = screen.splitlines()
+    top = next(i for i, line in enumerate(lines) if line.startswith("● REC elapsed"))  # under the socket's line
+    assert "disk free" in lines[top] and lines[top + 1].startswith("session ")
+    assert lines[top + 1].endswith(session.name) and max(len(line) for line in lines[top:]) <= width, screen
+    for label in ("secondary_energy_left", "primary_energy_right", "clutch", "camera", "arm_swap", "P8", "P9",
+                  "s1 ", "s4 ", "positions (mm)", "m: add a marker"):
+        assert label in screen, f"{label!r} not on the {width}-column screen:\n{screen}"
+
+
+@pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (.ci/run installs it)")
+def test_live_tui_at_120x40_shows_everything(tmp_path: Path) -> None:
+    name = f"midas-test-wide-{os.getpid()}"
+    command = f"{sys.executable} -m midas_cli record --simulate --duration 60 --out {tmp_path} {' '.join(META)}"
+    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "120", "-y", "40", command], check=True)
+    try:
+        screen = _wait_for_screen(name, "P9", lambda text: not _unhealthy_rows(text))
+        _check_layout(screen, 120, _only_session(tmp_path))
+        subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
+        _wait_for_screen(name, "", lambda _: Session.open(_only_session(tmp_path)).status == "complete")
+    finally:
+        subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+
+
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (.ci/run installs it)")
 def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_path: Path) -> None:
+    """An 80x24 SSH terminal: the whole screen fits (it cut the pedals after 2 of 9 and wrapped the header)."""
     name = f"midas-test-{os.getpid()}"
     command = (f"{sys.executable} -m midas_cli record --simulate --duration 60 --out {tmp_path} "
                f"{' '.join(META)}; sleep 30")
-    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "50", command], check=True)
+    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "24", command], check=True)
     try:
         screen = _wait_for_screen(name, "elapsed 00:00:04")
         # a busy host can stall a worker for a moment (the row then says degraded, honestly): wait for a
         # screen where every device is healthy rather than judge the first one
         screen = _wait_for_screen(name, "", lambda text: not _unhealthy_rows(text))
-        assert "pedals" in screen and "positions (mm)" in screen and "disk free" in screen
-        assert "m: add a marker" in screen, screen
+        _check_layout(screen, 80, _only_session(tmp_path))
         subprocess.run(["tmux", "send-keys", "-t", name, "m"], check=True)  # a marker: m, text, Enter
         _wait_for_screen(name, "Enter saves, Esc cancels")
         subprocess.run(["tmux", "send-keys", "-t", name, "-l", 'suture 1, "knot"'], check=True)
@@ -274,7 +300,7 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
         subprocess.run(["tmux", "send-keys", "-t", name, "-l", "half typed"], check=True)
         _wait_for_screen(name, "marker: half typed")
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
-        screen = _wait_for_screen(name, str(tmp_path))
+        screen = _wait_for_screen(name, str(tmp_path), history=True)  # the summary scrolls a 24-line screen
         assert "marker being typed was not saved (the recording stopped before Enter): half typed" in screen
         session = Session.open(_only_session(tmp_path))
         assert session.status == "complete" and "Ctrl-C" in session.manifest["stop_reason"]
@@ -290,7 +316,8 @@ def _unhealthy_rows(screen: str) -> list[str]:
     bad = []
     for device, rate in (("emht", 240), ("fps", 250), ("video", 30), ("handkp", 30)):
         row = next((line for line in screen.splitlines() if line.strip("│┃ ").startswith(device)), "")
-        measured = row.split("│")[3].split("/") if row.count("│") > 4 else ["0", "0"]
+        cell = next((c for c in row.split("│") if "/" in c), "")  # the rate column: measured / nominal
+        measured = cell.split("/") if cell else ["0", "0"]
         try:
             good = float(measured[1]) == rate and abs(float(measured[0]) - rate) < 0.05 * rate and " ok " in row
         except (ValueError, IndexError):  # no figure yet
@@ -300,14 +327,15 @@ def _unhealthy_rows(screen: str) -> list[str]:
     return bad
 
 
-def _wait_for_screen(name: str, text: str, ok=None, timeout_s: float = 30) -> str:
-    """The first screen showing ``text`` (and satisfying ``ok``, when given) within ``timeout_s``."""
+def _wait_for_screen(name: str, text: str, ok=None, timeout_s: float = 30, history: bool = False) -> str:
+    """The first screen showing ``text`` (and satisfying ``ok``, when given) within ``timeout_s``; with
+    ``history``, the lines scrolled off the top too."""
     deadline = time.monotonic() + timeout_s
     screen = ""
     while time.monotonic() < deadline:
         time.sleep(0.5)
-        screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", "-t", name], capture_output=True,
-                                text=True).stdout
+        screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", *(["-S", "-"] if history else []), "-t", name],
+                                capture_output=True, text=True).stdout
         if text in screen and (ok is None or ok(screen)):
             return screen
     problem = f"{text!r} never appeared" if text not in screen else f"rows never all ok: {_unhealthy_rows(screen)}"
