@@ -18,7 +18,7 @@ from rich.text import Text
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
 from midas_cli.config import RIG_ENV, config_path, default_rig, default_sessions
 from midas_cli.console import dashboard, is_interactive, status_line
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceUrl, redact_url
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.record.markers import check_stream_names, events_spec
@@ -172,7 +172,7 @@ def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigCo
     for item in device:
         name, sep, url = item.partition("=")
         if not sep or not name or not url:
-            raise ConfigError(f"--device expects NAME=URL, got {item!r}")
+            raise ConfigError(f"--device expects NAME=URL, got {redact_url(item)!r}")
         kind = DeviceUrl.parse(url).target.strip("/") if url.startswith("sim://") else name
         config.devices[name] = DeviceConfig(name, url, kind)  # checks the name (it names files)
     return config

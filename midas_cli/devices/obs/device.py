@@ -67,7 +67,6 @@ class ObsDevice(Device):
 
     def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
-        _refuse_password_in_url(url)
         self.params = url.take(PARAMS, DEFAULTS)
         self.host, self.port = _address(url)
         _check_params(url, self.params)
@@ -352,13 +351,6 @@ class ObsDevice(Device):
         if path is None:
             return None
         return os.path.relpath(path, self.session_dir.resolve())
-
-
-def _refuse_password_in_url(url: DeviceUrl) -> None:
-    if urlsplit(url.raw).password is not None or "password" in url.params:
-        raise ConfigError(f"{url.redacted()}: a password in the URL ends up in shell history, process lists and "
-                          f"logs; put it in an environment variable (MIDAS_OBS_PASSWORD, or the one named by "
-                          f"password_env in the rig) instead")
 
 
 def _address(url: DeviceUrl) -> tuple[str, int]:
