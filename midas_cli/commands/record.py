@@ -19,6 +19,7 @@ from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positiv
 from midas_cli.config import RIG_ENV, config_path, default_rig, default_sessions
 from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl, redact_url
+from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.record.markers import check_stream_names, events_spec
@@ -115,6 +116,8 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
     ended = lambda: should_stop() or (not remote.armed and recorder.duration_reached(duration))  # noqa: E731
     with display, remote.keyboard(display.mode == "tui", display.message):
         display.message(f"midas: control socket {remote.path} (midas mark TEXT, midas ctl status|stop)")
+        if recorder.plan.lsl_out:
+            display.message(f"midas: --lsl-out: {exposure_note(lsl_config_file())}")
         ready = recorder.wait_ready(READY_TIMEOUT_S, ended, on_tick)
         failed = {} if ended() else recorder.unopened()
         if failed:

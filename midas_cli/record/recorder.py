@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.lsl.outlet import lsl_config_file
 from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
@@ -91,6 +92,14 @@ class Recorder:
                     raise ConfigError(f"two devices produce a stream named {spec.name!r}")
                 self.streams[spec.name] = StreamStats(spec)
 
+    def lsl_out_entry(self) -> dict[str, Any]:
+        """The manifest's ``lsl_out``: whether every stream was also published as an LSL outlet, and
+        the liblsl configuration file that applied (None: liblsl's defaults)."""
+        if not self.plan.lsl_out:
+            return {"enabled": False}
+        config = lsl_config_file()
+        return {"enabled": True, "lsl_config": None if config is None else str(config)}
+
     @property
     def started_monotonic_s(self) -> float:
         """``time.monotonic()`` at the session start (the manifest's start time)."""
@@ -115,7 +124,7 @@ class Recorder:
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
-                                           self.plan.rig)
+                                           self.plan.rig, extra={"lsl_out": self.lsl_out_entry()})
         self._started_mono = self.clock.to_monotonic_s(self.writer.manifest["start"]["host_ns"])
         self._attach_log()
         self.bytes_written = self.writer.bytes_written
