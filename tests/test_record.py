@@ -101,6 +101,7 @@ def test_manifest_describes_streams_and_latency(ten_second_session) -> None:
     assert units["s1_x_mm"] == "mm" and units["t_host_ns"] == "ns"
     assert manifest["devices"]["emht"]["info"]["serial"].startswith("SIM-")
     assert manifest["stop_reason"] == "duration reached"
+    assert manifest["lsl_out"] == {"enabled": False}  # no outlet listened on the network
 
 
 def test_recorded_samples_are_the_seeded_model_at_their_sequence_number(ten_second_session) -> None:
