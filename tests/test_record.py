@@ -59,6 +59,7 @@ def test_ten_second_recording_is_complete_and_verifies(ten_second_session) -> No
     session = Session.open(path)
     assert session.status == "complete"
     manifest = session.manifest
+    assert manifest["lsl_out"] == {"enabled": False}  # no outlet listened on the network
     assert abs((manifest["stop"]["host_ns"] - manifest["start"]["host_ns"]) / 1e9 - 10) <= 0.5
     for name, rate in (("emht", 240), ("fps", 250)):  # nothing lost from the device's first to last sample
         frame = session.read_stream(name)
@@ -101,7 +102,6 @@ def test_manifest_describes_streams_and_latency(ten_second_session) -> None:
     assert units["s1_x_mm"] == "mm" and units["t_host_ns"] == "ns"
     assert manifest["devices"]["emht"]["info"]["serial"].startswith("SIM-")
     assert manifest["stop_reason"] == "duration reached"
-    assert manifest["lsl_out"] == {"enabled": False}  # no outlet listened on the network
 
 
 def test_recorded_samples_are_the_seeded_model_at_their_sequence_number(ten_second_session) -> None:
