@@ -63,7 +63,8 @@ def record(
     queue_size: int = typer.Option(4096, "--queue-size", help="Bookkeeping messages a worker holds before merging "
                                    "them (rows are on disk first; nothing is dropped)."),
     lsl_out: bool = typer.Option(False, "--lsl-out", help="Also publish every stream live as an LSL outlet "
-                                 "(labels, units, rate; timestamps = host times on the LSL clock)."),
+                                 "(labels, units, rate; timestamps = host times on the LSL clock). Outlets "
+                                 "accept connections on every network interface: see README."),
     control: Optional[Path] = typer.Option(None, "--control", help="Control socket for `midas ctl` / `midas mark` "
                                            "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
     armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
