@@ -1,11 +1,10 @@
 """The recorder: creates the session, spawns one worker per device, tracks health, finalises.
 
-Each worker appends its own streams' rows to the files this process created (record/worker.py), so
-the host read -> disk path never crosses a process. Threads in the main process: the bookkeeping
-thread drains the workers' bounded queue of bookkeeping messages and events into the live stats
-(and fsyncs every stream file about once a second, through this process's own fds); the caller's
-thread polls ``snapshot()`` for the display and decides when to ``stop()``. At stop the manifest
-is finalised from what is on disk.
+Each worker appends its own streams' rows to the files this process created (record/worker.py), so the
+host read -> disk path never crosses a process. Threads in the main process: the bookkeeping thread drains
+the workers' bounded queue of bookkeeping messages and events into the live stats (and fsyncs every stream
+file about once a second, through this process's own fds); the caller's thread polls ``snapshot()`` for
+the display and decides when to ``stop()``. At stop the manifest is finalised from what is on disk.
 """
 
 from __future__ import annotations
@@ -21,12 +20,12 @@ from typing import Any, Callable
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
-from midas_cli.devices.lsl.outlet import lsl_config_file
 from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.link import Inbox, StopLine
+from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.spawn import stop_signals_blocked, worker_context
@@ -92,14 +91,6 @@ class Recorder:
                     raise ConfigError(f"two devices produce a stream named {spec.name!r}")
                 self.streams[spec.name] = StreamStats(spec)
 
-    def lsl_out_entry(self) -> dict[str, Any]:
-        """The manifest's ``lsl_out``: whether every stream was also published as an LSL outlet, and
-        the liblsl configuration file that applied (None: liblsl's defaults)."""
-        if not self.plan.lsl_out:
-            return {"enabled": False}
-        config = lsl_config_file()
-        return {"enabled": True, "lsl_config": None if config is None else str(config)}
-
     @property
     def started_monotonic_s(self) -> float:
         """``time.monotonic()`` at the session start (the manifest's start time)."""
@@ -124,7 +115,7 @@ class Recorder:
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
-                                           self.plan.rig, extra={"lsl_out": self.lsl_out_entry()})
+                                           self.plan.rig, extra={"lsl_out": lsl_out_manifest(self.plan.lsl_out)})
         self._started_mono = self.clock.to_monotonic_s(self.writer.manifest["start"]["host_ns"])
         self._attach_log()
         self.bytes_written = self.writer.bytes_written
