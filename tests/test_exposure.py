@@ -46,8 +46,10 @@ def test_a_rig_file_password_is_refused_naming_where_it_goes(tmp_path: Path) -> 
 @pytest.mark.parametrize("url", [
     f"raven://u:{SECRET}@0.0.0.0:36000", f"lsl://?name=hr&api_token={SECRET}", f"fps:///dev/ttyACM0?PWD={SECRET}",
     f"sim://emht?Secret={SECRET}", f"fob://{SECRET}@/dev/ttyUSB0", f"obs://[{SECRET}@127.0.0.1",
-    f"{SECRET}@host", f"obs://127.0.0.1?%70w={SECRET}",
-], ids=["raven", "lsl", "fps", "sim", "fob", "bad-ipv6", "no-scheme", "percent-encoded-key"])
+    f"{SECRET}@host", f"obs://127.0.0.1?%70w={SECRET}", f"obs://u:{SECRET}/x@host:4455",
+    f"obs://u:{SECRET}?x@host:4455&fps=30", f" obs://{SECRET}@host",
+], ids=["raven", "lsl", "fps", "sim", "fob", "bad-ipv6", "no-scheme", "percent-encoded-key", "slash-in-password",
+        "question-mark-in-password", "leading-space"])
 def test_every_scheme_refuses_credentials_without_echo(url: str) -> None:
     with pytest.raises(ConfigError) as error:
         DeviceUrl.parse(url)
@@ -57,6 +59,7 @@ def test_every_scheme_refuses_credentials_without_echo(url: str) -> None:
 def test_parameters_that_name_where_a_secret_is_are_not_secrets() -> None:
     url = DeviceUrl.parse("obs://127.0.0.1:4455?fps=30&password_env=OBS_PW&marker=Sync")
     assert url.params["password_env"] == "OBS_PW" and url.redacted() == url.raw
+    assert DeviceUrl.parse("lsl://?name=lab@site").params == {"name": "lab@site"}
     assert not any(is_secret_key(key) for key in ("password_env", "compass", "marker", "source_id", "hostname"))
     assert all(is_secret_key(key) for key in ("password", "PW", "Passwd", "api_token", "obs.secret", "key"))
 
@@ -66,6 +69,8 @@ def test_parameters_that_name_where_a_secret_is_are_not_secrets() -> None:
     (f"obs://host?fps=30&Password={SECRET}&marker=m", "obs://host?fps=30&Password=***&marker=m"),
     (f"{SECRET}@host/path?token={SECRET}", "***@host/path?token=***"),
     (f"obs://[{SECRET}@h:1", "obs://***@h:1"),
+    (f"obs://u:{SECRET}?x@host:4455&fps=30", "obs://***@host:4455&fps=30"),
+    ("lsl://?name=lab@site&rate=10", "lsl://?name=lab@site&rate=10"),  # an '@' in a value is no user part
     ("sim://emht?rate=240", "sim://emht?rate=240"),
     ("fob:///dev/ttyUSB0?baud=115200", "fob:///dev/ttyUSB0?baud=115200"),
 ])

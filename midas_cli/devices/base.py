@@ -11,7 +11,7 @@ import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, Callable, TypeVar
-from urllib.parse import SplitResult, parse_qsl, unquote_plus, urlsplit
+from urllib.parse import parse_qsl, unquote_plus, urlsplit
 
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError
@@ -27,7 +27,6 @@ NOT_SECRET = frozenset({"password_env"})
 WHERE_PASSWORDS_GO = ("put it in an environment variable (OBS: MIDAS_OBS_PASSWORD, or the variable a rig's "
                       "password_env names)")
 REDACTED = "***"
-_AUTHORITY = re.compile(r"^(?P<head>[A-Za-z][A-Za-z0-9+.-]*://)?(?P<authority>[^/?#]*)(?P<rest>.*)$", re.S)
 
 
 def is_secret_key(key: str) -> bool:
@@ -38,17 +37,30 @@ def is_secret_key(key: str) -> bool:
     return lowered in SECRET_WORDS or any(part in SECRET_WORDS for part in re.split(r"[_.-]", lowered))
 
 
+def user_part_end(text: str) -> int:
+    """Index of the '@' that ends a user part (``user:password@``) in a URL, -1 if none: the last '@'
+    outside the query's values (a password holding '/' or '?' moves the host into the path or the
+    query, so the '@' is looked for there too)."""
+    before, _, query = text.partition("?")
+    end, offset = before.rfind("@"), len(before) + 1
+    for pair in query.split("&"):
+        key = pair.partition("=")[0]
+        if "@" in key:
+            end = offset + key.rfind("@")
+        offset += len(pair) + 1
+    return end
+
+
 def redact_url(text: str) -> str:
     """``text`` safe to show or store: a user part (``user:password@``) and the values of secret
     parameters (``?pw=``, ``?Password=``...) become ``***``. Never raises, whatever ``text`` holds."""
-    match = _AUTHORITY.match(text)
-    head, authority, rest = match["head"] or "", match["authority"], match["rest"]
-    if "@" in authority:
-        authority = f"{REDACTED}@{authority.rsplit('@', 1)[1]}"
-    path, mark, query = rest.partition("?")
-    if mark:
-        query = "&".join(_redacted_pair(pair) for pair in query.split("&"))
-    return head + authority + path + mark + query
+    end = user_part_end(text)
+    if end >= 0:
+        scheme_end = text.find("://")
+        start = scheme_end + 3 if 0 <= scheme_end < end else 0
+        text = text[:start] + REDACTED + text[end:]
+    before, mark, query = text.partition("?")
+    return before + mark + "&".join(_redacted_pair(pair) for pair in query.split("&")) if mark else before
 
 
 def _redacted_pair(pair: str) -> str:
@@ -56,18 +68,17 @@ def _redacted_pair(pair: str) -> str:
     return f"{key}{sep}{REDACTED}" if is_secret_key(unquote_plus(key)) else pair
 
 
-def _refuse_credentials(url: str, parts: SplitResult) -> None:
+def _refuse_credentials(url: str, params: list[tuple[str, str]]) -> None:
     """ConfigError (naming neither the secret nor anything that holds it) for a user part or a secret
     parameter in a device URL: they would reach shell history, process lists, logs and the manifest."""
-    shown = redact_url(url)
-    if "@" in parts.netloc:
-        raise ConfigError(f"device URL {shown}: a user or password before '@' is refused (it would end up in "
-                          f"shell history, process lists, logs and the session manifest); remove it and "
-                          f"{WHERE_PASSWORDS_GO}")
-    secret = [key for key, _ in parse_qsl(parts.query, keep_blank_values=True) if is_secret_key(key)]
+    if user_part_end(url) >= 0:
+        raise ConfigError(f"device URL {redact_url(url)}: a user or password before '@' is refused (it would "
+                          f"end up in shell history, process lists, logs and the session manifest); remove it "
+                          f"and {WHERE_PASSWORDS_GO}")
+    secret = [key for key, _ in params if is_secret_key(key)]
     if secret:
-        raise ConfigError(f"device URL {shown}: parameter {secret[0]!r} holds a secret and is refused (it "
-                          f"would end up in shell history, process lists, logs and the session manifest); "
+        raise ConfigError(f"device URL {redact_url(url)}: parameter {secret[0]!r} holds a secret and is refused "
+                          f"(it would end up in shell history, process lists, logs and the session manifest); "
                           f"{WHERE_PASSWORDS_GO}")
 
 
@@ -91,8 +102,9 @@ class DeviceUrl:
         if not parts.scheme or "://" not in url:
             raise ConfigError(f"device URL {redact_url(url)!r} has no scheme (expected e.g. sim://emht or "
                               f"fob:///dev/ttyUSB0)")
-        _refuse_credentials(url, parts)
-        params = dict(parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False))
+        pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False)
+        _refuse_credentials(url, pairs)
+        params = dict(pairs)
         return cls(url, parts.scheme, (parts.netloc + parts.path), params)
 
     def take(self, allowed: dict[str, type], defaults: dict[str, Any]) -> dict[str, Any]:
