@@ -99,9 +99,8 @@ def lsl_config_file(environ: Mapping[str, str] | None = None) -> Path | None:
     ``$LSLAPICFG``, ``./lsl_api.cfg``, ``~/lsl_api/lsl_api.cfg``, ``/etc/lsl_api/lsl_api.cfg``; None
     when there is none (liblsl's built-in defaults)."""
     environ = os.environ if environ is None else environ
-    named = [environ[CONFIG_ENV]] if environ.get(CONFIG_ENV) else []
-    for place in named + list(CONFIG_PLACES):
-        path = Path(place).expanduser()
+    named = [Path(environ[CONFIG_ENV])] if environ.get(CONFIG_ENV) else []  # taken as is, no ~ expansion
+    for path in named + [Path(place).expanduser() for place in CONFIG_PLACES]:
         if path.is_file() and os.access(path, os.R_OK):
             return path.absolute()
     return None
