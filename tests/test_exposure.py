@@ -4,12 +4,16 @@ outlets is the one liblsl itself loads."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 from midas_cli.devices.base import DeviceUrl, is_secret_key, redact_url
 from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
+from midas_cli.devices.obs.connection import resolve_password
+from midas_cli.devices.registry import describe_device
+from midas_cli.devices.rigconfig import parse_rig
 from midas_cli.errors import ConfigError
 from helpers.cli import midas
 
@@ -100,3 +104,36 @@ def test_the_lsl_config_is_the_file_liblsl_loads(tmp_path: Path, monkeypatch) ->
     assert lsl_config_file({"LSLAPICFG": str(tmp_path / "missing.cfg")}) == work / "lsl_api.cfg"
     assert str(named) in exposure_note(named) and "every network interface" in exposure_note(named)
     assert "liblsl's defaults" in exposure_note(None)
+
+
+def test_an_obs_password_file_only_its_owner_can_read_is_used(tmp_path: Path) -> None:
+    secret_file = tmp_path / "obs.pw"
+    secret_file.write_text(f"{SECRET}\n", encoding="utf-8")
+    secret_file.chmod(0o600)
+    assert resolve_password("", str(secret_file)) == (SECRET, f"file {secret_file}")
+    secret_file.chmod(0o640)
+    with pytest.raises(ConfigError, match="may be read by others .*chmod 600") as error:
+        resolve_password("", str(secret_file))
+    assert SECRET not in str(error.value)
+    with pytest.raises(ConfigError, match="not both"):
+        resolve_password("OBS_PW", str(secret_file))
+
+
+@pytest.mark.parametrize("make", [lambda p: p.write_bytes(b""), lambda p: p.mkdir(), lambda p: os.mkfifo(p),
+                                  lambda p: None], ids=["empty", "folder", "fifo", "missing"])
+def test_an_unusable_obs_password_file_is_one_clear_error(tmp_path: Path, make) -> None:
+    path = tmp_path / "obs.pw"
+    make(path)
+    if path.exists():
+        path.chmod(0o600)
+    with pytest.raises(ConfigError, match=f"OBS password file {path}"):
+        resolve_password("", str(path))  # a FIFO never blocks it
+
+
+def test_a_rig_password_file_reaches_the_device_relative_to_the_rig(tmp_path: Path) -> None:
+    rig = parse_rig({"rig": {"name": "r", "platform": "p"},
+                     "devices": {"video": {"url": "obs://localhost:4455", "password_file": "secrets/obs.pw"}}},
+                    str(tmp_path / "rig.toml"))
+    url = rig.device_urls()["video"]
+    assert describe_device("video", url).settings()["password_file"] == str(tmp_path / "secrets" / "obs.pw")
+    assert not is_secret_key("password_file") and DeviceUrl.parse(url).redacted() == url

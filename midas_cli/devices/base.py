@@ -23,9 +23,9 @@ T = TypeVar("T")
 # parts split at '_', '-', '.'); the names of where a secret is kept are not secrets themselves.
 SECRET_WORDS = frozenset({"password", "passwd", "pass", "pw", "pwd", "passphrase", "secret", "token", "apikey",
                           "key", "auth", "credential", "credentials"})
-NOT_SECRET = frozenset({"password_env"})
+NOT_SECRET = frozenset({"password_env", "password_file"})
 WHERE_PASSWORDS_GO = ("put it in an environment variable (OBS: MIDAS_OBS_PASSWORD, or the variable a rig's "
-                      "password_env names)")
+                      "password_env names) or in a file only you can read (a rig's password_file)")
 REDACTED = "***"
 
 
