@@ -66,7 +66,7 @@ def _gpu() -> dict[str, Any]:
 
 def restore_obs_settings(directory: Path | None = None, timeout_s: float = 3.0) -> list[dict[str, Any]]:
     """Every saved copy of OBS settings (``$XDG_STATE_HOME/midas/obs-settings-*.json``) whose midas is
-    gone: put the values back into that OBS (password from the variable the copy names, else
+    gone: put the values back into that OBS (password from the file or variable the copy names, else
     MIDAS_OBS_PASSWORD), stop the recording it left running into its session, delete the copy. One entry
     per copy: ``status`` "restored", "in use" (its midas is still running) or "not restored" (``error``
     says why; the copy is kept)."""
@@ -89,7 +89,7 @@ def restore_obs_settings(directory: Path | None = None, timeout_s: float = 3.0) 
                 results.append(entry)
                 continue
             host, _, port = saved.obs.rpartition(":")
-            password, _ = resolve_password(saved.password_env)
+            password, _ = resolve_password(saved.password_env, saved.password_file)
             connection = ObsConnection(host, int(port), password, timeout_s, HostClock.anchored_now())
             try:
                 store = SettingsStore(host, int(port), path=path)

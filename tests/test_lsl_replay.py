@@ -238,6 +238,9 @@ def test_record_lsl_out_publishes_the_rows_it_writes(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert len(received) >= 100
     session = Session.open(result.stdout.strip().splitlines()[-1])
+    assert session.manifest["lsl_out"] == {"enabled": True, "lsl_config": os.environ["LSLAPICFG"]}
+    assert (f"midas: --lsl-out: LSL outlets accept connections on every network interface (liblsl "
+            f"configuration {os.environ['LSLAPICFG']})") in result.stderr
     spec = session.stream_spec("emht")
     info = state["info"]
     labels, units, channel = [], [], info.desc().child("channels").child("channel")

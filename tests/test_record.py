@@ -59,6 +59,7 @@ def test_ten_second_recording_is_complete_and_verifies(ten_second_session) -> No
     session = Session.open(path)
     assert session.status == "complete"
     manifest = session.manifest
+    assert manifest["lsl_out"] == {"enabled": False}  # no outlet listened on the network
     assert abs((manifest["stop"]["host_ns"] - manifest["start"]["host_ns"]) / 1e9 - 10) <= 0.5
     for name, rate in (("emht", 240), ("fps", 250)):  # nothing lost from the device's first to last sample
         frame = session.read_stream(name)

@@ -42,8 +42,14 @@ def test_wrong_type_is_refused() -> None:
                    "devices": {"emht": {"url": "sim://emht"}}}, "x.toml")
 
 
-def test_passwords_never_reach_the_manifest() -> None:
-    rig = parse_rig({"rig": {"name": "r", "platform": "p"},
-                     "devices": {"video": {"url": "obs://user:s3cret@localhost:4455?password=s3cret",
-                                           "password": "s3cret"}}}, "x.toml")
-    assert "s3cret" not in repr(rig.to_manifest())
+@pytest.mark.parametrize("device", [{"url": "obs://localhost:4455", "password": "s3cret"},
+                                    {"url": "obs://localhost:4455", "Obs_PW": "s3cret"},
+                                    {"url": "obs://user:s3cret@localhost:4455"},
+                                    {"url": "obs://localhost:4455?password=s3cret"}],
+                         ids=["password-key", "pw-key-any-case", "url-user-part", "url-parameter"])
+def test_a_secret_in_a_rig_file_is_refused_naming_where_it_goes(device: dict) -> None:
+    with pytest.raises(ConfigError) as error:
+        parse_rig({"rig": {"name": "r", "platform": "p"}, "devices": {"video": device}}, "x.toml")
+    message = str(error.value)
+    assert "s3cret" not in message
+    assert message.startswith("x.toml: devices.video.") and "MIDAS_OBS_PASSWORD" in message

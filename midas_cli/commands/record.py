@@ -18,7 +18,8 @@ from rich.text import Text
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
 from midas_cli.config import RIG_ENV, config_path, default_rig, default_sessions
 from midas_cli.console import dashboard, is_interactive, status_line
-from midas_cli.devices.base import DeviceUrl
+from midas_cli.devices.base import DeviceUrl, redact_url
+from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
 from midas_cli.record.markers import check_stream_names, events_spec
@@ -62,7 +63,8 @@ def record(
     queue_size: int = typer.Option(4096, "--queue-size", help="Bookkeeping messages a worker holds before merging "
                                    "them (rows are on disk first; nothing is dropped)."),
     lsl_out: bool = typer.Option(False, "--lsl-out", help="Also publish every stream live as an LSL outlet "
-                                 "(labels, units, rate; timestamps = host times on the LSL clock)."),
+                                 "(labels, units, rate; timestamps = host times on the LSL clock). Outlets "
+                                 "accept connections on every network interface: see README."),
     control: Optional[Path] = typer.Option(None, "--control", help="Control socket for `midas ctl` / `midas mark` "
                                            "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
     armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
@@ -115,6 +117,8 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
     ended = lambda: should_stop() or (not remote.armed and recorder.duration_reached(duration))  # noqa: E731
     with display, remote.keyboard(display.mode == "tui", display.message):
         display.message(f"midas: control socket {remote.path} (midas mark TEXT, midas ctl status|stop)")
+        if recorder.plan.lsl_out:
+            display.message(f"midas: --lsl-out: {exposure_note(lsl_config_file())}")
         ready = recorder.wait_ready(READY_TIMEOUT_S, ended, on_tick)
         failed = {} if ended() else recorder.unopened()
         if failed:
@@ -172,7 +176,7 @@ def _choose_rig(simulate: bool, rig: Optional[Path], device: list[str]) -> RigCo
     for item in device:
         name, sep, url = item.partition("=")
         if not sep or not name or not url:
-            raise ConfigError(f"--device expects NAME=URL, got {item!r}")
+            raise ConfigError(f"--device expects NAME=URL, got {redact_url(item)!r}")
         kind = DeviceUrl.parse(url).target.strip("/") if url.startswith("sim://") else name
         config.devices[name] = DeviceConfig(name, url, kind)  # checks the name (it names files)
     return config

@@ -37,10 +37,12 @@ def replay(session: Path = SESSION_ARG,
     if to.strip().lower() not in TARGETS:
         raise ConfigError(f"--to {to}: expected one of {', '.join(TARGETS)}")
     from midas_cli.commands.progress import progress_display
+    from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
     from midas_cli.interop.lsl_replay import describe, plan_replay, replay as play
 
     names = [n.strip() for value in streams for n in value.split(",") if n.strip()]
     plan = plan_replay(session, names, speed, loop, delay)
+    error_line(f"midas: {exposure_note(lsl_config_file())}")
     for entry in describe(plan):
         rate = f"{entry['nominal_srate']:g} Hz" if entry["nominal_srate"] else "irregular"
         error_line(f"midas: publishing LSL stream {entry['name']} (type {entry['type']}, {entry['channels']} "

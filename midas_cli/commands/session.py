@@ -13,6 +13,7 @@ from rich.table import Table
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSION_ARG
 from midas_cli.console import clock_text
+from midas_cli.devices.base import redact_url
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.session.manifest import STATUSES
 from midas_cli.session.reader import Session, find_sessions
@@ -36,6 +37,8 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
     Example: midas session info sessions/suturing_S1_T1_20260101T120000Z
     """
     summary = summarize_session(Session.open(path, allow_failed=True))
+    for device in summary["devices"].values():  # a manifest from an older midas may hold a URL's password
+        device["url"] = redact_url(device["url"]) if isinstance(device["url"], str) else device["url"]
     if as_json:
         print_json(summary)
         return

@@ -7,10 +7,11 @@ are ``seq`` (the device's counter) and ``t_host_ns`` (host clock when the bytes 
 
 from __future__ import annotations
 
+import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, Callable, TypeVar
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import parse_qsl, unquote_plus, urlsplit
 
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError
@@ -18,6 +19,67 @@ from midas_cli.session.schema import StreamSpec
 
 KINDS = ("emht", "fps", "video", "handkp", "raven", "lsl")
 T = TypeVar("T")
+# Words that make a URL parameter or a rig key a secret (matched against the lower-cased key and its
+# parts split at '_', '-', '.'); the names of where a secret is kept are not secrets themselves.
+SECRET_WORDS = frozenset({"password", "passwd", "pass", "pw", "pwd", "passphrase", "secret", "token", "apikey",
+                          "key", "auth", "credential", "credentials"})
+NOT_SECRET = frozenset({"password_env", "password_file"})
+WHERE_PASSWORDS_GO = ("put it in an environment variable (OBS: MIDAS_OBS_PASSWORD, or the variable a rig's "
+                      "password_env names) or in a file only you can read (a rig's password_file)")
+REDACTED = "***"
+
+
+def is_secret_key(key: str) -> bool:
+    """True for a parameter or key name that holds a secret (``password``, ``Pw``, ``api_token``...)."""
+    lowered = key.strip().lower()
+    if lowered in NOT_SECRET:
+        return False
+    return lowered in SECRET_WORDS or any(part in SECRET_WORDS for part in re.split(r"[_.-]", lowered))
+
+
+def user_part_end(text: str) -> int:
+    """Index of the '@' that ends a user part (``user:password@``) in a URL, -1 if none: the last '@'
+    outside the query's values (a password holding '/' or '?' moves the host into the path or the
+    query, so the '@' is looked for there too)."""
+    before, _, query = text.partition("?")
+    end, offset = before.rfind("@"), len(before) + 1
+    for pair in query.split("&"):
+        key = pair.partition("=")[0]
+        if "@" in key:
+            end = offset + key.rfind("@")
+        offset += len(pair) + 1
+    return end
+
+
+def redact_url(text: str) -> str:
+    """``text`` safe to show or store: a user part (``user:password@``) and the values of secret
+    parameters (``?pw=``, ``?Password=``...) become ``***``. Never raises, whatever ``text`` holds."""
+    end = user_part_end(text)
+    if end >= 0:
+        scheme_end = text.find("://")
+        start = scheme_end + 3 if 0 <= scheme_end < end else 0
+        text = text[:start] + REDACTED + text[end:]
+    before, mark, query = text.partition("?")
+    return before + mark + "&".join(_redacted_pair(pair) for pair in query.split("&")) if mark else before
+
+
+def _redacted_pair(pair: str) -> str:
+    key, sep, _ = pair.partition("=")
+    return f"{key}{sep}{REDACTED}" if is_secret_key(unquote_plus(key)) else pair
+
+
+def _refuse_credentials(url: str, params: list[tuple[str, str]]) -> None:
+    """ConfigError (naming neither the secret nor anything that holds it) for a user part or a secret
+    parameter in a device URL: they would reach shell history, process lists, logs and the manifest."""
+    if user_part_end(url) >= 0:
+        raise ConfigError(f"device URL {redact_url(url)}: a user or password before '@' is refused (it would "
+                          f"end up in shell history, process lists, logs and the session manifest); remove it "
+                          f"and {WHERE_PASSWORDS_GO}")
+    secret = [key for key, _ in params if is_secret_key(key)]
+    if secret:
+        raise ConfigError(f"device URL {redact_url(url)}: parameter {secret[0]!r} holds a secret and is refused "
+                          f"(it would end up in shell history, process lists, logs and the session manifest); "
+                          f"{WHERE_PASSWORDS_GO}")
 
 
 @dataclass(frozen=True)
@@ -31,35 +93,36 @@ class DeviceUrl:
 
     @classmethod
     def parse(cls, url: str) -> "DeviceUrl":
-        parts = urlsplit(url)
+        """Parse ``url``; ConfigError for no scheme, an unparsable URL or credentials in it (user part,
+        secret parameters), the message showing the URL redacted."""
+        try:
+            parts = urlsplit(url)
+        except ValueError as exc:  # e.g. an unclosed '[' of an IPv6 address
+            raise ConfigError(f"device URL {redact_url(url)!r} is not a valid URL ({exc})") from None
         if not parts.scheme or "://" not in url:
-            raise ConfigError(f"device URL {url!r} has no scheme (expected e.g. sim://emht or fob:///dev/ttyUSB0)")
-        params = dict(parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False))
+            raise ConfigError(f"device URL {redact_url(url)!r} has no scheme (expected e.g. sim://emht or "
+                              f"fob:///dev/ttyUSB0)")
+        pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False)
+        _refuse_credentials(url, pairs)
+        params = dict(pairs)
         return cls(url, parts.scheme, (parts.netloc + parts.path), params)
 
     def take(self, allowed: dict[str, type], defaults: dict[str, Any]) -> dict[str, Any]:
         """Typed parameters; refuse unknown keys and unparsable values (never guess)."""
         unknown = sorted(set(self.params) - set(allowed))
         if unknown:
-            raise ConfigError(f"{self.raw}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(allowed))})")
+            raise ConfigError(f"{self.redacted()}: unknown parameter(s) {', '.join(unknown)} (known: {', '.join(sorted(allowed))})")
         values = dict(defaults)
         for key, text in self.params.items():
             try:
                 values[key] = allowed[key](text)
             except ValueError:
-                raise ConfigError(f"{self.raw}: {key}={text!r} is not a valid {allowed[key].__name__}") from None
+                raise ConfigError(f"{self.redacted()}: {key}={text!r} is not a valid {allowed[key].__name__}") from None
         return values
 
     def redacted(self) -> str:
-        """The URL with any password removed (for manifests and logs)."""
-        parts = urlsplit(self.raw)
-        if parts.password is None and "password" not in self.params:
-            return self.raw
-        netloc = parts.hostname or ""
-        if parts.port:
-            netloc += f":{parts.port}"
-        query = "&".join(f"{k}={v}" for k, v in self.params.items() if k != "password")
-        return f"{parts.scheme}://{netloc}{parts.path}" + (f"?{query}" if query else "")
+        """The URL as shown and stored (manifests, logs, the screen): see :func:`redact_url`."""
+        return redact_url(self.raw)
 
 
 @dataclass

@@ -1,8 +1,10 @@
 """Rig configuration files (TOML): which devices a console has, and session metadata defaults.
 
 Keys are validated strictly: an unknown key is an error naming the key and the file, never ignored.
-Templates live in ``sessions_template/rigs/``. Passwords never reach the manifest: ``password`` keys
-are dropped from the copy stored there (prefer ``password_env``, the name of an environment variable).
+Templates live in ``sessions_template/rigs/``. A rig file holds no secret (it is shared, copied and
+stored in every session's manifest): a ``password`` key (or any key that names a secret) is refused
+with a line saying where the password goes (``password_env``, the name of an environment variable, or
+``password_file``, a file only its owner may read; a relative one is relative to the rig file).
 
 Here, below the rig layer, because device code edits rig files too (``devices/fps/rigfile.py`` writes
 calibrated pedal thresholds back and validates the result); ``midas_cli/rig.py`` builds on this.
@@ -17,14 +19,14 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from midas_cli.devices.base import KINDS, DeviceUrl
+from midas_cli.devices.base import KINDS, WHERE_PASSWORDS_GO, DeviceUrl, is_secret_key
 from midas_cli.errors import ConfigError
 
 RIG_KEYS = {"name": str, "platform": str, "master_rate_hz": (int, float), "description": str}
 METADATA_KEYS = {"subject": (str, int), "task": str, "trial": int, "operator_note": str}
 DEVICE_KEYS = {"url": str, "kind": str, "description": str, "sensors": dict, "pedals": dict,
-               "password_env": str, "password": str}
-SECRET_KEYS = ("password",)
+               "password_env": str, "password_file": str}
+PASSWORD_SOURCES = ("password_env", "password_file")  # where a password is: they travel as URL parameters
 
 DEVICE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
 
@@ -58,25 +60,26 @@ class RigConfig:
     source: str = ""
 
     def device_urls(self) -> dict[str, str]:
-        """Device name -> URL; a ``password_env`` key travels as a URL parameter (the name of an
-        environment variable, never a password), so the backend reads the password in its worker."""
-        return {name: _with_password_env(device) for name, device in self.devices.items()}
+        """Device name -> URL; ``password_env`` and ``password_file`` keys travel as URL parameters (the
+        name of an environment variable or a file, never a password), so the backend reads the password
+        in its worker."""
+        return {name: _with_password_source(device) for name, device in self.devices.items()}
 
     def to_manifest(self) -> dict[str, Any]:
-        """The rig as recorded in a manifest: URLs without passwords, secrets dropped."""
+        """The rig as recorded in a manifest (URLs shown redacted, though a URL holding credentials
+        never gets this far: ``DeviceUrl.parse`` refuses it)."""
         devices = {}
         for name, device in self.devices.items():
-            extras = {k: v for k, v in device.extras.items() if k not in SECRET_KEYS}
-            devices[name] = {"url": DeviceUrl.parse(device.url).redacted(), "kind": device.kind, **extras}
+            devices[name] = {"url": DeviceUrl.parse(device.url).redacted(), "kind": device.kind, **device.extras}
         return {"name": self.name, "platform": self.platform, "master_rate_hz": self.master_rate_hz,
                 "description": self.description, "source": self.source, "devices": devices}
 
 
-def _with_password_env(device: DeviceConfig) -> str:
-    variable = device.extras.get("password_env")
-    if not variable:
+def _with_password_source(device: DeviceConfig) -> str:
+    sources = "&".join(f"{key}={quote(device.extras[key])}" for key in PASSWORD_SOURCES if device.extras.get(key))
+    if not sources:
         return device.url
-    return device.url + ("&" if "?" in device.url else "?") + f"password_env={quote(variable)}"
+    return device.url + ("&" if "?" in device.url else "?") + sources
 
 
 def load_rig(path: Path | str) -> RigConfig:
@@ -113,15 +116,30 @@ def parse_rig(data: dict[str, Any], source: str) -> RigConfig:
 def _parse_device(name: str, entry: Any, source: str) -> DeviceConfig:
     if not isinstance(entry, dict):
         raise ConfigError(f"{source}: devices.{name} must be a table")
+    _refuse_secrets(entry, source, f"devices.{name}.")
     _check_keys(entry, DEVICE_KEYS, source, f"devices.{name}.")
     if "url" not in entry:
         raise ConfigError(f"{source}: devices.{name} has no url")
     kind = entry.get("kind", name)
     if kind not in KINDS:
         raise ConfigError(f"{source}: devices.{name}: unknown kind {kind!r} (kinds: {', '.join(KINDS)})")
-    DeviceUrl.parse(entry["url"])
+    try:
+        DeviceUrl.parse(entry["url"])
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: devices.{name}.url: {exc}") from None
     extras = {k: v for k, v in entry.items() if k not in ("url", "kind")}
+    if extras.get("password_file"):  # relative to the rig file, wherever midas runs
+        extras["password_file"] = str(Path(source).parent / Path(extras["password_file"]).expanduser())
     return DeviceConfig(name, entry["url"], kind, extras)
+
+
+def _refuse_secrets(table: dict[str, Any], source: str, prefix: str) -> None:
+    """A secret in a rig file is refused, never ignored: the line names the key (not its value) and
+    where the password goes instead."""
+    for key in table:
+        if is_secret_key(key):
+            raise ConfigError(f"{source}: {prefix}{key}: a rig file holds no passwords (it is shared, copied and "
+                              f"stored in every session's manifest); remove it and {WHERE_PASSWORDS_GO}")
 
 
 def _check_keys(table: dict[str, Any], allowed: dict[str, Any], source: str, prefix: str) -> None:

@@ -25,8 +25,17 @@ from __future__ import annotations
 from typing import Any, Callable
 
 from midas_cli.devices.lsl.device import import_pylsl
-from midas_cli.devices.lsl.outlet import lsl_seconds, open_outlet, row_values
+from midas_cli.devices.lsl.outlet import lsl_config_file, lsl_seconds, open_outlet, row_values
 from midas_cli.session.schema import StreamSpec
+
+
+def lsl_out_manifest(enabled: bool) -> dict[str, Any]:
+    """The manifest's ``lsl_out``: whether every stream was also published as an LSL outlet (listening
+    on every network interface), and the liblsl configuration file that applied (None: its defaults)."""
+    if not enabled:
+        return {"enabled": False}
+    config = lsl_config_file()
+    return {"enabled": True, "lsl_config": None if config is None else str(config)}
 
 
 class LiveOutlets:

@@ -1,11 +1,10 @@
 """The recorder: creates the session, spawns one worker per device, tracks health, finalises.
 
-Each worker appends its own streams' rows to the files this process created (record/worker.py), so
-the host read -> disk path never crosses a process. Threads in the main process: the bookkeeping
-thread drains the workers' bounded queue of bookkeeping messages and events into the live stats
-(and fsyncs every stream file about once a second, through this process's own fds); the caller's
-thread polls ``snapshot()`` for the display and decides when to ``stop()``. At stop the manifest
-is finalised from what is on disk.
+Each worker appends its own streams' rows to the files this process created (record/worker.py), so the
+host read -> disk path never crosses a process. Threads in the main process: the bookkeeping thread drains
+the workers' bounded queue of bookkeeping messages and events into the live stats (and fsyncs every stream
+file about once a second, through this process's own fds); the caller's thread polls ``snapshot()`` for
+the display and decides when to ``stop()``. At stop the manifest is finalised from what is on disk.
 """
 
 from __future__ import annotations
@@ -26,6 +25,7 @@ from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.link import Inbox, StopLine
+from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.spawn import stop_signals_blocked, worker_context
@@ -115,7 +115,7 @@ class Recorder:
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
-                                           self.plan.rig)
+                                           self.plan.rig, extra={"lsl_out": lsl_out_manifest(self.plan.lsl_out)})
         self._started_mono = self.clock.to_monotonic_s(self.writer.manifest["start"]["host_ns"])
         self._attach_log()
         self.bytes_written = self.writer.bytes_written

@@ -141,9 +141,11 @@ class SessionWriter:
         specs: list[StreamSpec],
         rig: dict[str, Any] | None = None,
         start_ns: int | None = None,
+        extra: dict[str, Any] | None = None,
     ) -> "SessionWriter":
         """Create the folder and write the "recording" manifest. ``start_ns`` (host clock) is given by
-        offline writers (simulate, import) whose data carry their own times; live recording uses now."""
+        offline writers (simulate, import) whose data carry their own times; live recording uses now.
+        ``extra``: further top-level manifest keys (live recording: ``lsl_out``)."""
         start_ns = clock.now_ns() if start_ns is None else start_ns
         folder = make_session_folder(out_root, metadata.folder_stem(), start_ns)
         try:
@@ -161,6 +163,7 @@ class SessionWriter:
                 "devices": devices,
                 "streams": {spec.name: spec.to_manifest() for spec in specs},
                 "files": {"log": LOG_FILE},
+                **(extra or {}),
             }
             write_manifest(folder, manifest)  # first: a kill from here on leaves a session `repair` understands
             for sub in SUBFOLDERS:

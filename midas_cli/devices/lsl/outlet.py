@@ -19,6 +19,11 @@ gets what the XDF export holds. The field's conventions (the XDF meta-data speci
 * ``<desc><channels><channel><label/><unit/><type/><description/></channel>...`` from the columns,
   ``<acquisition><manufacturer>midas</manufacturer>``, ``<midas><session/><stream/></midas>``.
 
+Exposure: liblsl binds every outlet's TCP data port and UDP service port to all network interfaces
+(IPv4 and IPv6), whatever its configuration file says; that file (``lsl_api.cfg``, see
+:func:`lsl_config_file`) can only narrow discovery (``ResolveScope``, ``ListenAddress``, ``IPv6``).
+midas leaves it to the user and says which file applies (:func:`exposure_note`).
+
 Times: a midas host time (Unix-epoch ns from CLOCK_MONOTONIC + the session's anchor, clock.py) is on
 the LSL clock (``pylsl.local_clock()`` = CLOCK_MONOTONIC) at ``(t_host_ns - anchor_ns) / 1e9`` s.
 """
@@ -26,11 +31,15 @@ the LSL clock (``pylsl.local_clock()`` = CLOCK_MONOTONIC) at ``(t_host_ns - anch
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
 
 from midas_cli.devices.lsl.device import import_pylsl
 from midas_cli.session.schema import T_HOST, Column, StreamSpec
 
+CONFIG_ENV = "LSLAPICFG"
+CONFIG_PLACES = ("lsl_api.cfg", "~/lsl_api/lsl_api.cfg", "/etc/lsl_api/lsl_api.cfg")  # after $LSLAPICFG
 CHANNEL_FORMAT = "double64"
 TEXT_CHANNEL_FORMAT = "string"
 MARKERS_TYPE = "Markers"
@@ -108,3 +117,24 @@ def row_values(spec: StreamSpec, rows: Sequence[Sequence[Any]]) -> list[list[Any
 def lsl_seconds(t_host_ns: int, anchor_ns: int) -> float:
     """A host time (ns) on the local LSL clock (s)."""
     return (t_host_ns - anchor_ns) / 1e9
+
+
+def lsl_config_file(environ: Mapping[str, str] | None = None) -> Path | None:
+    """The one ``lsl_api.cfg`` liblsl (1.16 to 1.18) loads in this process: the first readable file of
+    ``$LSLAPICFG``, ``./lsl_api.cfg``, ``~/lsl_api/lsl_api.cfg``, ``/etc/lsl_api/lsl_api.cfg``; None
+    when there is none (liblsl's built-in defaults)."""
+    environ = os.environ if environ is None else environ
+    named = [Path(environ[CONFIG_ENV])] if environ.get(CONFIG_ENV) else []  # taken as is, no ~ expansion
+    for path in named + [Path(place).expanduser() for place in CONFIG_PLACES]:
+        if path.is_file() and os.access(path, os.R_OK):
+            return path.absolute()
+    return None
+
+
+def exposure_note(config: Path | None) -> str:
+    """One line for stderr when outlets are about to exist: who can reach them, and which liblsl
+    configuration applies (``config``, from :func:`lsl_config_file`)."""
+    applied = (f"liblsl configuration {config}" if config
+               else "no lsl_api.cfg: liblsl's defaults, discoverable across the site")
+    return (f"LSL outlets accept connections on every network interface ({applied}); README 'Live streams "
+            f"out' says how to keep them on this machine")

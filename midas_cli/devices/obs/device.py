@@ -1,6 +1,6 @@
 """``obs://HOST:PORT?fps=30&marker=SOURCE``: OBS Studio records the session's video over obs-websocket v5.
 
-Opening connects (password from the environment, see ``connection``), checks OBS's frame rate against
+Opening connects (password from the environment or a password file, see ``connection``), checks OBS's frame rate against
 ``fps``, saves the operator's OBS settings on disk (``saved``) and points the recording at the
 session's ``video/`` folder as MKV (``profile``), starts it and waits for the RecordStateChanged
 STARTED event, whose host time anchors the frame clock (``frames``), and for OBS's first frame.
@@ -49,9 +49,10 @@ from midas_cli.session.schema import Column, StreamSpec
 
 log = logging.getLogger(__name__)
 
-PARAMS = {"fps": float, "timeout": float, "poll": float, "password_env": str, "marker": str,
+PARAMS = {"fps": float, "timeout": float, "poll": float, "password_env": str, "password_file": str, "marker": str,
           "marker_scene": str, "marker_at": float, "marker_on": float, "marker_every": float}
-DEFAULTS = {"fps": 30.0, "timeout": 5.0, "poll": 0.1, "password_env": "", "marker": "", "marker_scene": "",
+DEFAULTS = {"fps": 30.0, "timeout": 5.0, "poll": 0.1, "password_env": "", "password_file": "", "marker": "",
+            "marker_scene": "",
             "marker_at": 1.0, "marker_on": 0.5, "marker_every": 0.0}
 DEFAULT_PORT = 4455
 START_TIMEOUT_S = 10.0
@@ -67,7 +68,6 @@ class ObsDevice(Device):
 
     def __init__(self, name: str, url: DeviceUrl, context: DeviceContext) -> None:
         super().__init__(name, url)
-        _refuse_password_in_url(url)
         self.params = url.take(PARAMS, DEFAULTS)
         self.host, self.port = _address(url)
         _check_params(url, self.params)
@@ -115,7 +115,7 @@ class ObsDevice(Device):
     def open(self) -> dict[str, Any]:
         if self.session_dir is None:
             raise DeviceError(f"{self.name}: obs:// records into a session folder; use it through `midas record`")
-        password, password_from = resolve_password(self.params["password_env"])
+        password, password_from = resolve_password(self.params["password_env"], self.params["password_file"])
         self.connection = ObsConnection(self.host, self.port, password, self.params["timeout"], self.clock)
         try:
             return {**self._start_recording(), "password_from": password_from}
@@ -179,7 +179,8 @@ class ObsDevice(Device):
             if missing or self.marker is not None:
                 self.store.replace(own)
             return
-        saved = SavedSettings.for_this_process(self.store.address, folder, self.params["password_env"])
+        saved = SavedSettings.for_this_process(self.store.address, folder, self.params["password_env"],
+                                               self.params["password_file"])
         saved.profile = target.current(list(values))
         if self.marker is not None:
             saved.scene_items.append(self.marker.saved_state())
@@ -352,13 +353,6 @@ class ObsDevice(Device):
         if path is None:
             return None
         return os.path.relpath(path, self.session_dir.resolve())
-
-
-def _refuse_password_in_url(url: DeviceUrl) -> None:
-    if urlsplit(url.raw).password is not None or "password" in url.params:
-        raise ConfigError(f"{url.redacted()}: a password in the URL ends up in shell history, process lists and "
-                          f"logs; put it in an environment variable (MIDAS_OBS_PASSWORD, or the one named by "
-                          f"password_env in the rig) instead")
 
 
 def _address(url: DeviceUrl) -> tuple[str, int]:

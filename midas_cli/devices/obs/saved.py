@@ -8,7 +8,7 @@ copy names its owner (the worker process's PID and start time) and is deleted on
 in OBS. A copy whose owner is gone was left by a midas that was killed: the next ``midas record`` (the
 obs device's open) or ``midas doctor`` puts the values back and says so.
 
-No password is stored, only the name of the environment variable it came from.
+No password is stored, only the name of the environment variable or the file it came from.
 """
 
 from __future__ import annotations
@@ -46,15 +46,16 @@ class SavedSettings:
     saved_utc: str
     folder: str
     password_env: str = ""
+    password_file: str = ""
     profile: list[list[Any]] = field(default_factory=list)
     scene_items: list[dict[str, Any]] = field(default_factory=list)
     format: int = FORMAT
 
     @classmethod
-    def for_this_process(cls, obs: str, folder: Path, password_env: str) -> "SavedSettings":
+    def for_this_process(cls, obs: str, folder: Path, password_env: str, password_file: str = "") -> "SavedSettings":
         pid = os.getpid()
         return cls(obs, pid, process_start(pid) or "", time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                   str(folder), password_env)
+                   str(folder), password_env, password_file)
 
     def owner(self) -> str:
         """"self" (this process saved it), "alive" (another running process did) or "stale"."""
