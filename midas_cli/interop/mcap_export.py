@@ -1,17 +1,19 @@
-"""A session as an MCAP file (https://mcap.dev/spec), written with the ``mcap`` library.
+"""A session as an MCAP file (https://mcap.dev/spec) that Foxglove opens, written with ``foxglove-sdk``.
 
-* one channel per stream, topic ``/<stream>``, JSON messages (one per CSV row, every column; a missing
-  value is ``null``) with a JSON Schema (``jsonschema`` encoding) whose properties carry each column's
-  unit, dtype and description from the manifest; ``log_time`` = ``publish_time`` = ``t_host_ns`` and
-  ``sequence`` = ``seq`` (mod 2**32);
-* the frame clock is the ``/video`` channel (its ``seq`` is the frame index labels count in); each label
-  set is a channel ``/labels/<name>`` (``{"frame", "label"}``, one message per labelled frame, ``log_time``
-  = that frame's ``t_host_ns``);
-* the manifest is the metadata record ``midas.manifest`` (key ``manifest.json``, the JSON text), each
-  label set's JSON the record ``midas.labels.<name>``.
+Topics (see :mod:`midas_cli.interop.foxglove_topics` for the schemas):
 
-Foxglove opens it (JSON messages with a JSON Schema); note that JavaScript numbers hold ``t_host_ns``
-only to about 256 ns: the exact time of a message is its ``log_time``.
+* ``/<stream>``: one JSON message per CSV row, single-typed fields, a missing value left out;
+  ``/events`` (the operator's markers) as ``foxglove.Log``;
+* ``/<stream>/transforms`` and ``/<stream>/poses`` for streams with 6-DoF sensors (EmHT): metres,
+  quaternions, frames ``<stream>/<sensor>`` in the transmitter's frame;
+* ``/labels/<name>``: one JSON message ``{"label", "frame"}`` per labelled video frame, timed on the
+  frame clock (the ``/video`` stream's ``seq`` is the frame index labels count in), for a
+  state-transitions panel on ``/labels/<name>.label``.
+
+Every message's ``log_time`` is its row's ``t_host_ns`` (the frame's, for labels). The manifest is
+the metadata record ``midas.manifest`` (key ``manifest.json``), each label set's JSON the record
+``midas.labels.<name>``. JavaScript numbers hold ``t_host_ns`` only to about 256 ns: the exact time of a
+message is its ``log_time``.
 """
 
 from __future__ import annotations
@@ -20,82 +22,94 @@ import json
 from pathlib import Path
 from typing import Any
 
-from midas_cli import __version__
-from midas_cli.interop.common import FRAME_STREAM, column_facts, frame_clock, json_columns, label_sets
+import numpy as np
+
+from midas_cli.interop.common import FRAME_STREAM, frame_clock, json_columns, label_sets
+from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages, sensor_arrays,
+                                               sensor_columns, stream_json_schema)
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
 
-JSON_TYPES = {"int": "integer", "float": "number", "text": "string"}
-
-
-def stream_schema(session: Session, name: str) -> dict[str, Any]:
-    spec = session.stream_spec(name)
-    properties = {}
-    for column in column_facts(session, name):
-        nullable = column["name"] not in ("seq", "t_host_ns")
-        kind = JSON_TYPES.get(column["dtype"], "number")
-        properties[column["name"]] = {"type": [kind, "null"] if nullable else kind, **{
-            k: v for k, v in column.items() if k != "name"}}
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": f"midas.{name}",
-            "description": spec.description, "type": "object", "properties": properties,
-            "required": list(properties)}
+LABELS_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "midas.labels",
+                 "type": "object", "description": "one label per video frame ('' = unlabelled)",
+                 "properties": {"label": {"type": "string"},
+                                "frame": {"type": "integer", "unit": "count",
+                                          "description": f"0-based frame index = seq of the {FRAME_STREAM} stream"}},
+                 "required": ["label", "frame"]}
 
 
 def write_mcap(session: Session, target: Path) -> dict[str, Any]:
     """Write ``target`` (.mcap); returns what was written (messages per topic)."""
-    from mcap.writer import CompressionType, Writer
+    import foxglove
+    from foxglove.mcap import MCAPWriteOptions
 
     counts: dict[str, int] = {}
-    with replacing(target) as tmp, open(tmp, "wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
-        writer.start(profile="", library=f"midas {__version__}")
-        for name in session.stream_names:
-            schema = stream_schema(session, name)
-            schema_id = writer.register_schema(name=schema["title"], encoding="jsonschema",
-                                               data=json.dumps(schema).encode())
-            entry = session.manifest["streams"][name]
-            channel_meta = {"midas.stream": name, "nominal_rate_hz": str(entry.get("nominal_rate_hz")),
-                            "units": json.dumps({c["name"]: c.get("unit", "") for c in schema_meta(schema)})}
-            if name == FRAME_STREAM:
-                channel_meta["frame_clock"] = "true"
-            channel_id = writer.register_channel(topic=f"/{name}", message_encoding="json", schema_id=schema_id,
-                                                 metadata=channel_meta)
-            counts[f"/{name}"] = 0
-            for chunk in session.iter_stream(name):
-                names = list(chunk.columns)
-                seq_at, time_at = names.index("seq"), names.index("t_host_ns")
-                for row in zip(*json_columns(chunk)):
-                    t = row[time_at]
-                    writer.add_message(channel_id, log_time=t, publish_time=t, sequence=row[seq_at] & 0xFFFFFFFF,
-                                       data=json.dumps(dict(zip(names, row)), separators=(",", ":")).encode())
-                counts[f"/{name}"] += len(chunk)
-        _write_labels(session, writer, counts)
-        writer.add_metadata("midas.manifest", {"manifest.json": json.dumps(session.manifest)})
-        writer.finish()
+    context = foxglove.Context()  # channels of this file only (never a live server's)
+    with replacing(target) as tmp:
+        with foxglove.open_mcap(tmp, allow_overwrite=True, context=context,
+                                writer_options=MCAPWriteOptions(profile="")) as writer:
+            for name in session.stream_names:
+                _write_stream(session, name, context, counts)
+            _write_labels(session, context, writer, counts)
+            writer.write_metadata("midas.manifest", {"manifest.json": json.dumps(session.manifest)})
     return {"file": str(target), "messages": counts}
 
 
-def schema_meta(schema: dict[str, Any]) -> list[dict[str, Any]]:
-    return [{"name": k, **v} for k, v in schema["properties"].items()]
+def _write_stream(session: Session, name: str, context: Any, counts: dict[str, int]) -> None:
+    """The topics of stream ``name``, read a piece at a time."""
+    from foxglove import Channel
+    from foxglove.channels import FrameTransformsChannel, LogChannel, PosesInFrameChannel
+
+    spec = session.stream_spec(name)
+    metadata = {"midas.stream": name, "nominal_rate_hz": str(spec.nominal_rate_hz),
+                "units": json.dumps({c.name: c.unit for c in spec.columns})}
+    if name == FRAME_STREAM:
+        metadata["frame_clock"] = "true"
+    is_markers = name == EVENTS_STREAM and {"text", "source"} <= set(spec.column_names)
+    rows = LogChannel(f"/{name}", context=context, metadata=metadata) if is_markers else \
+        Channel(f"/{name}", schema=stream_json_schema(spec), context=context, metadata=metadata)
+    sensors = sensor_columns(spec)
+    transforms = FrameTransformsChannel(f"/{name}/transforms", context=context) if sensors else None
+    poses = PosesInFrameChannel(f"/{name}/poses", context=context) if sensors else None
+    counts[f"/{name}"] = 0
+    for chunk in session.iter_stream(name):
+        names, columns = list(chunk.columns), json_columns(chunk)
+        times = chunk["t_host_ns"].to_numpy(np.int64).tolist()
+        if is_markers:
+            for t, text, source in zip(times, columns[names.index("text")], columns[names.index("source")]):
+                rows.log(marker_log(t, text, source), log_time=t)
+        else:
+            for t, row in zip(times, zip(*columns)):
+                rows.log(json_row(names, row), log_time=t)
+        counts[f"/{name}"] += len(chunk)
+        if sensors:
+            _write_poses(name, sensors, chunk, times, (transforms, poses), counts)
 
 
-def _write_labels(session: Session, writer: Any, counts: dict[str, int]) -> None:
-    sets = list(label_sets(session, frame_clock(session)))
-    if not sets:
-        return
-    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "midas.labels", "type": "object",
-              "description": "one label per video frame ('' = unlabelled)",
-              "properties": {"frame": {"type": "integer", "unit": "count",
-                                       "description": f"0-based frame index = seq of the {FRAME_STREAM} stream"},
-                             "label": {"type": "string"}}, "required": ["frame", "label"]}
-    schema_id = writer.register_schema(name="midas.labels", encoding="jsonschema", data=json.dumps(schema).encode())
-    for labels in sets:
+def _write_poses(name: str, sensors: list, chunk: Any, times: list[int], channels: tuple[Any, Any],
+                 counts: dict[str, int]) -> None:
+    """One FrameTransforms and one PosesInFrame message per row of a piece of a 6-DoF stream."""
+    table = {column: chunk[column].to_numpy(np.float64, na_value=np.nan) for column in chunk.columns
+             if chunk[column].dtype != object}
+    arrays = [sensor_arrays(sensor, table) for sensor in sensors]
+    for k, t in enumerate(times):
+        messages = pose_messages(name, sensors, t, [(position[k], quaternion[k]) for position, quaternion in arrays])
+        if messages is None:
+            continue
+        for channel, message in zip(channels, messages):
+            channel.log(message, log_time=t)
+            counts[channel.topic()] = counts.get(channel.topic(), 0) + 1
+
+
+def _write_labels(session: Session, context: Any, writer: Any, counts: dict[str, int]) -> None:
+    """One topic per label set: its labelled frames at their host times."""
+    from foxglove import Channel
+
+    for labels in label_sets(session, frame_clock(session)):
         topic = f"/labels/{labels.name}"
-        channel_id = writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id,
-                                             metadata={"midas.labels": labels.name, "frame_clock": f"/{FRAME_STREAM}"})
-        for k, (frame, label, t) in enumerate(zip(labels.frames.tolist(), labels.labels.tolist(),
-                                                 labels.t_host_ns.tolist())):
-            writer.add_message(channel_id, log_time=t, publish_time=t, sequence=k & 0xFFFFFFFF,
-                               data=json.dumps({"frame": frame, "label": str(label)}).encode())
+        channel = Channel(topic, schema=LABELS_SCHEMA, context=context,
+                          metadata={"midas.labels": labels.name, "frame_clock": f"/{FRAME_STREAM}"})
+        for frame, label, t in zip(labels.frames.tolist(), labels.labels.tolist(), labels.t_host_ns.tolist()):
+            channel.log({"label": str(label), "frame": frame}, log_time=t)
         counts[topic] = len(labels.frames)
-        writer.add_metadata(f"midas.labels.{labels.name}", {"labels.json": json.dumps(labels.meta, default=str)})
+        writer.write_metadata(f"midas.labels.{labels.name}", {"labels.json": json.dumps(labels.meta, default=str)})

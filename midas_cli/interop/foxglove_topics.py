@@ -1,0 +1,123 @@
+"""How a midas stream looks in Foxglove: the topics, schemas and messages shared by the MCAP export and the
+live WebSocket view (``midas record --foxglove``), built with the ``foxglove-sdk`` package.
+
+* every stream is a JSON topic ``/<stream>`` whose JSON Schema gives each column ONE type (``integer``,
+  ``number`` or ``string``: Foxglove Studio 1.x and Lichtblick reject a type list such as
+  ``["number", "null"]``); a missing value is left out of the message (JSON has no NaN), so only
+  ``seq`` and ``t_host_ns`` are required;
+* the operator's markers (stream ``events``) are ``foxglove.Log`` messages on ``/events``;
+* a stream with 6-DoF sensors (columns ``<p>_{x,y,z}_mm`` and ``<p>_{azimuth,elevation,roll}_deg``, the
+  EmHT layout) also has ``/<stream>/transforms`` (``foxglove.FrameTransforms``: parent frame = the
+  position columns' frame, e.g. ``emht_transmitter``, child frame ``<stream>/<p>``; metres and unit
+  quaternions) and ``/<stream>/poses`` (``foxglove.PosesInFrame``, every sensor in the parent frame),
+  so the 3-D panel shows the sensors moving; a sensor with a missing value is left out of that row's
+  messages.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from midas_cli.geometry import quaternions_from_angles
+from midas_cli.record.markers import EVENTS_STREAM
+from midas_cli.session.schema import StreamSpec
+
+JSON_TYPES = {"int": "integer", "float": "number", "text": "string"}
+REQUIRED = ("seq", "t_host_ns")
+ANGLES = ("azimuth", "elevation", "roll")
+
+
+@dataclass(frozen=True)
+class SensorColumns:
+    """The columns of one 6-DoF sensor of a stream: position (mm) and azimuth/elevation/roll (deg)."""
+
+    name: str
+    position: tuple[str, str, str]
+    angles: tuple[str, str, str]
+    parent_frame: str
+
+
+def sensor_columns(spec: StreamSpec) -> list[SensorColumns]:
+    """The stream's 6-DoF sensors, in column order (none for a stream without the EmHT layout)."""
+    names = set(spec.column_names)
+    sensors = []
+    for column in spec.columns:
+        if not column.name.endswith("_x_mm"):
+            continue
+        prefix = column.name[: -len("_x_mm")]
+        position = tuple(f"{prefix}_{a}_mm" for a in "xyz")
+        angles = tuple(f"{prefix}_{a}_deg" for a in ANGLES)
+        if names.issuperset(position + angles):
+            sensors.append(SensorColumns(prefix, position, angles, column.frame or spec.name))  # type: ignore[arg-type]
+    return sensors
+
+
+def stream_json_schema(spec: StreamSpec) -> dict[str, Any]:
+    """The JSON Schema of topic ``/<stream>``: one single-typed property per column (with its unit,
+    dtype and description), ``seq`` and ``t_host_ns`` required, other columns left out when missing."""
+    properties = {}
+    for column in spec.columns:
+        facts = {"unit": column.unit, **{k: v for k, v in column.to_manifest().items() if k != "name"}}
+        properties[column.name] = {"type": JSON_TYPES.get(column.dtype, "number"), **facts}
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": f"midas.{spec.name}",
+            "description": spec.description, "type": "object", "properties": properties,
+            "required": [name for name in REQUIRED if name in properties]}
+
+
+def json_row(names: Sequence[str], values: Sequence[Any]) -> bytes:
+    """One row as a JSON message: missing values (None, NaN) left out, numbers exactly as given."""
+    row = {name: value for name, value in zip(names, values)
+           if value is not None and not (isinstance(value, float) and math.isnan(value))}
+    return json.dumps(row, separators=(",", ":")).encode()
+
+
+def timestamp(t_ns: int) -> Any:
+    """A ``foxglove`` Timestamp from host nanoseconds."""
+    from foxglove.messages import Timestamp
+
+    return Timestamp(int(t_ns) // 1_000_000_000, int(t_ns) % 1_000_000_000)
+
+
+def sensor_arrays(sensor: SensorColumns, table: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (N, 3) in metres and unit quaternions (N, 4) x, y, z, w of one sensor from column arrays
+    (mm, deg); rows with a missing value are NaN."""
+    position_mm = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.position])
+    angles_deg = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.angles])
+    return position_mm / 1000.0, quaternions_from_angles(angles_deg)
+
+
+def pose_messages(stream: str, sensors: Sequence[SensorColumns], t_ns: int,
+                  poses: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[Any, Any] | None:
+    """The ``foxglove.FrameTransforms`` and ``foxglove.PosesInFrame`` of one row: ``poses`` holds each
+    sensor's (position m (3,), quaternion (4,)); sensors with a NaN are left out; None when none is left."""
+    from foxglove.messages import FrameTransform, FrameTransforms, Pose, PosesInFrame, Quaternion, Vector3
+
+    stamp = timestamp(t_ns)
+    transforms, frame_poses = [], []
+    for sensor, (position, quaternion) in zip(sensors, poses):
+        if not (np.isfinite(position).all() and np.isfinite(quaternion).all()):
+            continue
+        translation = Vector3(x=float(position[0]), y=float(position[1]), z=float(position[2]))
+        rotation = Quaternion(x=float(quaternion[0]), y=float(quaternion[1]), z=float(quaternion[2]),
+                              w=float(quaternion[3]))
+        transforms.append(FrameTransform(timestamp=stamp, parent_frame_id=sensor.parent_frame,
+                                         child_frame_id=f"{stream}/{sensor.name}", translation=translation,
+                                         rotation=rotation))
+        frame_poses.append(Pose(position=translation, orientation=rotation))
+    if not transforms:
+        return None
+    return (FrameTransforms(transforms=transforms),
+            PosesInFrame(timestamp=stamp, frame_id=sensors[0].parent_frame, poses=frame_poses))
+
+
+def marker_log(t_ns: int, text: Any, source: Any) -> Any:
+    """An operator's marker as a ``foxglove.Log`` (level info, ``name`` = where it came from)."""
+    from foxglove.messages import Log, LogLevel
+
+    return Log(timestamp=timestamp(t_ns), level=LogLevel.Info, message="" if text is None else str(text),
+               name="" if source is None else str(source))
