@@ -1,4 +1,5 @@
-"""`midas export --format mcap|parquet|xdf`: round trips through mcap's reader, pandas.read_parquet and pyxdf."""
+"""`midas export --format mcap|parquet|xdf`: round trips through mcap's reader, Foxglove's own readers (node),
+pandas.read_parquet and pyxdf."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import pytest
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.reader import Session
 from helpers.cli import SHARED_DATA, midas
+from helpers.foxglove import read_with_foxglove
 
 SAMPLE_NAME = "midas-dcs-sample/trakt_Strakt_T1_2024-07-05"
 
@@ -34,6 +36,7 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 
 def _check_mcap(session_path: Path, out: Path) -> None:
+    """Python's mcap reader: every row at its t_host_ns, single-typed fields, missing values left out."""
     from mcap.reader import make_reader
 
     session = Session.open(session_path)
@@ -51,14 +54,18 @@ def _check_mcap(session_path: Path, out: Path) -> None:
     for name in session.stream_names:
         frame = session.read_stream(name)
         assert counts[f"/{name}"] == len(frame)
+        times = np.array([t for t, _ in first[f"/{name}"]], dtype=np.int64)
+        assert np.array_equal(times, frame["t_host_ns"].to_numpy())  # log_time = t_host_ns, exactly
+        if name == "events":
+            continue  # foxglove.Log (protobuf): read by test_mcap_opens_with_foxglove_readers
         schema = json.loads(summary.schemas[topics[f"/{name}"].schema_id].data)
         assert {k: v["unit"] for k, v in schema["properties"].items()} == \
             {c.name: c.unit for c in session.stream_spec(name).columns}
-        times = np.array([t for t, _ in first[f"/{name}"]], dtype=np.int64)
-        assert np.array_equal(times, frame["t_host_ns"].to_numpy())  # log_time = t_host_ns, exactly
-        row = json.loads(first[f"/{name}"][-1][1])
-        expected = {k: (None if pd.isna(v) else v) for k, v in frame.iloc[-1].to_dict().items()}
-        assert row == pytest.approx(expected, nan_ok=True)
+        assert all(isinstance(v["type"], str) for v in schema["properties"].values())  # one type per field
+        for at in (0, -1):
+            row = json.loads(first[f"/{name}"][at][1])
+            expected = {k: v for k, v in frame.iloc[at].to_dict().items() if not pd.isna(v)}
+            assert row == pytest.approx(expected)
     for name in (p.stem for p in (session_path / "labels").glob("*.csv")):
         labels = read_frame_labels(session_path, name)
         assert counts[f"/labels/{name}"] == len(labels.frames)
@@ -196,3 +203,53 @@ def test_parquet_of_many_sessions_reads_as_one_table_in_duckdb(tmp_path: Path) -
     types = dict(duckdb.sql(f"select column_name, column_type from (describe select * from read_parquet("
                             f"'{out}/*/events.parquet'))").fetchall())
     assert types["text"] == types["source"] == types["subject"] == "VARCHAR" and types["trial"] == "BIGINT"
+
+
+def test_mcap_opens_with_foxglove_readers(simulated: tuple[Path, Path]) -> None:
+    """Foxglove's packages decode every message against its schema; EmHT sensors are transforms in metres
+    and quaternions from the recorded angles, in named frames."""
+    from midas_cli.geometry import quaternions_from_angles
+
+    session_path, out = simulated
+    session = Session.open(session_path)
+    read = read_with_foxglove(out / f"{session.manifest['session_id']}.mcap")
+    topics = read["topics"]
+    assert {"midas.manifest", "midas.labels.gestures"} <= set(read["metadata"])
+    emht = session.read_stream("emht")
+    for name in session.stream_names:
+        assert topics[f"/{name}"]["count"] == len(session.read_stream(name))
+        assert topics[f"/{name}"]["first"]["seq"] == int(session.read_stream(name)["seq"].iloc[0])
+    transforms = topics["/emht/transforms"]
+    assert transforms["schema"] == "foxglove.FrameTransforms" and transforms["count"] == len(emht)
+    assert topics["/emht/poses"]["schema"] == "foxglove.PosesInFrame"
+    last = transforms["last"]["transforms"]
+    assert [t["child_frame_id"] for t in last] == ["emht/s1", "emht/s2", "emht/s3", "emht/s4"]
+    assert {t["parent_frame_id"] for t in last} == {"emht_transmitter"}
+    row = emht.iloc[-1]
+    for k, transform in enumerate(last, start=1):
+        translation = [transform["translation"][a] for a in "xyz"]
+        assert translation == pytest.approx([row[f"s{k}_{a}_mm"] / 1000 for a in "xyz"])
+        expected = quaternions_from_angles(np.array([[row[f"s{k}_{a}_deg"] for a in ("azimuth", "elevation", "roll")]]))
+        assert [transform["rotation"][a] for a in "xyzw"] == pytest.approx(expected[0].tolist())
+    stamp = last[0]["timestamp"]
+    assert int(stamp["seconds"]) * 10**9 + stamp["nanos"] == int(emht["t_host_ns"].iloc[-1])
+    labels = topics["/labels/gestures"]
+    assert labels["first"] == {"label": read_frame_labels(session_path, "gestures").labels[0], "frame": 0}
+
+
+def test_mcap_markers_are_foxglove_logs_and_missing_values_are_left_out(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    from midas_cli.interop.mcap_export import write_mcap
+
+    session = Session.open(_session_with_markers(tmp_path / "in", "7", 1, ["needle in", "knot"]))
+    write_mcap(session, tmp_path / "s.mcap")
+    topics = read_with_foxglove(tmp_path / "s.mcap")["topics"]
+    events = topics["/events"]
+    assert events["schema"] == "foxglove.Log" and events["count"] == 2
+    assert (events["first"]["message"], events["first"]["name"], events["last"]["message"]) == ("needle in", "mark", "knot")
+    assert events["first"]["level"] == 2  # INFO
+    with open(tmp_path / "s.mcap", "rb") as fh:
+        rows = [json.loads(m.data) for _, c, m in make_reader(fh).iter_messages(topics=["/force"])]
+    assert [row.get("state") for row in rows] == [0, None, 2, None, 4]
+    assert "state" not in rows[1] and rows[1]["ch0"] == 0.5  # left out, never null
