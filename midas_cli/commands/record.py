@@ -22,6 +22,7 @@ from midas_cli.devices.base import DeviceUrl, redact_url
 from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
 from midas_cli.errors import ConfigError, DeviceError, SessionError
+from midas_cli.record.foxglove_live import DEFAULT_ADDRESS as DEFAULT_FOXGLOVE, parse_address
 from midas_cli.record.markers import check_stream_names, events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
@@ -65,6 +66,9 @@ def record(
     lsl_out: bool = typer.Option(False, "--lsl-out", help="Also publish every stream live as an LSL outlet "
                                  "(labels, units, rate; timestamps = host times on the LSL clock). Outlets "
                                  "accept connections on every network interface: see README."),
+    foxglove: Optional[str] = typer.Option(None, "--foxglove", flag_value=DEFAULT_FOXGLOVE, metavar="[HOST:PORT]",
+                                           help="Also serve the live streams to Foxglove over its WebSocket "
+                                           f"protocol (default {DEFAULT_FOXGLOVE}: this machine only; see README)."),
     control: Optional[Path] = typer.Option(None, "--control", help="Control socket for `midas ctl` / `midas mark` "
                                            "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
     armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
@@ -83,6 +87,8 @@ def record(
     stop.install()  # first: from here on a stop signal ends the recording as documented, never a traceback
     try:
         _check_options(seed, master_rate, queue_size)
+        if foxglove is not None:
+            parse_address(foxglove)  # a bad address: one error line before anything is created
         if lsl_out:
             from midas_cli.devices.lsl.device import import_pylsl
 
@@ -90,7 +96,7 @@ def record(
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
-                          rig_config.to_manifest(), lsl_out, extra_streams=(events_spec(),))
+                          rig_config.to_manifest(), lsl_out, foxglove=foxglove, extra_streams=(events_spec(),))
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         check_stream_names(recorder.streams)
         _exit_if_stopped_before_start(stop)
@@ -119,6 +125,8 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
         display.message(f"midas: control socket {remote.path} (midas mark TEXT, midas ctl status|stop)")
         if recorder.plan.lsl_out:
             display.message(f"midas: --lsl-out: {exposure_note(lsl_config_file())}")
+        if recorder.live is not None:
+            display.message(f"midas: --foxglove: serving ws://{recorder.live.address} (Foxglove WebSocket)")
         ready = recorder.wait_ready(READY_TIMEOUT_S, ended, on_tick)
         failed = {} if ended() else recorder.unopened()
         if failed:

@@ -58,14 +58,24 @@ class RemoteControl:
 
     @staticmethod
     def _marker_outlet(recorder: Recorder) -> Optional[Callable[[Any, list[tuple]], None]]:
-        """With --lsl-out, the markers' outlet (record/lsl_out.py): a failure is logged, recording goes on."""
-        if not recorder.plan.lsl_out:
-            return None
-        from midas_cli.record.lsl_out import LiveOutlets
+        """With --lsl-out, the markers' outlet (record/lsl_out.py), with --foxglove the live server: a
+        failure is logged, recording goes on."""
+        publishers: list[Callable[[Any, list[tuple]], None]] = []
+        if recorder.plan.lsl_out:
+            from midas_cli.record.lsl_out import LiveOutlets
 
-        outlets = LiveOutlets(recorder.path.name, EVENTS_DEVICE, recorder.clock.anchor_ns,
-                              lambda message: log.warning("%s: %s", EVENTS_DEVICE, message))
-        return outlets.publish
+            outlets = LiveOutlets(recorder.path.name, EVENTS_DEVICE, recorder.clock.anchor_ns,
+                                  lambda message: log.warning("%s: %s", EVENTS_DEVICE, message))
+            publishers.append(outlets.publish)
+        if recorder.live is not None:
+            publishers.append(recorder.live.publish)
+        if not publishers:
+            return None
+
+        def publish_all(spec: Any, rows: list[tuple]) -> None:
+            for publish in publishers:
+                publish(spec, rows)
+        return publish_all
 
     def watching(self, on_tick: Callable[[RecorderSnapshot], None]) -> Callable[[RecorderSnapshot], None]:
         """``on_tick`` that also keeps the latest snapshot for `ctl status`."""

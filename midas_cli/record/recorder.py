@@ -24,6 +24,7 @@ from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.record.foxglove_live import FoxgloveLive
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
@@ -52,6 +53,7 @@ class RecordPlan:
     queue_size: int = 4096
     rig: dict[str, Any] = field(default_factory=dict)
     lsl_out: bool = False  # workers also publish every stream as an LSL outlet (record/lsl_out.py)
+    foxglove: str | None = None  # HOST:PORT of a live Foxglove WebSocket server (record/foxglove_live.py)
     extra_streams: tuple[StreamSpec, ...] = ()  # written by the recorder's own process (the events stream)
 
 
@@ -76,6 +78,7 @@ class Recorder:
         self.bytes_written = 0  # stream bytes on disk: headers + what the workers reported
         self._log_handler: logging.Handler | None = None
         self.fatal_error: str | None = None
+        self.live: FoxgloveLive | None = None
 
     def _describe_devices(self) -> None:
         """Validate every URL and learn the stream layouts before anything is created on disk."""
@@ -113,6 +116,8 @@ class Recorder:
         meanwhile stays pending and reaches this process's handler as soon as they are unblocked,
         while each worker sets them to ignored before it unblocks them (it stops when told)."""
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
+        if self.plan.foxglove is not None:  # a port in use is refused before anything is on disk
+            self.live = FoxgloveLive(self.plan.foxglove, specs, f"midas record {self.plan.metadata.subject}")
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
                                            self.plan.rig, extra={"lsl_out": lsl_out_manifest(self.plan.lsl_out)})
@@ -228,6 +233,8 @@ class Recorder:
         with self._lock:
             self.streams[batch.stream].add(batch, batch.committed_ns)
             self.bytes_written += batch.nbytes
+        if self.live is not None:
+            self.live.publish(self.streams[batch.stream].spec, [batch.last_row])
 
     def _on_event(self, event: DeviceEvent) -> None:
         with self._lock:
@@ -311,6 +318,8 @@ class Recorder:
         self._bookkeeping_done.wait(STOP_GRACE_S + 1.0)
         self._bookkeeping_thread.join(timeout=1.0)
         self._reap_workers(self._stop_deadline + 1.0)
+        if self.live is not None:
+            self.live.close()
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
         try:
