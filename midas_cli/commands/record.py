@@ -66,9 +66,10 @@ def record(
     lsl_out: bool = typer.Option(False, "--lsl-out", help="Also publish every stream live as an LSL outlet "
                                  "(labels, units, rate; timestamps = host times on the LSL clock). Outlets "
                                  "accept connections on every network interface: see README."),
-    foxglove: Optional[str] = typer.Option(None, "--foxglove", flag_value=DEFAULT_FOXGLOVE, metavar="[HOST:PORT]",
-                                           help="Also serve the live streams to Foxglove over its WebSocket "
-                                           f"protocol (default {DEFAULT_FOXGLOVE}: this machine only; see README)."),
+    foxglove: bool = typer.Option(False, "--foxglove", help="Also serve the live streams to Foxglove over its "
+                                  f"WebSocket protocol, on {DEFAULT_FOXGLOVE} (this machine only; see README)."),
+    foxglove_address: Optional[str] = typer.Option(None, "--foxglove-address", metavar="HOST:PORT",
+                                                   help="Where --foxglove listens (implies --foxglove)."),
     control: Optional[Path] = typer.Option(None, "--control", help="Control socket for `midas ctl` / `midas mark` "
                                            "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
     armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
@@ -87,8 +88,9 @@ def record(
     stop.install()  # first: from here on a stop signal ends the recording as documented, never a traceback
     try:
         _check_options(seed, master_rate, queue_size)
-        if foxglove is not None:
-            parse_address(foxglove)  # a bad address: one error line before anything is created
+        live_address = foxglove_address if foxglove_address is not None else (DEFAULT_FOXGLOVE if foxglove else None)
+        if live_address is not None:
+            parse_address(live_address)  # a bad address: one error line before anything is created
         if lsl_out:
             from midas_cli.devices.lsl.device import import_pylsl
 
@@ -96,7 +98,7 @@ def record(
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
-                          rig_config.to_manifest(), lsl_out, foxglove=foxglove, extra_streams=(events_spec(),))
+                          rig_config.to_manifest(), lsl_out, foxglove=live_address, extra_streams=(events_spec(),))
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         check_stream_names(recorder.streams)
         _exit_if_stopped_before_start(stop)

@@ -42,7 +42,7 @@ def parse_address(text: str) -> tuple[str, int]:
     if not port:
         return host, DEFAULT_PORT
     if not port.isdigit() or not 0 < int(port) < 65536:
-        raise ConfigError(f"--foxglove {text!r}: expected HOST:PORT with a port 1..65535")
+        raise ConfigError(f"--foxglove-address {text!r}: expected HOST:PORT with a port 1..65535")
     return host, int(port)
 
 
@@ -92,7 +92,7 @@ class FoxgloveLive:
         try:
             self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
         except RuntimeError as exc:  # the SDK's FoxgloveError: address in use, cannot bind
-            raise ConfigError(f"--foxglove {host}:{port}: {exc}") from exc
+            raise ConfigError(f"--foxglove on {host}:{port}: {exc}") from exc
         self.address = f"{host}:{self.server.port}"
         self.topics = {spec.name: _StreamTopics(spec, self.context) for spec in specs}
         self.failed: set[str] = set()

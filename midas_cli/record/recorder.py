@@ -20,7 +20,6 @@ from typing import Any, Callable
 
 from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceUrl
-from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
@@ -28,7 +27,7 @@ from midas_cli.record.foxglove_live import FoxgloveLive
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
-from midas_cli.record.stats import DeviceRecord, StreamStats
+from midas_cli.record.stats import DeviceRecord, StreamStats, device_labels
 from midas_cli.record.spawn import stop_signals_blocked, worker_context
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
@@ -88,7 +87,7 @@ class Recorder:
             streams = device.streams
             self.devices[name] = DeviceRecord(name, device.kind, DeviceUrl.parse(url).redacted(),
                                               device.settings(), [s.name for s in streams],
-                                              labels=_labels(device.kind, self.plan.rig.get("devices", {}).get(name)))
+                                              labels=device_labels(device.kind, self.plan.rig.get("devices", {}).get(name)))
             for spec in streams:
                 if spec.name in self.streams:
                     raise ConfigError(f"two devices produce a stream named {spec.name!r}")
@@ -357,18 +356,6 @@ class Recorder:
             self._log_handler = None
 
     _stop_deadline = float("inf")
-
-
-def _labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]:
-    """Names of an fps device's channels (the rig's ``pedals`` table, else the paper's da Vinci
-    mapping) or an emht device's sensors (the rig's ``sensors``), keyed by the number as text."""
-    extras = rig_entry or {}
-    if kind == "fps":
-        table = extras.get("pedals") or DAVINCI_PEDALS
-        return {str(k): str(v) for k, v in table.items()}
-    if kind == "emht":
-        return {str(k): str(v) for k, v in (extras.get("sensors") or {}).items()}
-    return {}
 
 
 def _health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:

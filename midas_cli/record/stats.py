@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.record.messages import DataBatch
 from midas_cli.session.schema import StreamSpec
 
@@ -163,3 +164,15 @@ class DeviceRecord:
             "reconnects": self.reconnects,
             "events": self.events[-200:],
         }
+
+
+def device_labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]:
+    """Names of an fps device's channels (the rig's ``pedals`` table, else the paper's da Vinci
+    mapping) or an emht device's sensors (the rig's ``sensors``), keyed by the number as text."""
+    extras = rig_entry or {}
+    if kind == "fps":
+        table = extras.get("pedals") or DAVINCI_PEDALS
+        return {str(k): str(v) for k, v in table.items()}
+    if kind == "emht":
+        return {str(k): str(v) for k, v in (extras.get("sensors") or {}).items()}
+    return {}
