@@ -253,3 +253,47 @@ def test_mcap_markers_are_foxglove_logs_and_missing_values_are_left_out(tmp_path
         rows = [json.loads(m.data) for _, c, m in make_reader(fh).iter_messages(topics=["/force"])]
     assert [row.get("state") for row in rows] == [0, None, 2, None, 4]
     assert "state" not in rows[1] and rows[1]["ch0"] == 0.5  # left out, never null
+
+
+def _session_with_frames(root: Path, colours: list[tuple[int, int, int]]) -> Path:
+    """A session with a simulated RGB-D camera's frame stream and its MJPG file: one solid colour per frame."""
+    import cv2
+
+    from midas_cli.clock import HostClock
+    from midas_cli.devices.registry import describe_device
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    spec = next(s for s in describe_device("rgbd", "sim://rgbd?rate=8", 0).streams if s.name == "rgbd")
+    clock = HostClock.anchored_now()
+    writer = SessionWriter.create(root, SessionMetadata("1", "rgbd", 1), clock, {}, [spec])
+    (writer.folder / "video").mkdir(exist_ok=True)
+    video = cv2.VideoWriter(str(writer.folder / "video" / "rgbd_000.mkv"), cv2.VideoWriter_fourcc(*"MJPG"), 8, (64, 32))
+    for colour in colours:
+        video.write(np.full((32, 64, 3), colour, dtype=np.uint8))
+    video.release()
+    t0 = clock.now_ns()
+    writer.append("rgbd", spec.format_rows([(k, t0 + k * 125_000_000, k * 125_000_000, 0, k) for k in range(len(colours))]))
+    writer.finalize("complete", "test", t0 + 10**9, {})
+    return writer.folder
+
+
+def test_mcap_with_video_has_the_rgbd_frames_as_images(tmp_path: Path) -> None:
+    import base64
+
+    import cv2
+
+    from midas_cli.interop.mcap_export import write_mcap
+
+    colours = [(0, 0, 250), (0, 250, 0), (250, 0, 0)]  # BGR
+    session = Session.open(_session_with_frames(tmp_path / "in", colours))
+    assert "/rgbd/image" not in write_mcap(session, tmp_path / "plain.mcap")["messages"]  # only on request
+    write_mcap(session, tmp_path / "s.mcap", with_video=True)
+    images = read_with_foxglove(tmp_path / "s.mcap")["topics"]["/rgbd/image"]
+    assert images["schema"] == "foxglove.CompressedImage" and images["count"] == len(colours)
+    rows = session.read_stream("rgbd")
+    for message, colour, t_ns in ((images["first"], colours[0], rows["t_host_ns"].iloc[0]),
+                                  (images["last"], colours[-1], rows["t_host_ns"].iloc[-1])):
+        assert message["format"] == "jpeg" and message["frame_id"] == "rgbd"
+        assert int(message["timestamp"]["seconds"]) * 10**9 + message["timestamp"]["nanos"] == int(t_ns)
+        image = cv2.imdecode(np.frombuffer(base64.b64decode(message["data"]), np.uint8), cv2.IMREAD_COLOR)
+        assert image.shape == (32, 64, 3) and np.abs(image.mean(axis=(0, 1)) - colour).max() < 12

@@ -14,6 +14,8 @@ def export(sessions: list[Path] = SESSIONS_ARG,
            formats: list[str] = typer.Option(..., "--format", help="mcap, parquet and/or xdf (repeat the option or "
                                              "separate with commas)."),
            out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),
+           with_video: bool = typer.Option(False, "--with-video", help="MCAP: also the RGB-D frames as JPEG "
+                                           "images (every frame decoded and re-encoded: slow)."),
            as_json: bool = JSON_OPTION) -> None:
     """Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.
 
@@ -30,7 +32,7 @@ def export(sessions: list[Path] = SESSIONS_ARG,
     results = []
     for path in sessions:
         result = export_session(path, wanted, out_dir, progress=lambda what: err.print(
-            f"exporting {what}", markup=False, highlight=False))
+            f"exporting {what}", markup=False, highlight=False), with_video=with_video)
         results.append(result)
     if as_json:
         print_json(results)

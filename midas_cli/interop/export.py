@@ -29,13 +29,13 @@ def parse_formats(values: Sequence[str]) -> list[str]:
 
 
 def export_session(path: Path | str, formats: Sequence[str], out_dir: Path | str,
-                   progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Export one session; returns what was written per format."""
+                   progress: Callable[[str], None] | None = None, with_video: bool = False) -> dict[str, Any]:
+    """Export one session; returns what was written per format (``with_video``: images in the MCAP)."""
     session = Session.open(path)
     folder = out_folder(out_dir)
     stem = str(session.manifest.get("session_id") or session.path.name)
     result: dict[str, Any] = {"session": str(session.path)}
-    writers = {"mcap": lambda: write_mcap(session, out_target(folder / f"{stem}.mcap")),
+    writers = {"mcap": lambda: write_mcap(session, out_target(folder / f"{stem}.mcap"), with_video),
                "parquet": lambda: write_parquet(session, out_folder(folder / stem)),
                "xdf": lambda: write_xdf(session, out_target(folder / f"{stem}.xdf"))}
     for name in formats:

@@ -6,6 +6,9 @@ Topics (see :mod:`midas_cli.interop.foxglove_topics` for the schemas):
   ``/events`` (the operator's markers) as ``foxglove.Log``;
 * ``/<stream>/transforms`` and ``/<stream>/poses`` for streams with 6-DoF sensors (EmHT): metres,
   quaternions, frames ``<stream>/<sensor>`` in the transmitter's frame;
+* with ``with_video``: ``/<stream>/image`` (``foxglove.CompressedImage``, JPEG, frame id ``<stream>``)
+  for each stream of RGB-D frames (columns ``file`` and ``frame`` into ``video/<device>_NNN.mkv``): one
+  message per recorded frame, the side-by-side stereo pair as recorded, re-encoded as JPEG;
 * ``/labels/<name>``: one JSON message ``{"label", "frame"}`` per labelled video frame, timed on the
   frame clock (the ``/video`` stream's ``seq`` is the frame index labels count in), for a
   state-transitions panel on ``/labels/<name>.label``.
@@ -24,11 +27,15 @@ from typing import Any
 
 import numpy as np
 
+from midas_cli.errors import SessionError
 from midas_cli.interop.common import FRAME_STREAM, frame_clock, json_columns, label_sets
 from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages, sensor_arrays,
-                                               sensor_columns, stream_json_schema)
+                                               sensor_columns, stream_json_schema, timestamp)
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
+from midas_cli.session.schema import StreamSpec
+
+JPEG_QUALITY = 90
 
 LABELS_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "midas.labels",
                  "type": "object", "description": "one label per video frame ('' = unlabelled)",
@@ -38,8 +45,9 @@ LABELS_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "tit
                  "required": ["label", "frame"]}
 
 
-def write_mcap(session: Session, target: Path) -> dict[str, Any]:
-    """Write ``target`` (.mcap); returns what was written (messages per topic)."""
+def write_mcap(session: Session, target: Path, with_video: bool = False) -> dict[str, Any]:
+    """Write ``target`` (.mcap); returns what was written (messages per topic). ``with_video`` adds the
+    RGB-D frames as images (decoding and re-encoding every frame: it takes a while)."""
     import foxglove
     from foxglove.mcap import MCAPWriteOptions
 
@@ -50,6 +58,8 @@ def write_mcap(session: Session, target: Path) -> dict[str, Any]:
                                 writer_options=MCAPWriteOptions(profile="")) as writer:
             for name in session.stream_names:
                 _write_stream(session, name, context, counts)
+                if with_video and is_frame_stream(session.stream_spec(name)):
+                    _write_images(session, name, context, counts)
             _write_labels(session, context, writer, counts)
             writer.write_metadata("midas.manifest", {"manifest.json": json.dumps(session.manifest)})
     return {"file": str(target), "messages": counts}
@@ -99,6 +109,31 @@ def _write_poses(name: str, sensors: list, chunk: Any, times: list[int], channel
         for channel, message in zip(channels, messages):
             channel.log(message, log_time=t)
             counts[channel.topic()] = counts.get(channel.topic(), 0) + 1
+
+
+def is_frame_stream(spec: StreamSpec) -> bool:
+    """True for a stream of RGB-D frames: rows point into the device's video files (``file``, ``frame``)."""
+    return {"seq", "t_host_ns", "t_device_ns", "file", "frame"} == set(spec.column_names)
+
+
+def _write_images(session: Session, name: str, context: Any, counts: dict[str, int]) -> None:
+    """Every frame of RGB-D stream ``name`` as a JPEG ``foxglove.CompressedImage`` at its ``t_host_ns``."""
+    import cv2
+    from foxglove.channels import CompressedImageChannel
+    from foxglove.messages import CompressedImage
+
+    from midas_cli.devices.rgbd.handkp import iter_frames
+
+    spec = session.stream_spec(name)
+    channel = CompressedImageChannel(f"/{name}/image", context=context)
+    counts[channel.topic()] = 0
+    for _, t_ns, _, image in iter_frames(session, spec.device, session.read_stream(name)):
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:
+            raise SessionError(f"{session.path}: a frame of {name} could not be encoded as JPEG")
+        channel.log(CompressedImage(timestamp=timestamp(t_ns), frame_id=name, data=jpeg.tobytes(), format="jpeg"),
+                    log_time=t_ns)
+        counts[channel.topic()] += 1
 
 
 def _write_labels(session: Session, context: Any, writer: Any, counts: dict[str, int]) -> None:
