@@ -11,7 +11,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import RESULTS, machine_info  # noqa: E402
 from report_align import align_section  # noqa: E402
 from report_reference import reference_section  # noqa: E402
-from report_batch import batch_section, export_section  # noqa: E402
+from report_batch import batch_section, export_section, foxglove_live_section  # noqa: E402
 from report_executor import executor_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 
@@ -48,6 +48,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
             ".venv/bin/python benchmarks/bench_export.py     # export to MCAP / Parquet / XDF, 10 and 60 min",
             ".venv/bin/python benchmarks/bench_executor.py   # align through --jobs 1, 2 and a one-node SLURM",
+            ".venv/bin/python benchmarks/bench_foxglove_live.py   # recording CPU with record --foxglove on/off",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -329,6 +330,8 @@ def main() -> None:
     lines += batch_section(batch) if batch else ["## batch: no results yet (run its script)", ""]
     export = load("export")
     lines += export_section(export) if export else ["## export: no results yet (run its script)", ""]
+    live = load("foxglove_live")
+    lines += foxglove_live_section(live) if live else ["## foxglove_live: no results yet (run its script)", ""]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
 

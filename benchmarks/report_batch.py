@@ -37,3 +37,22 @@ def export_section(e: dict) -> list[str]:
                            for fmt in a["formats"])
         lines += ["", f"Peak memory, {a['minutes']:g} -> {b['minutes']:g} min: {growth}."]
     return lines + [""]
+
+
+def foxglove_live_section(r: dict) -> list[str]:
+    """Recording CPU with `record --foxglove` and a subscribed client, against off (bench_foxglove_live.py)."""
+    m = r["machine"]
+    lines = ["## 9. Live view in Foxglove: recording CPU (`bench_foxglove_live.py`)", "",
+             "`midas record --simulate` (EmHT 4 x 240 Hz, FPS 9 ch x 250 Hz, video and HandKP 30 Hz, simulated), "
+             "alternately without and with `--foxglove` and a websocket-client subscribed to every channel; CPU "
+             "of the recorder process over the middle of the recording (40 % to 90 % of --duration), % of one "
+             f"core. The server lives in the recorder: the workers run no new code. {m['date_utc']}.", "",
+             "| run | --foxglove | load 1 min | window s | recorder % of one core | messages received |",
+             "|---|---|---|---|---|---|"]
+    for k, run in enumerate(r["runs"]):
+        cpu = run["steady_cpu_percent_of_one_core"]
+        received = sum(run["messages_received"].values())
+        load = run["load_average_before_after"]
+        lines.append(f"| {k // 2 + 1} | {'on' if run['foxglove'] else 'off'} | {load[0]}–{load[1]} | "
+                     f"{cpu['window_s']} | {cpu['percent'].get('recorder', '—')} | {received if run['foxglove'] else '—'} |")
+    return lines + [""]
