@@ -297,3 +297,14 @@ def test_mcap_with_video_has_the_rgbd_frames_as_images(tmp_path: Path) -> None:
         assert int(message["timestamp"]["seconds"]) * 10**9 + message["timestamp"]["nanos"] == int(t_ns)
         image = cv2.imdecode(np.frombuffer(base64.b64decode(message["data"]), np.uint8), cv2.IMREAD_COLOR)
         assert image.shape == (32, 64, 3) and np.abs(image.mean(axis=(0, 1)) - colour).max() < 12
+
+
+def test_only_six_dof_sensors_become_transforms() -> None:
+    from midas_cli.devices.emht_layout import emht_stream
+    from midas_cli.devices.rgbd.handkp import handkp_spec
+    from midas_cli.interop.foxglove_topics import sensor_columns
+
+    sensors = sensor_columns(emht_stream("emht", 2, 240.0))
+    assert [(s.name, s.parent_frame) for s in sensors] == [("s1", "emht_transmitter"), ("s2", "emht_transmitter")]
+    assert sensors[1].angles == ("s2_azimuth_deg", "s2_elevation_deg", "s2_roll_deg")
+    assert sensor_columns(handkp_spec("handkp", 30.0)) == []  # positions without orientation: a time series only

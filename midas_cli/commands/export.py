@@ -19,7 +19,8 @@ def export(sessions: list[Path] = SESSIONS_ARG,
            as_json: bool = JSON_OPTION) -> None:
     """Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.
 
-    Per session: <out>/<id>.mcap (a channel per stream, labels, the manifest as metadata),
+    Per session: <out>/<id>.mcap (for Foxglove: a topic per stream, EmHT poses, markers as logs, labels,
+    the manifest as metadata; --with-video: the RGB-D frames as images),
     <out>/<id>/<stream>.parquet (+ labels_<set>.parquet, aligned.parquet), <out>/<id>.xdf (a stream per
     stream, units in the headers, clock offsets 0: the host clock is the session's only clock).
     Streams are read and written a piece at a time.

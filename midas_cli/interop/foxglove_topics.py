@@ -29,7 +29,6 @@ from midas_cli.session.schema import StreamSpec
 
 JSON_TYPES = {"int": "integer", "float": "number", "text": "string"}
 REQUIRED = ("seq", "t_host_ns")
-ANGLES = ("azimuth", "elevation", "roll")
 
 
 @dataclass(frozen=True)
@@ -50,10 +49,10 @@ def sensor_columns(spec: StreamSpec) -> list[SensorColumns]:
         if not column.name.endswith("_x_mm"):
             continue
         prefix = column.name[: -len("_x_mm")]
-        position = tuple(f"{prefix}_{a}_mm" for a in "xyz")
-        angles = tuple(f"{prefix}_{a}_deg" for a in ANGLES)
+        position = (f"{prefix}_x_mm", f"{prefix}_y_mm", f"{prefix}_z_mm")
+        angles = (f"{prefix}_azimuth_deg", f"{prefix}_elevation_deg", f"{prefix}_roll_deg")
         if names.issuperset(position + angles):
-            sensors.append(SensorColumns(prefix, position, angles, column.frame or spec.name))  # type: ignore[arg-type]
+            sensors.append(SensorColumns(prefix, position, angles, column.frame or spec.name))
     return sensors
 
 
