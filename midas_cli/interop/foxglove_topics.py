@@ -17,7 +17,6 @@ live WebSocket view (``midas record --foxglove``), built with the ``foxglove-sdk
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -70,8 +69,7 @@ def stream_json_schema(spec: StreamSpec) -> dict[str, Any]:
 
 def json_row(names: Sequence[str], values: Sequence[Any]) -> bytes:
     """One row as a JSON message: missing values (None, NaN) left out, numbers exactly as given."""
-    row = {name: value for name, value in zip(names, values)
-           if value is not None and not (isinstance(value, float) and math.isnan(value))}
+    row = {name: value for name, value in zip(names, values) if value is not None and value == value}  # NaN != NaN
     return json.dumps(row, separators=(",", ":")).encode()
 
 
@@ -82,32 +80,36 @@ def timestamp(t_ns: int) -> Any:
     return Timestamp(int(t_ns) // 1_000_000_000, int(t_ns) % 1_000_000_000)
 
 
-def sensor_arrays(sensor: SensorColumns, table: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (N, 3) in metres and unit quaternions (N, 4) x, y, z, w of one sensor from column arrays
-    (mm, deg); rows with a missing value are NaN."""
+Pose = tuple[Sequence[float], Sequence[float]]  # position (m) x, y, z; quaternion x, y, z, w
+
+
+def sensor_poses(sensor: SensorColumns, table: dict[str, np.ndarray]) -> list[Pose | None]:
+    """Each row's pose of one sensor from column arrays (mm, deg): position in metres and unit quaternion,
+    None where a value is missing."""
     position_mm = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.position])
     angles_deg = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.angles])
-    return position_mm / 1000.0, quaternions_from_angles(angles_deg)
+    positions, quaternions = position_mm / 1000.0, quaternions_from_angles(angles_deg)
+    complete = (np.isfinite(positions).all(axis=1) & np.isfinite(quaternions).all(axis=1)).tolist()
+    return [(p, q) if ok else None for p, q, ok in zip(positions.tolist(), quaternions.tolist(), complete)]
 
 
 def pose_messages(stream: str, sensors: Sequence[SensorColumns], t_ns: int,
-                  poses: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[Any, Any] | None:
-    """The ``foxglove.FrameTransforms`` and ``foxglove.PosesInFrame`` of one row: ``poses`` holds each
-    sensor's (position m (3,), quaternion (4,)); sensors with a NaN are left out; None when none is left."""
-    from foxglove.messages import FrameTransform, FrameTransforms, Pose, PosesInFrame, Quaternion, Vector3
+                  poses: Sequence[Pose | None]) -> tuple[Any, Any] | None:
+    """The ``foxglove.FrameTransforms`` and ``foxglove.PosesInFrame`` of one row from each sensor's pose
+    (None: left out); None when no sensor has one."""
+    from foxglove.messages import FrameTransform, FrameTransforms, Pose as FoxglovePose, PosesInFrame, Quaternion, Vector3
 
     stamp = timestamp(t_ns)
     transforms, frame_poses = [], []
-    for sensor, (position, quaternion) in zip(sensors, poses):
-        if not (np.isfinite(position).all() and np.isfinite(quaternion).all()):
+    for sensor, pose in zip(sensors, poses):
+        if pose is None:
             continue
-        translation = Vector3(x=float(position[0]), y=float(position[1]), z=float(position[2]))
-        rotation = Quaternion(x=float(quaternion[0]), y=float(quaternion[1]), z=float(quaternion[2]),
-                              w=float(quaternion[3]))
+        (x, y, z), (qx, qy, qz, qw) = pose
+        translation, rotation = Vector3(x=x, y=y, z=z), Quaternion(x=qx, y=qy, z=qz, w=qw)
         transforms.append(FrameTransform(timestamp=stamp, parent_frame_id=sensor.parent_frame,
                                          child_frame_id=f"{stream}/{sensor.name}", translation=translation,
                                          rotation=rotation))
-        frame_poses.append(Pose(position=translation, orientation=rotation))
+        frame_poses.append(FoxglovePose(position=translation, orientation=rotation))
     if not transforms:
         return None
     return (FrameTransforms(transforms=transforms),

@@ -29,8 +29,9 @@ import numpy as np
 
 from midas_cli.errors import SessionError
 from midas_cli.interop.common import FRAME_STREAM, frame_clock, json_columns, label_sets
-from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages, sensor_arrays,
-                                               sensor_columns, stream_json_schema, timestamp)
+from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages,
+                                               sensor_columns, sensor_poses, stream_json_schema,
+                                               timestamp)
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
@@ -99,16 +100,18 @@ def _write_stream(session: Session, name: str, context: Any, counts: dict[str, i
 def _write_poses(name: str, sensors: list, chunk: Any, times: list[int], channels: tuple[Any, Any],
                  counts: dict[str, int]) -> None:
     """One FrameTransforms and one PosesInFrame message per row of a piece of a 6-DoF stream."""
-    table = {column: chunk[column].to_numpy(np.float64, na_value=np.nan) for column in chunk.columns
-             if chunk[column].dtype != object}
-    arrays = [sensor_arrays(sensor, table) for sensor in sensors]
-    for k, t in enumerate(times):
-        messages = pose_messages(name, sensors, t, [(position[k], quaternion[k]) for position, quaternion in arrays])
+    table = {column: chunk[column].to_numpy(np.float64, na_value=np.nan)
+             for sensor in sensors for column in sensor.position + sensor.angles}
+    written = 0
+    for t, poses in zip(times, zip(*(sensor_poses(sensor, table) for sensor in sensors))):
+        messages = pose_messages(name, sensors, t, poses)
         if messages is None:
             continue
         for channel, message in zip(channels, messages):
             channel.log(message, log_time=t)
-            counts[channel.topic()] = counts.get(channel.topic(), 0) + 1
+        written += 1
+    for channel in channels:
+        counts[channel.topic()] = counts.get(channel.topic(), 0) + written
 
 
 def is_frame_stream(spec: StreamSpec) -> bool:

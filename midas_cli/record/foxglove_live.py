@@ -22,8 +22,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from midas_cli.errors import ConfigError
-from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages, sensor_arrays,
-                                               sensor_columns, stream_json_schema)
+from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages,
+                                               sensor_columns, sensor_poses, stream_json_schema)
 from midas_cli.session.schema import StreamSpec
 
 log = logging.getLogger(__name__)
@@ -73,8 +73,8 @@ class _StreamTopics:
         if self.poses and any(channel.has_sinks() for channel in self.poses):
             table = {name: np.array([np.nan if value is None else value], dtype=np.float64)
                      for name, value in zip(names, row) if not isinstance(value, str)}
-            arrays = [sensor_arrays(sensor, table) for sensor in self.sensors]
-            messages = pose_messages(self.spec.name, self.sensors, t_ns, [(p[0], q[0]) for p, q in arrays])
+            poses = [sensor_poses(sensor, table)[0] for sensor in self.sensors]
+            messages = pose_messages(self.spec.name, self.sensors, t_ns, poses)
             for channel, message in zip(self.poses, messages or ()):
                 channel.log(message, log_time=t_ns)
 
