@@ -221,7 +221,6 @@ def test_mcap_opens_with_foxglove_readers(simulated: tuple[Path, Path]) -> None:
         assert topics[f"/{name}"]["first"]["seq"] == int(session.read_stream(name)["seq"].iloc[0])
     transforms = topics["/emht/transforms"]
     assert transforms["schema"] == "foxglove.FrameTransforms" and transforms["count"] == len(emht)
-    assert topics["/emht/poses"]["schema"] == "foxglove.PosesInFrame"
     last = transforms["last"]["transforms"]
     assert [t["child_frame_id"] for t in last] == ["emht/s1", "emht/s2", "emht/s3", "emht/s4"]
     assert {t["parent_frame_id"] for t in last} == {"emht_transmitter"}

@@ -100,7 +100,7 @@ def test_live_streams_reach_a_websocket_client(tmp_path: Path) -> None:
     assert f"serving ws://127.0.0.1:{port}" in result.stderr
     streams = {"emht", "fps", "video", "handkp", "events"}
     topics = {c["topic"]: c for c in client.channels.values()}
-    assert set(topics) == {f"/{s}" for s in streams} | {"/emht/transforms", "/emht/poses"}
+    assert set(topics) == {f"/{s}" for s in streams} | {"/emht/transforms"}
     assert set(client.received) == set(topics)  # messages of every stream
     assert topics["/emht/transforms"]["schemaName"] == "foxglove.FrameTransforms"
     assert topics["/emht/transforms"]["encoding"] == "protobuf"

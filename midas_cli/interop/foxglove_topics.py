@@ -9,9 +9,9 @@ live WebSocket view (``midas record --foxglove``), built with the ``foxglove-sdk
 * a stream with 6-DoF sensors (columns ``<p>_{x,y,z}_mm`` and ``<p>_{azimuth,elevation,roll}_deg``, the
   EmHT layout) also has ``/<stream>/transforms`` (``foxglove.FrameTransforms``: parent frame = the
   position columns' frame, e.g. ``emht_transmitter``, child frame ``<stream>/<p>``; metres and unit
-  quaternions) and ``/<stream>/poses`` (``foxglove.PosesInFrame``, every sensor in the parent frame),
-  so the 3-D panel shows the sensors moving; a sensor with a missing value is left out of that row's
-  messages.
+  quaternions), so the 3-D panel shows the sensors moving; a sensor with a missing value is left out
+  of that row's message. (No ``PosesInFrame`` copy of the same poses: it doubled the file and the
+  export time.)
 """
 
 from __future__ import annotations
@@ -93,27 +93,22 @@ def sensor_poses(sensor: SensorColumns, table: dict[str, np.ndarray]) -> list[Po
     return [(p, q) if ok else None for p, q, ok in zip(positions.tolist(), quaternions.tolist(), complete)]
 
 
-def pose_messages(stream: str, sensors: Sequence[SensorColumns], t_ns: int,
-                  poses: Sequence[Pose | None]) -> tuple[Any, Any] | None:
-    """The ``foxglove.FrameTransforms`` and ``foxglove.PosesInFrame`` of one row from each sensor's pose
-    (None: left out); None when no sensor has one."""
-    from foxglove.messages import FrameTransform, FrameTransforms, Pose as FoxglovePose, PosesInFrame, Quaternion, Vector3
+def transforms_message(stream: str, sensors: Sequence[SensorColumns], t_ns: int,
+                       poses: Sequence[Pose | None]) -> Any:
+    """The ``foxglove.FrameTransforms`` of one row from each sensor's pose (None: left out); None when no
+    sensor has one."""
+    from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Vector3
 
     stamp = timestamp(t_ns)
-    transforms, frame_poses = [], []
+    transforms = []
     for sensor, pose in zip(sensors, poses):
         if pose is None:
             continue
         (x, y, z), (qx, qy, qz, qw) = pose
-        translation, rotation = Vector3(x=x, y=y, z=z), Quaternion(x=qx, y=qy, z=qz, w=qw)
         transforms.append(FrameTransform(timestamp=stamp, parent_frame_id=sensor.parent_frame,
-                                         child_frame_id=f"{stream}/{sensor.name}", translation=translation,
-                                         rotation=rotation))
-        frame_poses.append(FoxglovePose(position=translation, orientation=rotation))
-    if not transforms:
-        return None
-    return (FrameTransforms(transforms=transforms),
-            PosesInFrame(timestamp=stamp, frame_id=sensors[0].parent_frame, poses=frame_poses))
+                                         child_frame_id=f"{stream}/{sensor.name}",
+                                         translation=Vector3(x=x, y=y, z=z), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)))
+    return FrameTransforms(transforms=transforms) if transforms else None
 
 
 def marker_log(t_ns: int, text: Any, source: Any) -> Any:

@@ -4,7 +4,7 @@ Topics (see :mod:`midas_cli.interop.foxglove_topics` for the schemas):
 
 * ``/<stream>``: one JSON message per CSV row, single-typed fields, a missing value left out;
   ``/events`` (the operator's markers) as ``foxglove.Log``;
-* ``/<stream>/transforms`` and ``/<stream>/poses`` for streams with 6-DoF sensors (EmHT): metres,
+* ``/<stream>/transforms`` for streams with 6-DoF sensors (EmHT): metres,
   quaternions, frames ``<stream>/<sensor>`` in the transmitter's frame;
 * with ``with_video``: ``/<stream>/image`` (``foxglove.CompressedImage``, JPEG, frame id ``<stream>``)
   for each stream of RGB-D frames (columns ``file`` and ``frame`` into ``video/<device>_NNN.mkv``): one
@@ -29,7 +29,7 @@ import numpy as np
 
 from midas_cli.errors import SessionError
 from midas_cli.interop.common import FRAME_STREAM, frame_clock, json_columns, label_sets
-from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages,
+from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, transforms_message,
                                                sensor_columns, sensor_poses, stream_json_schema,
                                                timestamp)
 from midas_cli.session.outputs import replacing
@@ -69,7 +69,7 @@ def write_mcap(session: Session, target: Path, with_video: bool = False) -> dict
 def _write_stream(session: Session, name: str, context: Any, counts: dict[str, int]) -> None:
     """The topics of stream ``name``, read a piece at a time."""
     from foxglove import Channel
-    from foxglove.channels import FrameTransformsChannel, LogChannel, PosesInFrameChannel
+    from foxglove.channels import FrameTransformsChannel, LogChannel
 
     spec = session.stream_spec(name)
     metadata = {"midas.stream": name, "nominal_rate_hz": str(spec.nominal_rate_hz),
@@ -81,7 +81,6 @@ def _write_stream(session: Session, name: str, context: Any, counts: dict[str, i
         Channel(f"/{name}", schema=stream_json_schema(spec), context=context, metadata=metadata)
     sensors = sensor_columns(spec)
     transforms = FrameTransformsChannel(f"/{name}/transforms", context=context) if sensors else None
-    poses = PosesInFrameChannel(f"/{name}/poses", context=context) if sensors else None
     counts[f"/{name}"] = 0
     for chunk in session.iter_stream(name):
         names, columns = list(chunk.columns), json_columns(chunk)
@@ -94,24 +93,20 @@ def _write_stream(session: Session, name: str, context: Any, counts: dict[str, i
                 rows.log(json_row(names, row), log_time=t)
         counts[f"/{name}"] += len(chunk)
         if sensors:
-            _write_poses(name, sensors, chunk, times, (transforms, poses), counts)
+            _write_transforms(name, sensors, chunk, times, transforms, counts)
 
 
-def _write_poses(name: str, sensors: list, chunk: Any, times: list[int], channels: tuple[Any, Any],
-                 counts: dict[str, int]) -> None:
-    """One FrameTransforms and one PosesInFrame message per row of a piece of a 6-DoF stream."""
+def _write_transforms(name: str, sensors: list, chunk: Any, times: list[int], channel: Any,
+                      counts: dict[str, int]) -> None:
+    """One FrameTransforms message per row of a piece of a 6-DoF stream."""
     table = {column: chunk[column].to_numpy(np.float64, na_value=np.nan)
              for sensor in sensors for column in sensor.position + sensor.angles}
-    written = 0
+    counts.setdefault(channel.topic(), 0)
     for t, poses in zip(times, zip(*(sensor_poses(sensor, table) for sensor in sensors))):
-        messages = pose_messages(name, sensors, t, poses)
-        if messages is None:
-            continue
-        for channel, message in zip(channels, messages):
+        message = transforms_message(name, sensors, t, poses)
+        if message is not None:
             channel.log(message, log_time=t)
-        written += 1
-    for channel in channels:
-        counts[channel.topic()] = counts.get(channel.topic(), 0) + written
+            counts[channel.topic()] += 1
 
 
 def is_frame_stream(spec: StreamSpec) -> bool:

@@ -10,7 +10,7 @@ holds and never in the workers' way. Publishing costs nothing while no client is
 operator's markers are published once fsynced (record/markers.py ``MarkerLog(publish=...)``).
 
 Topics and messages are those of the MCAP export (interop/foxglove_topics.py): ``/<stream>`` JSON,
-``/events`` as ``foxglove.Log``, ``/<stream>/transforms`` and ``/<stream>/poses`` for EmHT.
+``/events`` as ``foxglove.Log``, ``/<stream>/transforms`` for EmHT.
 Publishing never stops a recording: a failure is one warning and that stream is no longer published.
 """
 
@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from midas_cli.errors import ConfigError
-from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, pose_messages,
+from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, transforms_message,
                                                sensor_columns, sensor_poses, stream_json_schema)
 from midas_cli.session.schema import StreamSpec
 
@@ -51,15 +51,14 @@ class _StreamTopics:
 
     def __init__(self, spec: StreamSpec, context: Any) -> None:
         from foxglove import Channel
-        from foxglove.channels import FrameTransformsChannel, LogChannel, PosesInFrameChannel
+        from foxglove.channels import FrameTransformsChannel, LogChannel
 
         self.spec = spec
         self.markers = spec.name == EVENTS_STREAM and {"text", "source"} <= set(spec.column_names)
         self.rows = LogChannel(f"/{spec.name}", context=context) if self.markers else \
             Channel(f"/{spec.name}", schema=stream_json_schema(spec), context=context)
         self.sensors = sensor_columns(spec)
-        self.poses = (FrameTransformsChannel(f"/{spec.name}/transforms", context=context),
-                      PosesInFrameChannel(f"/{spec.name}/poses", context=context)) if self.sensors else ()
+        self.transforms = FrameTransformsChannel(f"/{spec.name}/transforms", context=context) if self.sensors else None
 
     def publish(self, row: Sequence[Any]) -> None:
         """One row (seq, t_host_ns, ...) to every topic of the stream that has a subscriber."""
@@ -70,13 +69,13 @@ class _StreamTopics:
             message = marker_log(t_ns, values.get("text"), values.get("source")) if self.markers \
                 else json_row(names, row)
             self.rows.log(message, log_time=t_ns)
-        if self.poses and any(channel.has_sinks() for channel in self.poses):
+        if self.transforms is not None and self.transforms.has_sinks():
             table = {name: np.array([np.nan if value is None else value], dtype=np.float64)
                      for name, value in zip(names, row) if not isinstance(value, str)}
-            poses = [sensor_poses(sensor, table)[0] for sensor in self.sensors]
-            messages = pose_messages(self.spec.name, self.sensors, t_ns, poses)
-            for channel, message in zip(self.poses, messages or ()):
-                channel.log(message, log_time=t_ns)
+            message = transforms_message(self.spec.name, self.sensors, t_ns,
+                                         [sensor_poses(sensor, table)[0] for sensor in self.sensors])
+            if message is not None:
+                self.transforms.log(message, log_time=t_ns)
 
 
 class FoxgloveLive:
