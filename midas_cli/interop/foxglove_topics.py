@@ -23,7 +23,6 @@ from typing import Any, Sequence
 import numpy as np
 
 from midas_cli.geometry import quaternions_from_angles
-from midas_cli.record.markers import EVENTS_STREAM
 from midas_cli.session.schema import StreamSpec
 
 JSON_TYPES = {"int": "integer", "float": "number", "text": "string"}

@@ -29,9 +29,10 @@ import numpy as np
 
 from midas_cli.errors import SessionError
 from midas_cli.interop.common import FRAME_STREAM, frame_clock, json_columns, label_sets
-from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, transforms_message,
+from midas_cli.interop.foxglove_topics import (json_row, marker_log, transforms_message,
                                                sensor_columns, sensor_poses, stream_json_schema,
                                                timestamp)
+from midas_cli.record.markers import EVENTS_STREAM
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
 from midas_cli.session.schema import StreamSpec
@@ -77,7 +78,7 @@ def _write_stream(session: Session, name: str, context: Any, counts: dict[str, i
     if name == FRAME_STREAM:
         metadata["frame_clock"] = "true"
     is_markers = name == EVENTS_STREAM and {"text", "source"} <= set(spec.column_names)
-    rows = LogChannel(f"/{name}", context=context, metadata=metadata) if is_markers else \
+    rows: Any = LogChannel(f"/{name}", context=context, metadata=metadata) if is_markers else \
         Channel(f"/{name}", schema=stream_json_schema(spec), context=context, metadata=metadata)
     sensors = sensor_columns(spec)
     transforms = FrameTransformsChannel(f"/{name}/transforms", context=context) if sensors else None

@@ -22,8 +22,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from midas_cli.errors import ConfigError
-from midas_cli.interop.foxglove_topics import (EVENTS_STREAM, json_row, marker_log, transforms_message,
+from midas_cli.interop.foxglove_topics import (json_row, marker_log, transforms_message,
                                                sensor_columns, sensor_poses, stream_json_schema)
+from midas_cli.record.markers import EVENTS_STREAM
 from midas_cli.session.schema import StreamSpec
 
 log = logging.getLogger(__name__)
@@ -55,7 +56,7 @@ class _StreamTopics:
 
         self.spec = spec
         self.markers = spec.name == EVENTS_STREAM and {"text", "source"} <= set(spec.column_names)
-        self.rows = LogChannel(f"/{spec.name}", context=context) if self.markers else \
+        self.rows: Any = LogChannel(f"/{spec.name}", context=context) if self.markers else \
             Channel(f"/{spec.name}", schema=stream_json_schema(spec), context=context)
         self.sensors = sensor_columns(spec)
         self.transforms = FrameTransformsChannel(f"/{spec.name}/transforms", context=context) if self.sensors else None
