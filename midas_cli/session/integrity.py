@@ -14,7 +14,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from midas_cli import __version__
 from midas_cli.errors import SessionError
@@ -28,6 +28,9 @@ from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import StreamSummary, complete_line_end, summarize_bytes, summarize_stream
 from midas_cli.session.values import parse_stream_bytes, read_regular_file, structured
 from midas_cli.session.writer import utc_iso
+
+if TYPE_CHECKING:
+    import numpy as np
 
 FINISHED = ("complete", "interrupted", "recovered")
 TEMP_SUFFIXES = (".tmp", ".tmp.npz")  # path + ".tmp" everywhere; artifacts.write_npz: path + ".tmp.npz"
@@ -146,9 +149,25 @@ def _verify_stream(session: Session, name: str, report: VerifyReport, strict: bo
     if session.status in FINISHED:
         problems += _manifest_mismatches(entry, found)
     problems += _gap_findings(entry, found, strict, report.notes, name)
+    if parsed is not None:
+        problems += _times_outside(session, entry["file"], parsed["t_host_ns"])
     if not problems:
         problems += copy_differences(session.path, name, entry, parsed)
     report.problems.extend(f"{name}: {p}" for p in problems)
+
+
+def _times_outside(session: Session, file: str, times: np.ndarray) -> list[str]:
+    """The host times (ns, one per data line) outside ``session.plausible_host_ns()``: the first one's
+    line and value, and how many there are (nothing when all are inside)."""
+    low, high = session.plausible_host_ns()
+    outside = (times < low) if high is None else (times < low) | (times > high)
+    where = outside.nonzero()[0]
+    if not len(where):
+        return []
+    first = int(where[0])
+    span = f"{low} .. {'(no stop)' if high is None else high}"
+    return [f"{file} line {first + 2}: t_host_ns {int(times[first])} is far outside the session's time span "
+            f"(start and stop -/+ max(1 min, its length): {span}); {len(where)} such sample(s)"]
 
 
 def _file_problems(found: StreamSummary) -> list[str]:
