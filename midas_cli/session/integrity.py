@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 from midas_cli import __version__
 from midas_cli.errors import SessionError
+from midas_cli.session import stop_facts
 from midas_cli.session.columnar import add_binary_copies, copy_differences
 from midas_cli.session.derived import aligned_problems
 from midas_cli.session.manifest import (MANIFEST_NAME, MANIFEST_TMP, fsync_dir, load_manifest, read_manifest_file,
@@ -243,6 +244,7 @@ def _repair_locked(folder: Path) -> RepairReport:
         return RepairReport(folder, repaired=False, status=manifest["status"], removed=removed,
                             restored_manifest=restored)
     report = RepairReport(folder, repaired=True, status="recovered", removed=removed, restored_manifest=restored)
+    facts = stop_facts.read(folder)
     last_times = []
     for name, entry in manifest["streams"].items():
         spec = StreamSpec.from_manifest(name, entry)
@@ -254,6 +256,7 @@ def _repair_locked(folder: Path) -> RepairReport:
         _cut_torn_tail(folder, name, stream_path, spec, report)
         found = summarize_stream(stream_path, spec)
         entry.update(found.manifest_fields())
+        entry.update(facts["streams"].get(name, {}) if facts else {})
         entry["seq_gaps"]["note"] = "derived from the file by repair"
         if found.last_t_host_ns is not None:
             last_times.append(found.last_t_host_ns)
@@ -261,14 +264,23 @@ def _repair_locked(folder: Path) -> RepairReport:
     manifest.update(
         status="recovered",
         stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns},
-        stop_reason="the recorder stopped without finalising (crash or kill); recovered by `midas session repair`",
+        stop_reason=_recovered_reason(facts),
         repair={"utc": utc_iso(time.time_ns()), "midas_version": __version__, "cut": report.cut,
                 "created_empty_streams": report.created},
     )
     write_manifest(folder, manifest)  # recovered first: the binary copies are an extra
+    stop_facts.release(folder)
     add_binary_copies(folder, manifest)
     write_manifest(folder, manifest)
     return report
+
+
+def _recovered_reason(facts: dict[str, Any] | None) -> str:
+    """The stop reason of a repaired session: the recorder's own, when it kept one (``stop_facts``)."""
+    if facts is None:
+        return "the recorder stopped without finalising (crash or kill); recovered by `midas session repair`"
+    return (f"{facts['stop_reason']} (status {facts['status']}; the recorder could not write the final manifest; "
+            f"recovered by `midas session repair`)")
 
 
 def _restore_manifest(folder: Path) -> bool:
