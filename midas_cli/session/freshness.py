@@ -10,12 +10,14 @@ size as the manifest gave them, and each calibration file's. The table is stale 
   the table and its bytes no longer hash to the recorded sha256 (an edit that keeps the size; a copy
   that only touched the modification times is hashed once per read and passes).
 
-Tables from a midas that recorded no inputs cannot be checked and are taken as they are.
+Tables that record no inputs (an older midas, a table written by other code) cannot be checked
+and are taken as they are.
 """
 
 from __future__ import annotations
 
 import shlex
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -30,11 +32,12 @@ ALIGN_FLAGS = {"method": ("--method", "causal"), "rate_hz": ("--downsample", Non
 def changed_inputs(folder: Path, manifest: dict[str, Any], meta: dict[str, Any], made_ns: int) -> list[str]:
     """The inputs of the aligned table (``meta``: aligned.json, written at ``made_ns``, st_mtime_ns)
     that changed since, as ``streams/emht.csv (the file)``-like phrases; empty when none did or the
-    table records no inputs."""
-    inputs = _recorded_inputs(meta)
-    if inputs is None:
-        return []
+    table records no inputs (a midas before they were recorded, a table written without them)."""
+    producer = meta.get("producer") if isinstance(meta, dict) else None
+    inputs = producer.get("inputs") if isinstance(producer, dict) else None
     if not inputs:
+        return []
+    if not _well_formed(inputs):
         return ["derived/aligned.json (its producer.inputs is not a map of file -> {sha256, bytes})"]
     now = {entry["file"]: entry for entry in manifest["streams"].values()}
     changed = {rel: "not in the manifest any more" for rel in inputs if not rel.startswith("calib/") and rel not in now}
@@ -49,31 +52,27 @@ def changed_inputs(folder: Path, manifest: dict[str, Any], meta: dict[str, Any],
     return [f"{rel} ({why})" for rel, why in changed.items()]
 
 
-def _recorded_inputs(meta: dict[str, Any]) -> dict[str, dict[str, Any]] | None:
-    """``producer.inputs`` of aligned.json (file -> {sha256, bytes}); None when absent, empty when it is
-    not of that shape (a hand-made or damaged file)."""
-    producer = meta.get("producer") if isinstance(meta, dict) else None
-    inputs = producer.get("inputs") if isinstance(producer, dict) else None
-    if inputs is None:
-        return None
-    well_formed = isinstance(inputs, dict) and all(
+def _well_formed(inputs: Any) -> bool:
+    """Whether ``producer.inputs`` of aligned.json is a map of file -> {sha256: str|None, bytes: int|None}."""
+    return isinstance(inputs, dict) and all(
         isinstance(rel, str) and isinstance(v, dict) and isinstance(v.get("sha256"), (str, type(None)))
         and isinstance(v.get("bytes"), (int, type(None))) and not isinstance(v.get("bytes"), bool)
         for rel, v in inputs.items())
-    return inputs if well_formed else {}
 
 
 def _file_changed(folder: Path, rel: str, recorded: dict[str, Any], made_ns: int) -> bool:
-    """Whether the file ``rel`` of the session differs from ``recorded`` ({sha256, bytes}): missing,
-    another size, or newer than the table and hashing to another sha256."""
+    """Whether the file ``rel`` of the session differs from ``recorded`` ({sha256, bytes}): missing, not
+    a regular file, another size, or newer than the table and hashing to another sha256."""
     path = check_inside(folder, rel)
     try:
-        stat = path.stat()
+        found = path.stat()
     except OSError:
         return True
-    if recorded.get("bytes") is not None and stat.st_size != recorded["bytes"]:
+    if not stat.S_ISREG(found.st_mode):  # a FIFO or device is never opened (a read could block for ever)
         return True
-    if stat.st_mtime_ns <= made_ns or recorded.get("sha256") is None:
+    if recorded.get("bytes") is not None and found.st_size != recorded["bytes"]:
+        return True
+    if found.st_mtime_ns <= made_ns or recorded.get("sha256") is None:
         return False
     try:
         return file_sha256(path) != recorded["sha256"]
