@@ -229,6 +229,16 @@ def test_a_start_that_fails_is_marked_failed_and_hidden_from_lists(tmp_path: Pat
     assert [s["status"] for s in json.loads(listed_all.stdout)] == ["failed"]
 
 
+def test_a_start_that_fails_still_ends_stdout_with_the_session_path(tmp_path: Path) -> None:
+    """`path=$(midas record ... | tail -n 1)` finds the folder however recording ends (issue 23 item 6)."""
+    url = f"obs://127.0.0.1:{free_port()}?timeout=0.5"
+    result = midas("record", "--device", f"video={url}", "--device", "emht=sim://emht", "--duration", "60",
+                   "--out", str(tmp_path), *META, "--no-tui", timeout=120)  # the failed open ends it
+    assert result.returncode == 3, result.stderr
+    (path,) = _sessions(tmp_path)
+    assert result.stdout.splitlines()[-1] == str(path)
+
+
 def test_a_full_disk_at_the_start_leaves_no_folder(tmp_path: Path) -> None:
     """RLIMIT_FSIZE makes the first write past a few bytes fail with EFBIG, as a full disk would."""
     import resource

@@ -220,6 +220,8 @@ def optimise_pedals(paths: list[Path], out: Path | None) -> dict[str, Any]:
     """Per pedal, the threshold (V) and polarity maximising F1 over all frames of ``paths`` against the
     ground truth; reports F1 of the recorded states (before) and of the rule (after). Writes
     ``calib/fps_optimized.json`` into each session (or ``out``). Pedals never pressed are left out."""
+    for path in paths:  # a folder that is no valid session gets nothing written into it
+        Session.open(path)
     targets = [out_target(out)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]  # checked first
     volts: dict[str, list[np.ndarray]] = {}
     truths: dict[str, list[np.ndarray]] = {}

@@ -22,6 +22,7 @@ from typing import Any, Iterable
 from midas_cli import __version__
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session import stop_facts
 from midas_cli.session.columnar import add_binary_copies
 from midas_cli.session.manifest import SCHEMA_VERSION, write_manifest
 from midas_cli.session.schema import StreamSpec
@@ -168,6 +169,7 @@ class SessionWriter:
             write_manifest(folder, manifest)  # first: a kill from here on leaves a session `repair` understands
             for sub in SUBFOLDERS:
                 (folder / sub).mkdir(exist_ok=True)
+            stop_facts.reserve(folder)  # room for how it ended, should the disk be full by then
             return cls(folder, manifest, specs)
         except OSError as exc:  # disk full, quota, permissions: nothing was recorded, leave nothing behind
             shutil.rmtree(folder, ignore_errors=True)
@@ -193,7 +195,9 @@ class SessionWriter:
     def finalize(self, status: str, stop_reason: str, stop_ns: int, extra: dict[str, dict[str, Any]]) -> dict:
         """Close the files, describe each from what is on disk, and replace the manifest atomically.
 
-        ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages).
+        ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages). When the
+        manifest cannot be written (disk full) the stop facts go to the space reserved for them
+        (``stop_facts``) for `midas session repair`, and the OSError is raised.
         """
         self.sync()
         for appender in self._appenders.values():
@@ -203,7 +207,12 @@ class SessionWriter:
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
             entry.update(extra.get(name, {}))
         self.manifest.update(status=status, stop_reason=stop_reason, stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns})
-        write_manifest(self.folder, self.manifest)  # finished first: the binary copies are an extra
+        try:
+            write_manifest(self.folder, self.manifest)  # finished first: the binary copies are an extra
+        except OSError:  # the disk is full: `repair` will need to know how it ended
+            stop_facts.keep(self.folder, status, stop_reason, extra)
+            raise
+        stop_facts.release(self.folder)
         add_binary_copies(self.folder, self.manifest)
         write_manifest(self.folder, self.manifest)
         return self.manifest
