@@ -16,12 +16,16 @@ empty config. Its sections and keys are checked (a typo is an error, not a silen
     gpus = 0
     array_parallelism = 32
 
+The ``[slurm]`` values are checked against SLURM's own grammar (``slurm_value_problem``) when the file is
+read: they become sbatch arguments, so a partition holding a line break or a shell word is refused here.
+
 Only the standard library is imported here, so every command may ask for its defaults at no cost.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any, Optional
 
@@ -39,6 +43,21 @@ KNOWN: dict[str, dict[str, tuple[type, ...]]] = {
               "account": (str,), "qos": (str,), "cpus_per_task": (int,)},
 }
 PATH_KEYS = {("record", "rig"), ("record", "sessions")}
+
+_SLURM_NAME = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}"  # partition, account and QOS names as slurm.conf/sacctmgr make them
+_N = r"[0-9]+"
+# key -> (the whole value must match, what was expected); SLURM's formats, ASCII digits only
+SLURM_GRAMMAR: dict[str, tuple[re.Pattern[str], str]] = {
+    "partition": (re.compile(rf"{_SLURM_NAME}(,{_SLURM_NAME})*"),
+                  "a SLURM partition name (letters, digits, '_', '.', '-'; several separated by commas)"),
+    "account": (re.compile(_SLURM_NAME), "a SLURM account name (letters, digits, '_', '.', '-')"),
+    "qos": (re.compile(_SLURM_NAME), "a SLURM QOS name (letters, digits, '_', '.', '-')"),
+    "time": (re.compile(rf"{_N}(:{_N}){{0,2}}|{_N}-{_N}(:{_N}){{0,2}}"),
+             "a SLURM time (minutes, minutes:seconds, hours:minutes:seconds, days-hours, days-hours:minutes or "
+             "days-hours:minutes:seconds)"),
+    "mem": (re.compile(rf"{_N}[KMGTkmgt]?"), "a SLURM memory size (an integer, optionally with K, M, G or T: 4000M, 8G)"),
+}
+SLURM_MINIMUM = {"gpus": 0, "array_parallelism": 1, "cpus_per_task": 1}
 
 
 def config_path() -> Path:
@@ -84,10 +103,26 @@ def _checked(data: dict[str, Any], path: Path) -> dict[str, dict[str, Any]]:
             if not isinstance(value, keys[key]) or isinstance(value, bool):
                 expected = " or ".join(t.__name__ for t in keys[key])
                 raise ConfigError(f"config {path}: [{section}] {key} = {value!r} should be a {expected}")
+            problem = slurm_value_problem(key, value) if section == "slurm" else None
+            if problem:
+                raise ConfigError(f"config {path}: [slurm] {key} = {value!r} {problem}")
             if (section, key) in PATH_KEYS:
                 value = str((path.parent / Path(value).expanduser()))
             result.setdefault(section, {})[key] = value
     return result
+
+
+def slurm_value_problem(key: str, value: Any) -> Optional[str]:
+    """Why ``value`` is not a valid ``[slurm] key`` setting (None: it is): names and sizes in SLURM's own
+    grammar, counts within their range."""
+    if key in SLURM_GRAMMAR:
+        pattern, expected = SLURM_GRAMMAR[key]
+        return None if isinstance(value, str) and pattern.fullmatch(value) else f"is not {expected}"
+    if key in SLURM_MINIMUM:
+        least = SLURM_MINIMUM[key]
+        ok = isinstance(value, int) and not isinstance(value, bool) and value >= least
+        return None if ok else f"should be an integer >= {least}"
+    return None
 
 
 def section(name: str) -> dict[str, Any]:
