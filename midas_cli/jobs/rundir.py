@@ -26,7 +26,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable
 
-from midas_cli.errors import ConfigError
+from midas_cli.errors import ConfigError, SessionError
 
 PLAN = "plan.json"
 SUBMISSIONS = "submissions.json"
@@ -62,7 +62,8 @@ def fingerprint(*parts: Any) -> str:
 
 
 def file_digest(path: Path) -> str:
-    """sha256 of a file's bytes ('' for a missing file)."""
+    """sha256 of a file's bytes ('' for a missing file); SessionError when it cannot be read (a folder, or
+    a file where a folder above it should be)."""
     digest = hashlib.sha256()
     try:
         with open(path, "rb") as f:
@@ -70,6 +71,9 @@ def file_digest(path: Path) -> str:
                 digest.update(block)
     except FileNotFoundError:
         return ""
+    except OSError as exc:
+        raise SessionError(f"cannot read {path}: {exc.strerror or exc} (a file where a folder should be, or the "
+                           "other way round?)") from None
     return digest.hexdigest()
 
 
