@@ -76,12 +76,16 @@ def _read_small_regular(path: Path, what: str) -> bytes:
     """The bytes of ``path``; ConfigError unless it is a regular file of at most MAX_TOML_BYTES (a folder,
     FIFO or device such as /dev/zero is refused without a blocking read). FileNotFoundError passes."""
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO cannot block the open
-    with os.fdopen(fd, "rb") as f:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            kind = "a folder" if stat.S_ISDIR(info.st_mode) else "not a regular file"
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = "a folder" if stat.S_ISDIR(mode) else "not a regular file"
             raise ConfigError(f"{what} {path} is {kind}, expected a TOML file")
-        data = f.read(MAX_TOML_BYTES + 1)
+        os.set_blocking(fd, True)
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_TOML_BYTES + 1)
+    finally:
+        os.close(fd)
     if len(data) > MAX_TOML_BYTES:
         raise ConfigError(f"{what} {path} is larger than {MAX_TOML_BYTES >> 20} MiB: not a {what}")
     return data
