@@ -56,7 +56,7 @@ ABLATION = ["--models", "baseline-mlp", "--grid", "emht:pos", "--split", "loto",
 
 def damaged_copy(gestures: Path, tmp_path: Path, damage) -> Path:
     data = Path(shutil.copytree(gestures, tmp_path / "data"))
-    damage(sorted(data.iterdir())[0])
+    damage(min(data.iterdir()))
     return data
 
 

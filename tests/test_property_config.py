@@ -60,7 +60,7 @@ def toml_string(text: str) -> str:
 
 
 def entry(section: str, key: str, value: str) -> bytes:
-    return f"[{section}]\n{key} = {value}\n".encode("utf-8")
+    return f"[{section}]\n{key} = {value}\n".encode()
 
 
 def nested(depth: int, table: bool) -> str:
