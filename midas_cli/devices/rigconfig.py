@@ -13,12 +13,12 @@ calibrated pedal thresholds back and validates the result); ``midas_cli/rig.py``
 from __future__ import annotations
 
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+from midas_cli.config import read_toml
 from midas_cli.devices.base import KINDS, WHERE_PASSWORDS_GO, DeviceUrl, is_secret_key
 from midas_cli.errors import ConfigError
 
@@ -83,15 +83,13 @@ def _with_password_source(device: DeviceConfig) -> str:
 
 
 def load_rig(path: Path | str) -> RigConfig:
+    """The rig file at ``path``, checked; ConfigError for a missing, special (/dev/zero), huge, non-UTF-8,
+    invalid or too deeply nested file (``config.read_toml``) and for any bad section, key or value."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = read_toml(path, "rig file")
     except FileNotFoundError:
         raise ConfigError(f"rig file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read rig file {path}: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"rig file {path} is not valid TOML: {exc}") from exc
     return parse_rig(data, str(path))
 
 
