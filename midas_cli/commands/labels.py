@@ -16,6 +16,7 @@ from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
 from midas_cli.labels.stats import GestureStats, gesture_stats, transition_heatmap
 from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy
+from midas_cli.session.labels import label_set_files
 from midas_cli.session.outputs import out_target, write_text
 
 app = typer.Typer(help="Gesture taxonomies, annotation import/export and label statistics.\n\n"
@@ -158,7 +159,7 @@ def export(
     if out_file is None:
         sys.stdout.write(text)
         return
-    write_text(out_target(out_file), text)
+    write_text(out_target(out_file, inputs=label_set_files(session, name)), text)
     err.print(f"wrote {out_file}", markup=False)
 
 

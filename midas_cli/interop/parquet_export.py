@@ -22,7 +22,7 @@ import numpy as np
 from midas_cli.interop.common import column_facts, frame_clock
 from midas_cli.session.derived import read_aligned
 from midas_cli.session.labels import list_label_sets, read_frame_labels
-from midas_cli.session.outputs import replacing
+from midas_cli.session.outputs import out_child, replacing
 from midas_cli.session.reader import Session
 
 ALIGNED_ROWS = 65536  # rows per row group of aligned.parquet
@@ -40,7 +40,7 @@ def write_parquet(session: Session, folder: Path) -> dict[str, Any]:
     rows: dict[str, int] = {}
     for name in session.stream_names:
         facts = {c["name"]: c for c in column_facts(session, name)}
-        target = folder / f"{name}.parquet"
+        target = out_child(folder, f"{name}.parquet")
         rows[target.name] = 0
         with replacing(target) as tmp:
             writer = None
@@ -68,7 +68,7 @@ def write_parquet(session: Session, folder: Path) -> dict[str, Any]:
                           "t_host_ns": pa.array(times, pa.int64(), mask=times < 0)})
         table = table.replace_schema_metadata({b"midas.labels": _meta(labels.meta),
                                                b"midas.manifest": _meta(session.manifest)})
-        target = folder / f"labels_{name}.parquet"
+        target = out_child(folder, f"labels_{name}.parquet")
         with replacing(target) as tmp:
             pq.write_table(table, tmp)
         rows[target.name] = table.num_rows
