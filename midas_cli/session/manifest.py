@@ -161,7 +161,7 @@ def check_inside(folder: Path, rel: Any, where: str = "manifest path") -> Path:
     if not isinstance(rel, str) or not rel or "\\" in rel or any(ord(c) < 32 or ord(c) == 127 for c in rel):
         raise SessionError(f"{where} {shown(rel)} is not a relative POSIX path")
     pure = PurePosixPath(rel)
-    if pure.is_absolute() or ".." in pure.parts:
+    if pure.is_absolute() or ".." in pure.parts or not pure.parts:
         raise SessionError(f"{where} {shown(rel)} escapes the session folder {folder}")
     root = Path(folder).resolve()
     resolved = (root / pure).resolve()
