@@ -223,3 +223,24 @@ def test_out_target_refuses_its_inputs_through_links(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="which this command reads"):
         out_target(tmp_path / "link.csv", inputs=[data])
     assert out_target(tmp_path / "other.csv", inputs=[data]) == tmp_path.resolve() / "other.csv"
+
+
+def test_a_session_whose_stream_names_are_refused_leaves_no_folder(tmp_path: Path) -> None:
+    """An importer names streams from the files it reads (a watch's sensor): the manifest's check
+    refuses the name before any stream file exists, and the half-made folder goes."""
+    from midas_cli.clock import HostClock
+    from midas_cli.session.schema import SEQ, T_HOST, StreamSpec
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    spec = StreamSpec("smartwatch_left_../../x", "smartwatch_left", (SEQ, T_HOST), 50.0)
+    with pytest.raises(SessionError, match="a key of streams"):
+        SessionWriter.create(tmp_path / "out", SessionMetadata("1", "demo", 1), HostClock.anchored_now(),
+                             {"smartwatch_left": {"kind": "test"}}, [spec])
+    assert list((tmp_path / "out").iterdir()) == [] and not list(tmp_path.rglob("x.csv"))
+
+
+def test_extract_handkp_refuses_a_stream_option_that_is_no_stream_name(tmp_path: Path) -> None:
+    from midas_cli.devices.rgbd.handkp_units import plan_units
+
+    with pytest.raises(ConfigError, match="--stream"):
+        plan_units([tmp_path], "truth", None, "../derived/x", False, False)

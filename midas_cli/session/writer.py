@@ -169,6 +169,9 @@ class SessionWriter:
         except OSError as exc:  # disk full, quota, permissions: nothing was recorded, leave nothing behind
             shutil.rmtree(folder, ignore_errors=True)
             raise SessionError(f"cannot create the session in {out_root}: {exc.strerror or exc}") from exc
+        except SessionError:  # a name no manifest may hold (an imported file's sensor named "../x")
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
 
     def append(self, stream: str, text: str) -> None:
         """Append whole CSV lines to a stream and hand them to the OS (survives a process kill).
