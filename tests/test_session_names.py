@@ -136,6 +136,18 @@ def test_labels_export_refuses_to_overwrite_the_label_set_it_reads(pristine: Pat
     assert labels.read_bytes() == kept
 
 
+@pytest.mark.parametrize("command, read", [(["calibrate", "fps-optimize", "{s}"], "derived/aligned.json"),
+                                           (["plot", "{s}"], "labels/gestures.csv")])
+def test_other_commands_refuse_an_out_that_is_one_of_their_inputs(pristine: Path, tmp_path: Path,
+                                                                  command: list[str], read: str) -> None:
+    session = _copy(pristine, tmp_path)
+    kept = (session / read).read_bytes()
+    result = midas(*[a.format(s=session) for a in command], "--out", str(session / read))
+    assert result.returncode == 2
+    _one_error_line(result, "which this command reads")
+    assert (session / read).read_bytes() == kept
+
+
 def test_verify_refuses_a_label_set_file_whose_name_no_label_set_may_have(pristine: Path, tmp_path: Path) -> None:
     session = _copy(pristine, tmp_path)
     shutil.copy(session / "labels" / "gestures.csv", session / "labels" / "two\nlines.csv")
