@@ -256,3 +256,14 @@ def test_extract_handkp_refuses_a_stream_option_that_is_no_stream_name(tmp_path:
 
     with pytest.raises(ConfigError, match="--stream"):
         plan_units([tmp_path], "truth", None, "../derived/x", False, False)
+
+
+def test_a_taxonomy_a_label_set_records_is_never_read_as_a_path(pristine: Path, tmp_path: Path) -> None:
+    from midas_cli.labels.sessions import export_labels
+
+    session = _copy(pristine, tmp_path)
+    planted = tmp_path / "planted.toml"
+    planted.write_text('name = "planted"\n[[gestures]]\nid = "PLANTED"\nname = "read from outside"\n')
+    meta = json.loads((session / "labels" / "gestures.json").read_text())
+    (session / "labels" / "gestures.json").write_text(json.dumps({**meta, "taxonomy": str(planted)}))
+    assert "PLANTED" not in export_labels(session, "via")
