@@ -18,8 +18,8 @@ from midas_cli.analysis.metrics import binary_scores
 from midas_cli.analysis.report import json_safe, write_tables
 from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.session.derived import (AlignedTable, calib_path, find_calibration, output_dir, read_aligned,
-                                       read_pedals_ground_truth)
+from midas_cli.session.derived import (PEDALS_GT, AlignedTable, aligned_files, calib_path, find_calibration,
+                                       output_dir, read_aligned, read_pedals_ground_truth)
 from midas_cli.session.outputs import out_folder, out_target, write_json
 from midas_cli.session.reader import Session
 
@@ -222,7 +222,8 @@ def optimise_pedals(paths: list[Path], out: Path | None) -> dict[str, Any]:
     ``calib/fps_optimized.json`` into each session (or ``out``). Pedals never pressed are left out."""
     for path in paths:  # a folder that is no valid session gets nothing written into it
         Session.open(path)
-    targets = [out_target(out)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]  # checked first
+    read = [file for p in paths for file in (*aligned_files(p), Path(p) / PEDALS_GT)]
+    targets = [out_target(out, inputs=read)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]  # checked first
     volts: dict[str, list[np.ndarray]] = {}
     truths: dict[str, list[np.ndarray]] = {}
     before: dict[str, list[np.ndarray]] = {}

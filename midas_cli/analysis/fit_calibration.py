@@ -24,7 +24,7 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
                                            mean_rotation, rotation_angle_deg)
 from midas_cli.models.mlp_config import MLPConfig
-from midas_cli.session.derived import calib_path
+from midas_cli.session.derived import aligned_files, calib_path
 from midas_cli.session.outputs import out_target
 from midas_cli.session.reader import Session
 
@@ -306,8 +306,9 @@ def calibrate_sessions(paths: list[Path], source: str, target: str, options: Cal
     on it); ``out`` (a .json path) gets the model fitted on all sessions. Returns a JSON-able report."""
     build = emht_pairs if source == "emht" else handkp_pairs
     if out is not None:  # checked before the fit: never a session's own file (the weights go beside it)
-        out = out_target(out)
-        out_target(out.with_suffix(".pt"))
+        read = [file for path in paths for file in aligned_files(path)]
+        out = out_target(out, inputs=read)
+        out_target(out.with_suffix(".pt"), inputs=read)
     pairs = []
     for path in paths:
         progress(f"pairing {Path(path).name}")

@@ -12,7 +12,6 @@ calibrated pedal thresholds back and validates the result); ``midas_cli/rig.py``
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,14 +20,13 @@ from urllib.parse import quote
 from midas_cli.config import read_toml
 from midas_cli.devices.base import KINDS, WHERE_PASSWORDS_GO, DeviceUrl, is_secret_key
 from midas_cli.errors import ConfigError
+from midas_cli.session.names import check_name
 
 RIG_KEYS = {"name": str, "platform": str, "master_rate_hz": (int, float), "description": str}
 METADATA_KEYS = {"subject": (str, int), "task": str, "trial": int, "operator_note": str}
 DEVICE_KEYS = {"url": str, "kind": str, "description": str, "sensors": dict, "pedals": dict,
                "password_env": str, "password_file": str}
 PASSWORD_SOURCES = ("password_env", "password_file")  # where a password is: they travel as URL parameters
-
-DEVICE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
 
 
 @dataclass
@@ -44,9 +42,7 @@ class DeviceConfig:
 
 def check_device_name(name: str) -> None:
     """A device name names its stream files: a letter, then up to 31 letters, digits, '_' or '-'."""
-    if not DEVICE_NAME.match(name):
-        raise ConfigError(f"device name {name!r} must be a letter followed by up to 31 letters, digits, '_' or '-' "
-                          f"(it names the stream files)")
+    check_name(name, "device", "device name", ConfigError)
 
 
 @dataclass

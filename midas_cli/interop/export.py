@@ -13,7 +13,7 @@ from midas_cli.errors import ConfigError
 from midas_cli.interop.mcap_export import write_mcap
 from midas_cli.interop.parquet_export import write_parquet
 from midas_cli.interop.xdf import write_xdf
-from midas_cli.session.outputs import out_folder, out_target
+from midas_cli.session.outputs import out_child, out_child_folder, out_folder
 from midas_cli.session.reader import Session
 
 FORMATS = ("mcap", "parquet", "xdf")
@@ -33,11 +33,11 @@ def export_session(path: Path | str, formats: Sequence[str], out_dir: Path | str
     """Export one session; returns what was written per format."""
     session = Session.open(path)
     folder = out_folder(out_dir)
-    stem = str(session.manifest.get("session_id") or session.path.name)
+    stem = session.manifest["session_id"]  # checked by the manifest's validation; out_child checks again
     result: dict[str, Any] = {"session": str(session.path)}
-    writers = {"mcap": lambda: write_mcap(session, out_target(folder / f"{stem}.mcap")),
-               "parquet": lambda: write_parquet(session, out_folder(folder / stem)),
-               "xdf": lambda: write_xdf(session, out_target(folder / f"{stem}.xdf"))}
+    writers = {"mcap": lambda: write_mcap(session, out_child(folder, f"{stem}.mcap")),
+               "parquet": lambda: write_parquet(session, out_child_folder(folder, stem)),
+               "xdf": lambda: write_xdf(session, out_child(folder, f"{stem}.xdf"))}
     for name in formats:
         if progress is not None:
             progress(f"{session.path.name}: {name}")

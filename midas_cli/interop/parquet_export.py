@@ -28,7 +28,7 @@ import numpy as np
 from midas_cli.interop.common import column_facts, frame_clock
 from midas_cli.session.derived import read_aligned
 from midas_cli.session.labels import list_label_sets, read_frame_labels
-from midas_cli.session.outputs import replacing
+from midas_cli.session.outputs import out_child, replacing
 from midas_cli.session.reader import Session
 
 ALIGNED_ROWS = 65536  # rows per row group of aligned.parquet
@@ -111,7 +111,7 @@ def write_parquet(session: Session, folder: Path) -> dict[str, Any]:
         chunks = session.iter_stream(name)  # at least one piece, empty for a stream without rows
         first = next(chunks)
         schema = _stream_schema(session, name, first)
-        target = folder / f"{name}.parquet"
+        target = out_child(folder, f"{name}.parquet")
         rows[target.name] = 0
         with replacing(target) as tmp, pq.ParquetWriter(tmp, schema) as writer:
             for chunk in itertools.chain([first], chunks):
@@ -128,7 +128,7 @@ def write_parquet(session: Session, folder: Path) -> dict[str, Any]:
             table = table.append_column(field, array)
         table = table.replace_schema_metadata({b"midas.labels": _meta(labels.meta),
                                                b"midas.manifest": _meta(session.manifest)})
-        target = folder / f"labels_{name}.parquet"
+        target = out_child(folder, f"labels_{name}.parquet")
         with replacing(target) as tmp:
             pq.write_table(table, tmp)
         rows[target.name] = table.num_rows

@@ -204,6 +204,13 @@ def write_aligned_csv(path: Path, table: AlignedTable) -> None:
     frame.to_csv(path, index=False, float_format="%.6g")
 
 
+def aligned_files(session_path: Path | str) -> list[Path]:
+    """The files of the session's aligned table (``derived/aligned.npz|values.npy|json|csv``): what a
+    command reading it reads, so what its ``--out`` must never be."""
+    base = Path(session_path) / ALIGNED_STEM
+    return [base.with_suffix(s) for s in (".npz", ".values.npy", ".json", ".csv")]
+
+
 def read_aligned(session_path: Path | str, current: bool = True) -> AlignedTable:
     """Read ``derived/aligned.*``; SessionError if ``midas align`` has not run, or (``current``) when the
     session's manifest is not valid or the table is older than its streams or calibrations. The values

@@ -21,6 +21,7 @@ from midas_cli.errors import SessionError
 from midas_cli.session import stop_facts
 from midas_cli.session.columnar import add_binary_copies, copy_differences
 from midas_cli.session.derived import aligned_problems
+from midas_cli.session.labels import list_label_sets
 from midas_cli.session.manifest import (MANIFEST_NAME, MANIFEST_TMP, fsync_dir, load_manifest, read_manifest_file,
                                         write_manifest)
 from midas_cli.session.outputs import is_locked, session_lock
@@ -118,6 +119,10 @@ def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
         )
     for name in session.stream_names:
         _verify_stream(session, name, report, strict)
+    try:  # a label set's name names files of exports, like the manifest's names
+        list_label_sets(session.path)
+    except SessionError as exc:
+        report.problems.append(str(exc))
     if locked:  # its derived files are being replaced: checking them would wait for the writer, or see half
         report.notes.append("derived/aligned.*: not checked, another midas command is writing this session now")
     else:

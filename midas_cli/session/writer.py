@@ -30,7 +30,7 @@ from midas_cli.session.streamfile import summarize_stream
 
 SUBFOLDERS = ("streams", "video", "calib", "derived", "logs")
 LOG_FILE = "logs/midas.log"
-_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.-]*$")
+_NAME_OK = re.compile(r"[A-Za-z0-9][A-Za-z0-9.-]{0,63}")  # bounded: the session id they make is too
 
 
 @dataclass(frozen=True)
@@ -47,8 +47,8 @@ class SessionMetadata:
     def __post_init__(self) -> None:
         for key in ("subject", "task", "platform"):
             value = getattr(self, key)
-            if not _NAME_OK.match(value):
-                raise ConfigError(f"{key} {value!r} must be letters, digits, '.' or '-' (it names the folder)")
+            if not _NAME_OK.fullmatch(value):
+                raise ConfigError(f"{key} {value!r} must be up to 64 letters, digits, '.' or '-' (it names the folder)")
         if self.trial < 0:
             raise ConfigError(f"trial must be >= 0, got {self.trial}")
         if not 0 < self.master_rate_hz <= 1000:
@@ -174,6 +174,9 @@ class SessionWriter:
         except OSError as exc:  # disk full, quota, permissions: nothing was recorded, leave nothing behind
             shutil.rmtree(folder, ignore_errors=True)
             raise SessionError(f"cannot create the session in {out_root}: {exc.strerror or exc}") from exc
+        except SessionError:  # a name no manifest may hold (an imported file's sensor named "../x")
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
 
     def append(self, stream: str, text: str) -> None:
         """Append whole CSV lines to a stream and hand them to the OS (survives a process kill).
