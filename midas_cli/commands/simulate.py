@@ -29,6 +29,9 @@ def dataset(
     difficulty: str = typer.Option("real", "--difficulty", help="real (subjects differ in speed, style and "
                                    "handedness; blended gestures, pauses, unlabelled stretches, sensor placement) "
                                    "or easy (every subject moves alike)."),
+    emht_drift_ppm: float = typer.Option(0.0, "--emht-drift-ppm", help="The EmHT's host stamps drift by this "
+                                         "much (ppm) against true time: its offset to the robot grows over the "
+                                         "trial (what `midas eval sync` measures)."),
     as_json: bool = JSON_OPTION,
     executor: str = ex.EXECUTOR_OPT,
     jobs: int = ex.JOBS_OPT,
@@ -55,7 +58,7 @@ def dataset(
     choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
                                 slurm_array_parallelism)
     configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
-                           difficulty)
+                           difficulty, emht_drift_ppm)
     outcome = ex.run_plan(TASK, plan_units(configs), choice, "simulating trials")
     if outcome.submitted:
         ex.submitted_line(outcome)
