@@ -42,6 +42,7 @@ import serial
 from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.emht_layout import emht_stream, first_seq, resume_seq
 from midas_cli.devices.trakstar import protocol as fob
+from midas_cli.devices.usbserial import prepare_port
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import StreamSpec
 
@@ -146,8 +147,9 @@ class FobEmHT(Device):
             raise DeviceError(f"{self.name}: cannot open serial port {self.port_path}: {exc} "
                               f"(is the trakSTAR connected and switched on, and is the port right?)") from exc
         self._fd = self._port_fd()
+        adapter = prepare_port(self.port_path, self._fd)
         try:
-            info = self._configure()
+            info = {**self._configure(), "usb_serial": adapter.as_dict()}
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise DeviceError(f"{self.name}: serial port {self.port_path} failed while configuring: {exc}") from exc
