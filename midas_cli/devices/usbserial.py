@@ -83,7 +83,8 @@ class AdapterReport:
             return "no latency timer"
         if now is None:
             return "latency timer unreadable"
-        return f"latency timer {before} -> {now} ms" if before is not None and before != now else f"latency timer {now} ms"
+        changed = before is not None and before != now
+        return f"latency timer {before} -> {now} ms" if changed else f"latency timer {now} ms"
 
 
 def sysfs_root(root: str | Path | None = None) -> Path:
@@ -175,10 +176,10 @@ def _read_text(path: Path, limit: int = 128) -> str:
     """A sysfs attribute's text (printable, stripped, at most ``limit`` characters), '' if unreadable."""
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
-            text = f.read(limit + 1)
+            text = f.read(limit)
     except OSError:
         return ""
-    return "".join(c for c in text.strip() if c.isprintable())[:limit]
+    return "".join(c for c in text.strip() if c.isprintable())
 
 
 def _read_id(path: Path) -> str:
@@ -188,11 +189,10 @@ def _read_id(path: Path) -> str:
 
 def _read_int(path: Path) -> int | None:
     text = _read_text(path, 16)
-    return int(text) if text.isdigit() else None
+    return int(text) if text.isascii() and text.isdigit() else None
 
 
-def tune_latency_timer(report: AdapterReport, root: str | Path | None = None,
-                       wanted_ms: int = WANTED_LATENCY_MS) -> AdapterReport:
+def tune_latency_timer(report: AdapterReport, wanted_ms: int = WANTED_LATENCY_MS) -> AdapterReport:
     """Set the adapter's latency timer to ``wanted_ms`` where this user may write it; else put in
     ``report.note`` how to (the one-off ``tee`` and the udev rule). Returns ``report``, updated."""
     if not report.latency_timer_path or report.latency_timer_ms is None or report.latency_timer_ms <= wanted_ms:
@@ -267,7 +267,7 @@ def port_fd(port: object) -> int | None:
 
 def inspect_port(port: str, root: str | Path | None = None) -> AdapterReport:
     """``port``'s adapter with its latency timer set to 1 ms where permitted (`midas doctor`)."""
-    return tune_latency_timer(find_adapter(port, root), root)
+    return tune_latency_timer(find_adapter(port, root))
 
 
 def prepare_port(port: str, fd: int | None, root: str | Path | None = None) -> AdapterReport:
