@@ -54,3 +54,28 @@ def test_a_session_with_nothing_shared_is_exit_4_and_bad_options_exit_2(tmp_path
         [result.stderr.splitlines()[-1]]  # one error line (after the progress line)
     bad = midas("eval", "sync", str(lone), "--threshold-ms", "nan")
     assert bad.returncode == 2 and "--threshold-ms" in bad.stderr
+
+
+def test_the_sync_statement_says_how_and_what_was_measured(tmp_path: Path) -> None:
+    """Manifest at finalisation (the method, each stream's clocks), then session info and the Parquet export
+    with the clock fits and measured offsets once align and eval sync have run."""
+    import pyarrow.parquet as pq
+
+    session = _simulate(tmp_path / "sim", 20, "--latency-ms", "25")
+    manifest = json.loads((session / "manifest.json").read_text())
+    assert manifest["sync"]["method"].startswith("simulated") and manifest["sync"]["streams"]["fps"]["device_clock"] == "t_device_us"
+    before = json.loads(midas("session", "info", str(session), "--json", check=True).stdout)["sync"]
+    assert before["measured_offsets"].startswith("not measured") and before["streams"]["emht"]["fit"].startswith("not")
+    midas("align", str(session), check=True)
+    midas("eval", "sync", str(session), "--no-plots", "--threshold-ms", "50", check=True)
+    after = json.loads(midas("session", "info", str(session), "--json", check=True).stdout)["sync"]
+    assert {o["pair"] for o in after["measured_offsets"]} == {"mtm~emht", "psm~emht"}
+    assert all(o["verdict"] == "ok" for o in after["measured_offsets"])
+    assert after["streams"]["emht"]["fit"]["clock"] == "t_device_s"
+    midas("export", str(session), "--format", "parquet", "--out", str(tmp_path / "x"), check=True)
+    meta = pq.read_schema(tmp_path / "x" / session.name / "emht.parquet").metadata
+    assert json.loads(meta[b"midas.sync"]) == after
+    recorded = midas("record", "--simulate", "--duration", "1", "--no-tui", "--out", str(tmp_path / "rec"),
+                     "--subject", "1", "--task", "t", "--trial", "1", check=True)
+    live = json.loads((Path(recorded.stdout.splitlines()[-1]) / "manifest.json").read_text())["sync"]
+    assert live["method"].startswith("software timestamping on one clock") and live["streams"]["emht"]["stamp"]

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from midas_cli.session.reader import Session
+from midas_cli.session.sync_statement import statement
 
 
 def summarize_session(session: Session, clock_fits: bool = False) -> dict[str, Any]:
@@ -52,6 +53,7 @@ def summarize_session(session: Session, clock_fits: bool = False) -> dict[str, A
         "duration_s": session.duration_s(),
         "devices": devices,
         "streams": streams,
+        **({"sync": statement(session.path, manifest)} if clock_fits else {}),
     }
 
 

@@ -27,6 +27,7 @@ from midas_cli.session.columnar import add_binary_copies
 from midas_cli.session.manifest import SCHEMA_VERSION, write_manifest
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
+from midas_cli.session.sync_statement import recorded_statement
 
 SUBFOLDERS = ("streams", "video", "calib", "derived", "logs")
 LOG_FILE = "logs/midas.log"
@@ -210,6 +211,7 @@ class SessionWriter:
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
             entry.update(extra.get(name, {}))
         self.manifest.update(status=status, stop_reason=stop_reason, stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns})
+        self.manifest["sync"] = recorded_statement(self.manifest)  # how the streams were synchronised
         try:
             write_manifest(self.folder, self.manifest)  # finished first: the binary copies are an extra
         except OSError:  # the disk is full: `repair` will need to know how it ended
