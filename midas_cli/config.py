@@ -140,12 +140,12 @@ def _checked(data: dict[str, Any], path: Path) -> dict[str, dict[str, Any]]:
                 expected = " or ".join(t.__name__ for t in keys[key])
                 raise ConfigError(f"config {path}: [{section}] {key} = {_shown(value)} should be a {expected}")
             problem = slurm_value_problem(key, value) if section == "slurm" else None
-            if (section, key) in PATH_KEYS and (_CONTROL.search(value) or not value):
+            if (section, key) in PATH_KEYS and (not isinstance(value, str) or _CONTROL.search(value) or not value):
                 problem = "is not a usable path (empty, or a NUL, line break or other control character)"
             if problem:
                 raise ConfigError(f"config {path}: [{section}] {key} = {_shown(value)} {problem}")
             if (section, key) in PATH_KEYS:
-                value = str((path.parent / Path(value).expanduser()))
+                value = str((path.parent / Path(str(value)).expanduser()))
             result.setdefault(section, {})[key] = value
     return result
 

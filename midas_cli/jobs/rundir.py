@@ -24,7 +24,7 @@ import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Literal, overload
 
 from midas_cli.errors import ConfigError, SessionError
 
@@ -163,6 +163,12 @@ class RunDir:
                                       "units": [{"index": u.index, "name": u.name, "args": u.args,
                                                  "fingerprint": u.fingerprint} for u in units]})
         return plan
+
+    @overload
+    def read_plan(self, missing_ok: Literal[False] = False) -> Plan: ...
+
+    @overload
+    def read_plan(self, missing_ok: bool) -> Plan | None: ...
 
     def read_plan(self, missing_ok: bool = False) -> Plan | None:
         """The plan; ConfigError when there is none (not a run folder), SessionError when it is malformed."""

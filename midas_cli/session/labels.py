@@ -41,18 +41,18 @@ def write_frame_labels(session_path: Path | str, frames: Sequence[int], labels: 
                        meta: dict[str, Any], name: str = "gestures") -> Path:
     """Write (replace) label set ``name``; ``meta`` should name the taxonomy and the source."""
     check_name(name, "label set", "label set name")
-    frames = np.asarray(frames, dtype=np.int64)
-    labels = np.asarray(labels, dtype=object)
-    if frames.shape != labels.shape or frames.ndim != 1:
-        raise SessionError(f"frames {frames.shape} and labels {labels.shape} must be equal-length 1-D")
-    if len(frames) > 1 and not (np.diff(frames) > 0).all():
+    frame_array = np.asarray(frames, dtype=np.int64)
+    label_array = np.asarray(labels, dtype=object)
+    if frame_array.shape != label_array.shape or frame_array.ndim != 1:
+        raise SessionError(f"frames {frame_array.shape} and labels {label_array.shape} must be equal-length 1-D")
+    if len(frame_array) > 1 and not (np.diff(frame_array) > 0).all():
         raise SessionError("label frames must be strictly increasing")
     csv_path = session_target(session_path, f"{LABELS_DIR}/{name}.csv")
     json_path = session_target(session_path, f"{LABELS_DIR}/{name}.json")
     full_meta = {"frame_convention": FRAME_CONVENTION, "midas_version": __version__, **meta,
-                 "frames": int(len(frames))}
+                 "frames": int(len(frame_array))}
     with session_lock(session_path), replacing(json_path) as tmp_json, replacing(csv_path) as tmp_csv:
-        pd.DataFrame({"frame": frames, "label": labels}).to_csv(tmp_csv, index=False)
+        pd.DataFrame({"frame": frame_array, "label": label_array}).to_csv(tmp_csv, index=False)
         tmp_json.write_text(json.dumps(full_meta, indent=2) + "\n", encoding="utf-8")
     return csv_path
 

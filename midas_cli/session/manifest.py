@@ -6,7 +6,7 @@ import json
 import math
 import os
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, Mapping
 
 from midas_cli.errors import SessionError
 from midas_cli.session.names import check_name, shown
@@ -138,7 +138,7 @@ _TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", dict: "an 
                type(None): "null"}
 
 
-def _check_fields(entry: dict[str, Any], fields: dict[str, tuple[type, ...]], where: str, folder: Path) -> None:
+def _check_fields(entry: dict[str, Any], fields: Mapping[str, tuple[type, ...]], where: str, folder: Path) -> None:
     for key, types in fields.items():
         if key in entry:
             _check_type(entry[key], types, where + key, folder)

@@ -32,7 +32,8 @@ def recorded_statement(manifest: dict[str, Any]) -> dict[str, Any]:
         device = [c.get("name") for c in entry.get("columns", []) if isinstance(c, dict) and c.get("clock") == "device"]
         streams[name] = {"stamp": "t_host_ns at read", "device_clock": device[0] if device else None,
                          "nominal_rate_hz": entry.get("nominal_rate_hz")}
-    rig = manifest.get("rig") if isinstance(manifest.get("rig"), dict) else {}
+    rig = manifest.get("rig")
+    rig = rig if isinstance(rig, dict) else {}
     method = SIMULATED if rig.get("simulated") else IMPORTED if rig.get("imported") else METHOD
     return {"method": method, "clock": manifest.get("clock"), "streams": streams}
 
@@ -54,7 +55,7 @@ def statement(folder: Path | str, manifest: dict[str, Any]) -> dict[str, Any]:
         fit = fits.get(name) if isinstance(fits, dict) else None
         entry["fit"] = fit if isinstance(fit, dict) else NOT_MEASURED
     rows = _json_entry(folder / "derived" / "eval" / "sync.json", "rows")
-    offsets = rows.get("sync") if isinstance(rows, dict) else None
+    offsets: Any = rows.get("sync") if isinstance(rows, dict) else None
     document["measured_offsets"] = [{k: r.get(k) for k in ("pair", "evidence", "offset_ms", "spread_ms", "drift_ppm",
                                                             "verdict")} for r in offsets if isinstance(r, dict)] \
         if isinstance(offsets, list) else NOT_MEASURED
