@@ -3,7 +3,6 @@ on fake sysfs trees laid out as the kernel lays them out; `doctor` and `rig chec
 
 from __future__ import annotations
 
-import json
 import os
 import pty
 from pathlib import Path

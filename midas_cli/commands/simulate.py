@@ -24,7 +24,8 @@ def dataset(
     seed: int = typer.Option(0, "--seed", help="Seed: the same seed gives byte-identical sessions."),
     subjects: int = typer.Option(1, "--subjects", help="Subjects the trials are spread over."),
     latency_ms: float = typer.Option(40.0, "--latency-ms", callback=non_negative, help="True EmHT latency in ms."),
-    distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative, help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
+    distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative,
+                                        help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
     max_seconds: Optional[float] = typer.Option(None, "--max-seconds", callback=positive, help="Cut each trial to this length (s)."),
     difficulty: str = typer.Option("real", "--difficulty", help="real (subjects differ in speed, style and "
                                    "handedness; blended gestures, pauses, unlabelled stretches, sensor placement) "

@@ -13,8 +13,9 @@
 every test frame / segment of every fold evaluated together with models/metrics.py: accuracy over all
 labelled test frames, edit averaged over all test sequences, F1@k from TP/FP/FN summed over all of
 them (the MS-TCN way). *per video* (macro) scores each test video alone and averages over the videos
-(accuracy, edit, F1@k): some papers report F1@k that way, and the two differ. Pooled figures are read back from each fold's ``predictions/<trial>.csv`` (every test trial is
-one whole sequence in a group split). Finished folds (``metrics.json`` present) are reused, so an
+(accuracy, edit, F1@k): some papers report F1@k that way, and the two differ. Pooled figures are read
+back from each fold's ``predictions/<trial>.csv`` (every test trial is one whole sequence in a group
+split). Finished folds (``metrics.json`` present) are reused, so an
 interrupted run resumes and folds run elsewhere are picked up by ``summarise`` (``midas train
 cv-summary OUT``).
 """

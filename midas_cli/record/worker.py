@@ -9,8 +9,9 @@ worker never blocks on fsync.
 It ignores SIGINT and SIGHUP (the recorder decides when to stop and tells it through ``stop``; it
 starts with them blocked, so none can reach it before it ignores them), reconnects with
 exponential back-off when its device fails or goes silent, and exits if the recorder disappears.
-Messages go through a pipe (``record/link.py``): nothing a SIGKILL could leave behind. A failed write (disk full, file too large) ends the worker with a
-``write_failed`` event: the recorder then stops the whole recording and keeps what is on disk.
+Messages go through a pipe (``record/link.py``): nothing a SIGKILL could leave behind. A failed write
+(disk full, file too large) ends the worker with a ``write_failed`` event: the recorder then stops the
+whole recording and keeps what is on disk.
 """
 
 from __future__ import annotations

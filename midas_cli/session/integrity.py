@@ -91,8 +91,8 @@ class VerifyReport:
 
 def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
     """Check every stream file against the manifest: presence (a regular file), header, whole lines,
-    every value against its column's type and range, sample count, sha256, strictly increasing host time, sequence gaps, and that its binary copy (if any) holds
-    exactly what the CSV holds. Gaps the manifest declares (a device
+    every value against its column's type and range, sample count, sha256, strictly increasing host
+    time, sequence gaps, and that its binary copy (if any) holds exactly what the CSV holds. Gaps the manifest declares (a device
     outage the recorder saw) are notes, or problems with ``strict``; undeclared gaps are problems.
     Temporary files left by an interrupted write, and a recording that failed to start, are problems
     too (a failed session's streams are not checked)."""
