@@ -25,10 +25,11 @@ from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.processes import process_alive
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
-from midas_cli.record.spawn import stop_signals_blocked, worker_context
+from midas_cli.record.spawn import start_worker_server, stop_signals_blocked, worker_context
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.schema import StreamSpec
@@ -109,9 +110,11 @@ class Recorder:
         """Create the session folder and every stream file (with its header), start the workers and
         the bookkeeping thread; return the folder. Elapsed time and ``--duration`` count from here.
 
-        The stop signals are blocked while the workers are created (never ignored): one that arrives
-        meanwhile stays pending and reaches this process's handler as soon as they are unblocked,
-        while each worker sets them to ignored before it unblocks them (it stops when told)."""
+        The stop signals are blocked while the fork server and the workers are created (never
+        ignored): one that arrives meanwhile, also one sent to the whole process group, stays pending
+        and reaches this process's handler as soon as they are unblocked, while each worker sets them
+        to ignored before it unblocks them (it stops when told). A worker that cannot be started
+        (its fork server gone) is reported as crashed; the others record and the session is finalised."""
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
@@ -121,6 +124,7 @@ class Recorder:
         self.bytes_written = self.writer.bytes_written
         start_ns = self.writer.manifest["start"]["host_ns"]
         folder = self.path.resolve()
+        start_worker_server()
         with stop_signals_blocked():
             for name, url in self.plan.devices.items():
                 files = {s: str(folder / self.streams[s].spec.file) for s in self.devices[name].streams}
@@ -128,19 +132,28 @@ class Recorder:
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
                                 session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size,
                                 lsl_out=self.plan.lsl_out, kind=self.devices[name].kind)
-                receiver, sender = self._ctx.Pipe(duplex=False)
-                process = self._ctx.Process(target=worker_main, args=(job, sender, self._stop_workers.reader),
-                                            name=f"midas-{name}", daemon=True)
-                process.start()
-                sender.close()  # the worker holds the only sending end: EOF here means it is gone
-                self._inbox.add(name, receiver)
-                self._processes[name] = process
+                self._start_worker(name, job)
         self._stop_workers.close_reader()
         self._bookkeeping_thread = threading.Thread(target=self._bookkeeping_loop, name="midas-bookkeeping",
                                                     daemon=True)
         self._bookkeeping_thread.start()
         log.info("recording %s with devices %s", self.writer.folder, ", ".join(self.devices))
         return self.writer.folder
+
+    def _start_worker(self, device: str, job: WorkerJob) -> None:
+        """Fork the device's worker. If that fails (the fork server died), its pipe still joins the
+        inbox: it reads EOF at once, so the device is reported as crashed like a worker that died."""
+        receiver, sender = self._ctx.Pipe(duplex=False)
+        process = self._ctx.Process(target=worker_main, args=(job, sender, self._stop_workers.reader),
+                                    name=f"midas-{device}", daemon=True)
+        try:
+            process.start()
+            self._processes[device] = process
+        except (OSError, EOFError) as exc:
+            log.error("%s: could not start its worker process: %s", device, exc or type(exc).__name__)
+        finally:
+            sender.close()  # the worker holds the only sending end: EOF here means it is gone
+        self._inbox.add(device, receiver)
 
     def wait_ready(self, timeout_s: float = 15.0, should_stop: Callable[[], bool] = lambda: False,
                    on_tick: Callable[[RecorderSnapshot], None] | None = None, tick_s: float = 0.25) -> bool:
@@ -325,21 +338,17 @@ class Recorder:
     def _reap_workers(self, deadline: float) -> None:
         """Wait for every worker process to end. One that said 'exited' has closed its files and
         is only tearing its interpreter down: on a busy machine that can take a while, so it gets
-        until ``deadline`` and is then ended quietly. One that never said 'exited' is an error."""
+        until ``deadline`` and is then killed quietly. One that never said 'exited' is an error.
+        (Workers ignore SIGTERM, like every stop signal: only SIGKILL ends one the recorder gave up on.)"""
         for name, process in self._processes.items():
-            process.join(timeout=max(0.0, deadline - time.monotonic()))
-            if not process.is_alive():
+            if _wait_gone(process, deadline):
                 continue
             said_exited = self.devices[name].exited
             level = logging.INFO if said_exited else logging.ERROR
-            log.log(level, "worker %s %s; terminating it", process.name,
+            log.log(level, "worker %s %s; killing it", process.name,
                     "is slow to exit after it finished" if said_exited else "did not exit")
-            process.terminate()
-            process.join(timeout=2.0)
-            if process.is_alive():  # it writes its own rows: it must be gone before the files are hashed
-                log.error("worker %s ignored SIGTERM; killing it", process.name)
-                process.kill()
-                process.join(timeout=2.0)
+            process.kill()  # it writes its own rows: it must be gone before the files are hashed
+            _wait_gone(process, time.monotonic() + 2.0)
 
     def _detach_log(self) -> None:
         if self._log_handler is not None:
@@ -348,6 +357,15 @@ class Recorder:
             self._log_handler = None
 
     _stop_deadline = float("inf")
+
+
+def _wait_gone(process: Any, deadline: float, step_s: float = 0.02) -> bool:
+    """Wait until the worker ``process`` has ended or ``deadline`` (monotonic) passed; True if it ended.
+    Its own PID decides: the fork server that reports a worker's end may itself be gone."""
+    process.join(timeout=max(0.0, deadline - time.monotonic()))
+    while process_alive(process.pid) and time.monotonic() < deadline:
+        time.sleep(step_s)
+    return not process_alive(process.pid)
 
 
 def _labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]:
