@@ -25,11 +25,11 @@ from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.devices.registry import describe_device
 from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.processes import process_alive
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats
-from midas_cli.record.spawn import start_worker_server, stop_signals_blocked, worker_context
+from midas_cli.record.spawn import (reap_workers, start_worker, start_worker_server, stop_signals_blocked,
+                                    worker_context)
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.schema import StreamSpec
@@ -141,18 +141,13 @@ class Recorder:
         return self.writer.folder
 
     def _start_worker(self, device: str, job: WorkerJob) -> None:
-        """Fork the device's worker. If that fails (the fork server died), its pipe still joins the
+        """Fork the device's worker. If that fails (its fork server died), its pipe still joins the
         inbox: it reads EOF at once, so the device is reported as crashed like a worker that died."""
         receiver, sender = self._ctx.Pipe(duplex=False)
-        process = self._ctx.Process(target=worker_main, args=(job, sender, self._stop_workers.reader),
-                                    name=f"midas-{device}", daemon=True)
-        try:
-            process.start()
+        process = start_worker(self._ctx, f"midas-{device}", worker_main, (job, sender, self._stop_workers.reader))
+        if process is not None:
             self._processes[device] = process
-        except (OSError, EOFError) as exc:
-            log.error("%s: could not start its worker process: %s", device, exc or type(exc).__name__)
-        finally:
-            sender.close()  # the worker holds the only sending end: EOF here means it is gone
+        sender.close()  # the worker holds the only sending end: EOF here means it is gone
         self._inbox.add(device, receiver)
 
     def wait_ready(self, timeout_s: float = 15.0, should_stop: Callable[[], bool] = lambda: False,
@@ -323,7 +318,7 @@ class Recorder:
         self._stop_workers.set()
         self._bookkeeping_done.wait(STOP_GRACE_S + 1.0)
         self._bookkeeping_thread.join(timeout=1.0)
-        self._reap_workers(self._stop_deadline + 1.0)
+        reap_workers(self._processes, self._stop_deadline + 1.0, lambda name: self.devices[name].exited)
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
         try:
@@ -335,21 +330,6 @@ class Recorder:
         self._detach_log()
         return manifest
 
-    def _reap_workers(self, deadline: float) -> None:
-        """Wait for every worker process to end. One that said 'exited' has closed its files and
-        is only tearing its interpreter down: on a busy machine that can take a while, so it gets
-        until ``deadline`` and is then killed quietly. One that never said 'exited' is an error.
-        (Workers ignore SIGTERM, like every stop signal: only SIGKILL ends one the recorder gave up on.)"""
-        for name, process in self._processes.items():
-            if _wait_gone(process, deadline):
-                continue
-            said_exited = self.devices[name].exited
-            level = logging.INFO if said_exited else logging.ERROR
-            log.log(level, "worker %s %s; killing it", process.name,
-                    "is slow to exit after it finished" if said_exited else "did not exit")
-            process.kill()  # it writes its own rows: it must be gone before the files are hashed
-            _wait_gone(process, time.monotonic() + 2.0)
-
     def _detach_log(self) -> None:
         if self._log_handler is not None:
             logging.getLogger("midas_cli").removeHandler(self._log_handler)
@@ -357,15 +337,6 @@ class Recorder:
             self._log_handler = None
 
     _stop_deadline = float("inf")
-
-
-def _wait_gone(process: Any, deadline: float, step_s: float = 0.02) -> bool:
-    """Wait until the worker ``process`` has ended or ``deadline`` (monotonic) passed; True if it ended.
-    Its own PID decides: the fork server that reports a worker's end may itself be gone."""
-    process.join(timeout=max(0.0, deadline - time.monotonic()))
-    while process_alive(process.pid) and time.monotonic() < deadline:
-        time.sleep(step_s)
-    return not process_alive(process.pid)
 
 
 def _labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]:
