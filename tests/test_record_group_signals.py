@@ -7,8 +7,8 @@ process left behind.
 
 The moments are counted from events the test observes, not from a clock guess: from the instant midas
 code runs (its SIGTERM handler shows in /proc/PID/status; what comes before belongs to the Python
-interpreter's own start) and from the instant the session's manifest appears (the fork server and the
-workers start right after it)."""
+interpreter's own start), from the instant the session's manifest appears (the fork server and the
+workers start right after it) and from the first rows on disk (the workers run)."""
 
 from __future__ import annotations
 
@@ -32,10 +32,11 @@ META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 STATUS = {signal.SIGINT: "complete", signal.SIGTERM: "interrupted"}
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 # (what the delay counts from, delay in ms): through the imports and the session's creation, then
-# through the fork server's and the workers' start (about half a second of importing numpy).
+# through the fork server's and the workers' start (about half a second of importing numpy), and once
+# the workers have written their first rows.
 MOMENTS = [("midas", 0), ("midas", 150), ("midas", 400), ("midas", 800),
            ("manifest", 0), ("manifest", 5), ("manifest", 20), ("manifest", 50), ("manifest", 100),
-           ("manifest", 200), ("manifest", 300)]
+           ("manifest", 200), ("manifest", 300), ("rows", 0)]
 
 
 def _signals(pid: int, field: str) -> int:
@@ -152,11 +153,18 @@ def test_a_worker_whose_fork_server_died_is_waited_for_by_its_own_pid() -> None:
             worker.kill()
 
 
+def _has_rows(out: Path) -> bool:
+    """The emht stream file holds a row after its header."""
+    return any(path.read_bytes().count(b"\n") > 1 for path in out.glob("*/streams/emht.csv"))
+
+
 def _send_at(process: subprocess.Popen, out: Path, anchor: str, delay_ms: int, sig: signal.Signals) -> None:
     if anchor == "midas":  # __main__ has installed its handlers: midas code is running
         _wait_for(lambda: _signals(process.pid, "SigCgt") & _bit(signal.SIGTERM) or process.poll() is not None)
-    else:
+    elif anchor == "manifest":
         _wait_for(lambda: next(out.glob("*/manifest.json"), None) or process.poll() is not None)
+    else:
+        _wait_for(lambda: _has_rows(out) or process.poll() is not None)
     time.sleep(delay_ms / 1000)
     try:
         os.killpg(process.pid, sig)
