@@ -190,26 +190,32 @@ def _check_outcome(process: subprocess.Popen, out: Path, sig: signal.Signals, st
     assert report.ok, report.problems
 
 
+def _record_and_signal(out: Path, anchor: str, delay_ms: int, sig: signal.Signals) -> tuple[subprocess.Popen, str]:
+    """`midas record` as the leader of its own process group, ``sig`` sent to the group at the moment;
+    the process and its stderr once every process of the group has ended (killed if one lingers)."""
+    process = subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--device", "emht=sim://emht",
+                                "--device", "fps=sim://fps", "--duration", "5", "--out", str(out), *META, "--no-tui"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "NO_COLOR": "1"}, start_new_session=True)
+    try:
+        _send_at(process, out, anchor, delay_ms, sig)
+        _, stderr = process.communicate(timeout=60)
+        _wait_for(lambda: not _group_members(process.pid), timeout_s=30, step_s=0.05)  # nothing left behind
+    finally:
+        for pid in _group_members(process.pid):
+            os.kill(pid, signal.SIGKILL)
+        if process.poll() is None:
+            process.communicate()
+    return process, stderr
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
 def test_a_stop_signal_to_the_process_group_at_any_moment_of_the_start_finalises_the_session(
         tmp_path: Path, sig: signal.Signals) -> None:
-    env = {**os.environ, "NO_COLOR": "1"}
     for anchor, delay_ms in MOMENTS:
         out = tmp_path / f"{anchor}-{delay_ms}"
-        process = subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--device", "emht=sim://emht",
-                                    "--device", "fps=sim://fps", "--duration", "5", "--out", str(out), *META,
-                                    "--no-tui"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                   env=env, start_new_session=True)
-        try:
-            _send_at(process, out, anchor, delay_ms, sig)
-            _, stderr = process.communicate(timeout=60)
-            _wait_for(lambda: not _group_members(process.pid), timeout_s=30, step_s=0.05)  # nothing left behind
-        finally:
-            for pid in _group_members(process.pid):
-                os.kill(pid, signal.SIGKILL)
-            if process.poll() is None:
-                process.communicate()
+        process, stderr = _record_and_signal(out, anchor, delay_ms, sig)
         try:
             _check_outcome(process, out, sig, stderr)
         except AssertionError as exc:

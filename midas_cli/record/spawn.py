@@ -10,8 +10,9 @@ import logging
 import multiprocessing as mp
 import signal
 import time
+from collections.abc import Callable, Iterator, Mapping
 from multiprocessing import forkserver, resource_tracker
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any
 
 from midas_cli.processes import process_alive
 
