@@ -192,9 +192,11 @@ def _check_outcome(process: subprocess.Popen, out: Path, sig: signal.Signals, st
 
 def _record_and_signal(out: Path, anchor: str, delay_ms: int, sig: signal.Signals) -> tuple[subprocess.Popen, str]:
     """`midas record` as the leader of its own process group, ``sig`` sent to the group at the moment;
-    the process and its stderr once every process of the group has ended (killed if one lingers)."""
+    the process and its stderr once every process of the group has ended (killed if one lingers).
+    --duration only bounds a run whose signal was lost: long enough that a busy machine's slow start
+    (seconds to the first rows) cannot end the recording before the signal does."""
     process = subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--device", "emht=sim://emht",
-                                "--device", "fps=sim://fps", "--duration", "5", "--out", str(out), *META, "--no-tui"],
+                                "--device", "fps=sim://fps", "--duration", "30", "--out", str(out), *META, "--no-tui"],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env={**os.environ, "NO_COLOR": "1"}, start_new_session=True)
     try:
