@@ -135,7 +135,7 @@ def test_a_signal_right_after_the_manifest_appears_still_stops_the_recording(tmp
         stdout, stderr = process.communicate(timeout=60)
     except subprocess.TimeoutExpired:
         process.kill()
-        raise AssertionError(f"{sig.name} {delay_ms} ms after the manifest appeared was ignored")
+        raise AssertionError(f"{sig.name} {delay_ms} ms after the manifest appeared was ignored") from None
     assert process.returncode == 0, stderr
     assert TRACEBACK not in stderr
     (path,) = _sessions(tmp_path)
@@ -156,7 +156,7 @@ def test_ctrl_c_during_start_up_never_prints_a_traceback(tmp_path: Path, delay_s
     except subprocess.TimeoutExpired:  # say where it hangs: faulthandler dumps every thread on SIGABRT
         process.send_signal(signal.SIGABRT)
         stdout, stderr = process.communicate(timeout=30)
-        raise AssertionError(f"SIGINT {delay_s} s after start did not end midas record:\n{stderr[-6000:]}")
+        raise AssertionError(f"SIGINT {delay_s} s after start did not end midas record:\n{stderr[-6000:]}") from None
     assert TRACEBACK not in stderr and "KeyboardInterrupt" not in stderr, stderr
     sessions = _sessions(tmp_path)
     if process.returncode == 130:
@@ -181,17 +181,18 @@ def test_twenty_kills_of_the_process_group_leave_nothing_but_repairable_sessions
         if moment < 0.3:  # start-up: before or while the workers start
             time.sleep(rng.uniform(0.0, 1.5))
         elif moment < 0.7:  # while recording
-            _wait_for(lambda: _manifest_appeared(out), step_s=0.01)
+            _wait_for(lambda out=out: _manifest_appeared(out), step_s=0.01)
             time.sleep(rng.uniform(0.0, 1.0))
         else:  # around the stop and finalise
-            _wait_for(lambda: _manifest_appeared(out), step_s=0.01)
+            _wait_for(lambda out=out: _manifest_appeared(out), step_s=0.01)
             manifest = _manifest_appeared(out)
-            _wait_for(lambda: _status(manifest) not in ("recording", None), timeout_s=60, step_s=0.002)
+            _wait_for(lambda manifest=manifest: _status(manifest) not in ("recording", None), timeout_s=60,
+                      step_s=0.002)
             time.sleep(rng.uniform(0.0, 0.05))
         tree = {process.pid} | _descendants(process.pid)
         os.killpg(process.pid, signal.SIGKILL)
         process.communicate(timeout=30)
-        _wait_for(lambda: not any(_alive(pid) for pid in tree), timeout_s=10, step_s=0.05)
+        _wait_for(lambda tree=tree: not any(_alive(pid) for pid in tree), timeout_s=10, step_s=0.05)
         for path in _sessions(out):
             midas("session", "repair", str(path), check=True)
             verified = midas("session", "verify", str(path))
