@@ -7,7 +7,8 @@ The layout is LeRobot's dataset format v3.0 (``codebase_version`` "v3.0", read b
   order: ``timestamp`` (float32 s = row / fps, the episode's video time), ``frame_index``,
   ``episode_index`` (0), ``index``, ``task_index`` (0), ``observation.state`` (float32: the EmHT and robot
   kinematics columns, NaN where masked), ``observation.<stream>`` (float32: every other aligned column,
-  grouped by source stream), ``video_frame`` (the video ``seq``), ``t_host_ns`` (the frame's host time),
+  grouped by source stream), ``observation.delta_ms`` (each stream's chosen sample time - frame time, ms;
+  a vector of one is stored as a scalar, as LeRobot reads shape (1,)), ``video_frame`` (the video ``seq``), ``t_host_ns`` (the frame's host time),
   ``label.<set>`` (each label set's label of the frame, "" = unlabelled) and ``marker`` (the operator's
   markers stamped while the frame was current, joined with " | ", "" = none);
 * ``videos/observation.images.endoscope/chunk-000/file-000.mp4`` when the session's ``video/`` folder
@@ -93,13 +94,20 @@ def _column_sources(table: AlignedTable) -> list[str]:
     return sources
 
 
+def _feature_of(name: str, source: str) -> str:
+    """The vector feature an aligned column goes to."""
+    if name.endswith("_delta_ms"):
+        return "observation.delta_ms"
+    return "observation.state" if source in STATE_SOURCES else f"observation.{source}"
+
+
 def vector_features(table: AlignedTable) -> dict[str, tuple[list[str], np.ndarray]]:
-    """``observation.state`` (the EmHT and kinematics measurements, without their ``_delta_ms``) and one
-    ``observation.<source>`` per other source stream: (column names, (N, k) float32 values)."""
+    """``observation.state`` (the EmHT and robot kinematics columns), ``observation.<source>`` per other
+    source stream and ``observation.delta_ms`` (each stream's chosen sample time - frame time): (column
+    names, (N, k) float32 values, NaN where masked)."""
     groups: dict[str, list[int]] = {}
     for k, (name, source) in enumerate(zip(table.columns, _column_sources(table))):
-        state = source in STATE_SOURCES and not name.endswith("_delta_ms")
-        groups.setdefault("observation.state" if state else f"observation.{source}", []).append(k)
+        groups.setdefault(_feature_of(name, source), []).append(k)
     return {key: ([table.columns[k] for k in ks], np.asarray(table.values[:, ks], dtype=np.float32))
             for key, ks in groups.items()}
 
@@ -266,7 +274,7 @@ def data_table(episode: Episode) -> Any:
         "index": pa.array(rows), "task_index": pa.array(np.zeros(n, np.int64))}
     for key, (names, values) in episode.vectors.items():
         flat = pa.array(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
-        columns[key] = pa.FixedSizeListArray.from_arrays(flat, len(names))
+        columns[key] = flat if len(names) == 1 else pa.FixedSizeListArray.from_arrays(flat, len(names))  # (1,): a scalar
     columns["video_frame"] = pa.array(episode.frames)
     columns["t_host_ns"] = pa.array(episode.t_host_ns)
     for key, texts in episode.strings.items():
