@@ -15,7 +15,7 @@ def export(sessions: list[Path] = SESSIONS_ARG,
                                              "separate with commas)."),
            out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),
            as_json: bool = JSON_OPTION) -> None:
-    """Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) files and/or LeRobot datasets.
+    """Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) and/or LeRobot datasets.
 
     Per session: <out>/<id>.mcap (a channel per stream, labels, the manifest as metadata),
     <out>/<id>/<stream>.parquet (+ labels_<set>.parquet, aligned.parquet), <out>/<id>.xdf (a stream per
