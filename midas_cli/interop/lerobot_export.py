@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from midas_cli.errors import SessionError
+from midas_cli.interop.lerobot_video import write_video
 from midas_cli.session.derived import AlignedTable, read_aligned
 from midas_cli.session.labels import list_label_sets, read_frame_labels
 from midas_cli.session.pedals_gt import session_videos
@@ -52,7 +53,6 @@ DATA_FILE = "data/chunk-000/file-000.parquet"
 EPISODES_FILE = "meta/episodes/chunk-000/file-000.parquet"
 VIDEO_FILE = f"videos/{VIDEO_KEY}/chunk-000/file-000.mp4"
 MARKER_JOIN = " | "
-STATS_VIDEO_FRAMES = 200  # frames sampled for the video's per-channel stats
 INDEX_FEATURES = ("timestamp", "frame_index", "episode_index", "index", "task_index")
 
 
@@ -137,7 +137,7 @@ def frame_markers(session: Session, t_host_ns: np.ndarray) -> tuple[list[str], i
             if row < 0 or stamp >= t_host_ns[-1] + period:
                 left_out += 1
                 continue
-            texts[row].append("" if text is None or text != text else str(text))
+            texts[row].append("" if not isinstance(text, str) else text)  # a missing text (None, NaN, NA): ""
     return [MARKER_JOIN.join(t) for t in texts], left_out
 
 
@@ -189,45 +189,6 @@ def sync_statement(session: Session, episode: Episode) -> str:
             f" (a value too old or missing is NaN). timestamp = row / fps with fps = {episode.fps} (the median "
             f"frame interval; measured {measured:.3f} frames/s over the episode); the true frame times are "
             f"t_host_ns. Video: {video}.")
-
-
-def write_video(source: Path, frames: np.ndarray, fps: int, target: Path) -> dict[str, Any]:
-    """Copy recording frames ``frames`` (ascending) of ``source`` to ``target`` (.mp4, constant ``fps``);
-    returns the LeRobot feature of the video and its stats (per RGB channel, in [0, 1], from up to
-    STATS_VIDEO_FRAMES frames). SessionError when the recording cannot be read or lacks a frame."""
-    import cv2
-
-    capture = cv2.VideoCapture(str(source))
-    if not capture.isOpened():
-        raise SessionError(f"cannot read the video recording {source}")
-    writer, position, samples = None, 0, []
-    every = max(1, len(frames) // STATS_VIDEO_FRAMES)
-    try:
-        for row, wanted in enumerate(frames.tolist()):
-            if wanted < position:
-                raise SessionError(f"aligned frames are not ascending at row {row} (frame {wanted}): re-run `midas align`")
-            while position <= wanted:
-                ok, image = capture.read()
-                if not ok:
-                    raise SessionError(f"{source} ends after {position} frames; the aligned table needs frame {wanted}")
-                position += 1
-            if writer is None:
-                writer = cv2.VideoWriter(str(target), cv2.VideoWriter_fourcc(*"mp4v"), fps, image.shape[1::-1])
-            writer.write(image)
-            if row % every == 0:
-                samples.append(image[::4, ::4, ::-1].reshape(-1, 3).astype(np.float64) / 255.0)  # BGR -> RGB
-    finally:
-        capture.release()
-        if writer is not None:
-            writer.release()
-    height, width = image.shape[:2]
-    feature = {"dtype": "video", "shape": [height, width, 3], "names": ["height", "width", "channels"],
-               "info": {"video.height": height, "video.width": width, "video.codec": "mpeg4",
-                        "video.pix_fmt": "yuv420p", "video.is_depth_map": False, "video.fps": fps,
-                        "video.channels": 3, "has_audio": False}}
-    pixels = np.concatenate(samples)
-    stats = {name: getattr(np, name)(pixels, axis=0).reshape(3, 1, 1) for name in ("min", "max", "mean", "std")}
-    return {"feature": feature, "stats": {**stats, "count": np.array([len(samples)])}}
 
 
 def vector_stats(values: np.ndarray) -> dict[str, np.ndarray]:
@@ -373,7 +334,7 @@ def write_lerobot(session: Session, folder: Path) -> dict[str, Any]:
         raise
     for note in episode.notes:
         log.warning("%s: %s", session.path, note)
-    return {"folder": str(folder), "frames": int(len(episode.frames)), "fps": episode.fps,
+    return {"folder": str(folder), "frames": len(episode.frames), "fps": episode.fps,
             "video": episode.video is not None, "format": f"LeRobot {CODEBASE_VERSION}", "notes": episode.notes}
 
 
