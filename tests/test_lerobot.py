@@ -166,7 +166,8 @@ def test_session_without_a_recording_has_no_video_feature(exported: dict[str, An
 
 def _load_with_lerobot(root: Path, video: bool = False) -> dict[str, Any]:
     """What huggingface lerobot's LeRobotDataset reads from ``root`` (tests/helpers/lerobot_load.py)."""
-    ready = LEROBOT_PYTHON.is_file() if "MIDAS_LEROBOT_PYTHON" in os.environ else (LEROBOT_VENV / ".installed").is_file()
+    chosen = "MIDAS_LEROBOT_PYTHON" in os.environ
+    ready = LEROBOT_PYTHON.is_file() if chosen else (LEROBOT_VENV / ".installed").is_file()
     if not ready:
         message = f"no LeRobot environment at {LEROBOT_PYTHON}: run `make lerobot-env`"
         if os.environ.get("MIDAS_REQUIRE_LEROBOT") == "1":

@@ -8,7 +8,8 @@ The layout is LeRobot's dataset format v3.0 (``codebase_version`` "v3.0", read b
   ``episode_index`` (0), ``index``, ``task_index`` (0), ``observation.state`` (float32: the EmHT and robot
   kinematics columns, NaN where masked), ``observation.<stream>`` (float32: every other aligned column,
   grouped by source stream), ``observation.delta_ms`` (each stream's chosen sample time - frame time, ms;
-  a vector of one is stored as a scalar, as LeRobot reads shape (1,)), ``video_frame`` (the video ``seq``), ``t_host_ns`` (the frame's host time),
+  a vector of one is stored as a scalar, as LeRobot reads shape (1,)), ``video_frame`` (the video
+  ``seq``), ``t_host_ns`` (the frame's host time),
   ``label.<set>`` (each label set's label of the frame, "" = unlabelled) and ``marker`` (the operator's
   markers stamped while the frame was current, joined with " | ", "" = none);
 * ``videos/observation.images.endoscope/chunk-000/file-000.mp4`` when the session's ``video/`` folder
@@ -195,11 +196,11 @@ def sync_statement(session: Session, episode: Episode) -> str:
     measured = (len(episode.t_host_ns) - 1) * 1e9 / max(1, int(episode.t_host_ns[-1] - episode.t_host_ns[0]))
     video = (f"MP4 frame k is recording frame video_frame[k] ({episode.video.name}), written at a constant "
              f"{episode.fps} fps" if episode.video is not None else "no video recording exists for this session")
-    return (f"{_recording_sentence(session.manifest, streams)} `midas align` then put every stream on the video frame clock: one row per "
-            f"video frame (video_frame = the video stream's seq, t_host_ns = the frame's host time), each "
-            f"stream's sample chosen by the method '{episode.aligned_meta.get('method', 'unknown')}'"
-            f" (a value too old or missing is NaN). timestamp = row / fps with fps = {episode.fps} (the median "
-            f"frame interval; measured {measured:.3f} frames/s over the episode); the true frame times are "
+    return (f"{_recording_sentence(session.manifest, streams)} `midas align` then put every stream on the "
+            f"video frame clock: one row per video frame (video_frame = the video stream's seq, t_host_ns = "
+            f"the frame's host time), each stream's sample chosen by the method "
+            f"'{episode.aligned_meta.get('method', 'unknown')}' (a value too old or missing is NaN). "
+            f"timestamp = row / fps with fps = {episode.fps} (the median frame interval; measured {measured:.3f} frames/s over the episode); the true frame times are "
             f"t_host_ns. Video: {video}.")
 
 
@@ -247,7 +248,8 @@ def data_table(episode: Episode) -> Any:
         "index": pa.array(rows), "task_index": pa.array(np.zeros(n, np.int64))}
     for key, (names, values) in episode.vectors.items():
         flat = pa.array(np.ascontiguousarray(values, dtype=np.float32).reshape(-1))
-        columns[key] = flat if len(names) == 1 else pa.FixedSizeListArray.from_arrays(flat, len(names))  # (1,): a scalar
+        single = len(names) == 1  # LeRobot reads shape (1,) as a scalar column
+        columns[key] = flat if single else pa.FixedSizeListArray.from_arrays(flat, len(names))
     columns["video_frame"] = pa.array(episode.frames)
     columns["t_host_ns"] = pa.array(episode.t_host_ns)
     for key, texts in episode.strings.items():

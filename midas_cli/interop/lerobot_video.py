@@ -28,7 +28,8 @@ def write_video(source: Path, frames: np.ndarray, fps: int, target: Path) -> dic
     try:
         for row, wanted in enumerate(frames.tolist()):
             if wanted < position:
-                raise SessionError(f"aligned frames are not ascending at row {row} (frame {wanted}): re-run `midas align`")
+                raise SessionError(f"aligned frames are not ascending at row {row} (frame {wanted}): "
+                                   f"re-run `midas align`")
             while position <= wanted:
                 ok, image = capture.read()
                 if not ok:
