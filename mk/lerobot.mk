@@ -5,7 +5,8 @@
 # and its dataset module imports torchvision, whose PyPI wheels load only beside a CUDA build of torch, so
 # this environment holds torch 2.14.1 + torchvision 0.29.1 with their CUDA libraries (about 6 GB; pip takes
 # them from a local wheel cache where one is configured) and lerobot with --no-deps beside the pinned
-# packages its dataset code imports (mk/lerobot-requirements.txt).
+# packages its dataset code imports (mk/lerobot-requirements.txt). Decoding the video feature needs the
+# system's FFmpeg libraries (torchcodec loads them; .ci/run installs ffmpeg).
 LEROBOT_VENV ?= .venv-lerobot
 LEROBOT_STAMP := $(LEROBOT_VENV)/.installed
 
