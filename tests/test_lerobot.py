@@ -215,3 +215,16 @@ def test_lerobot_decodes_the_video(exported: dict[str, Any]) -> None:
     for row, means in loaded["video"].items():
         blue, green, red = _colour(int(frames[int(row)]))
         assert np.allclose(means, [red, green, blue], atol=15), (row, means)
+
+
+def test_fps_and_stats_of_awkward_tables() -> None:
+    """fps is the nearest whole rate (LeRobot's is an int); stats skip masked (NaN) values."""
+    from midas_cli.errors import SessionError
+    from midas_cli.interop.lerobot_export import nominal_fps, vector_stats
+
+    assert nominal_fps(np.round(np.arange(100) * 1e9 / 29.97).astype(np.int64)) == 30
+    with pytest.raises(SessionError):
+        nominal_fps(np.array([5], dtype=np.int64))
+    stats = vector_stats(np.array([[1.0, np.nan], [3.0, np.nan], [np.nan, np.nan]]))
+    assert stats["mean"][0] == 2.0 and stats["min"][0] == 1.0 and stats["max"][0] == 3.0 and stats["std"][0] == 1.0
+    assert np.isnan(stats["mean"][1]) and np.isnan(stats["min"][1]) and stats["count"].tolist() == [3]

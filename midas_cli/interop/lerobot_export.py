@@ -54,7 +54,8 @@ DATA_FILE = "data/chunk-000/file-000.parquet"
 EPISODES_FILE = "meta/episodes/chunk-000/file-000.parquet"
 VIDEO_FILE = f"videos/{VIDEO_KEY}/chunk-000/file-000.mp4"
 MARKER_JOIN = " | "
-INDEX_FEATURES = ("timestamp", "frame_index", "episode_index", "index", "task_index")
+INDEX_FEATURES = ("timestamp", "frame_index", "episode_index", "index", "task_index")  # LeRobot's DEFAULT_FEATURES
+FLOAT32_EXACT_S = 2048  # from here a float32 timestamp's step (2**-12 s) exceeds LeRobot's 1e-4 s tolerance
 
 
 @dataclass
@@ -166,6 +167,10 @@ def build_episode(session: Session) -> Episode:
                       {k: v for k, v in table.meta.items() if k != "columns"})
     if left_out:
         episode.notes.append(f"{left_out} marker(s) stamped outside the aligned frames were left out")
+    if len(frames) / fps >= FLOAT32_EXACT_S:
+        episode.notes.append(f"the episode lasts {len(frames) / fps:.0f} s: past {FLOAT32_EXACT_S} s LeRobot's float32 "
+                             f"timestamps are coarser than its default 1e-4 s video tolerance; load it with "
+                             f"LeRobotDataset(..., tolerance_s=5e-4)")
     videos = session_videos(session.path)
     if videos:
         episode.video = videos[0]
@@ -200,7 +205,8 @@ def sync_statement(session: Session, episode: Episode) -> str:
             f"video frame clock: one row per video frame (video_frame = the video stream's seq, t_host_ns = "
             f"the frame's host time), each stream's sample chosen by the method "
             f"'{episode.aligned_meta.get('method', 'unknown')}' (a value too old or missing is NaN). "
-            f"timestamp = row / fps with fps = {episode.fps} (the median frame interval; measured {measured:.3f} frames/s over the episode); the true frame times are "
+            f"timestamp = row / fps with fps = {episode.fps} (the median frame interval; measured "
+            f"{measured:.3f} frames/s over the episode); the true frame times are "
             f"t_host_ns. Video: {video}.")
 
 
@@ -222,11 +228,8 @@ def vector_stats(values: np.ndarray) -> dict[str, np.ndarray]:
 def features_of(episode: Episode) -> dict[str, dict[str, Any]]:
     """info.json ``features`` for everything but the video (added when a recording is written)."""
     features: dict[str, dict[str, Any]] = {
-        "timestamp": {"dtype": "float32", "shape": [1], "names": None},
-        "frame_index": {"dtype": "int64", "shape": [1], "names": None},
-        "episode_index": {"dtype": "int64", "shape": [1], "names": None},
-        "index": {"dtype": "int64", "shape": [1], "names": None},
-        "task_index": {"dtype": "int64", "shape": [1], "names": None}}
+        name: {"dtype": "float32" if name == "timestamp" else "int64", "shape": [1], "names": None}
+        for name in INDEX_FEATURES}
     for key, (names, _) in episode.vectors.items():
         features[key] = {"dtype": "float32", "shape": [len(names)], "names": names}
     features["video_frame"] = {"dtype": "int64", "shape": [1], "names": None}
