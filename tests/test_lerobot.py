@@ -21,6 +21,7 @@ import pytest
 from midas_cli.session.derived import read_aligned
 from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.reader import Session
+from midas_cli.session.sync_statement import statement
 from helpers.analysis_sessions import raven_session
 from helpers.cli import REPO, midas
 
@@ -130,8 +131,9 @@ def test_frames_carry_the_session_values(exported: dict[str, Any]) -> None:
     row_of = {t: int(np.searchsorted(table.t_host_ns, start + round(t * 1e9), side="right")) - 1 for t, _ in MARKERS}
     assert marked == {row_of[0.51]: "needle in | grip", row_of[2.0]: "knot"} and row_of[0.51] == 15
     midas_meta = json.loads((root / "meta/midas.json").read_text())
-    sync = info["midas"]["sync"]  # this session is a simulated one: the statement says so
-    assert "simulator" in sync and "video frame clock" in sync and "endoscope.mp4" in sync
+    sync, document = info["midas"]["sync"], info["midas"]["sync_statement"]
+    assert document == statement(exported["session"], Session.open(exported["session"]).manifest)
+    assert document["method"] in sync and "video frame clock" in sync and "endoscope.mp4" in sync
     assert sync == midas_meta["sync"] and midas_meta["aligned"]["method"] in sync
     assert (info["midas"]["subject"], info["midas"]["task"], info["midas"]["trial"]) == ("1", "peg-transfer", 1)
 

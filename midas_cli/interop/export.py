@@ -40,7 +40,7 @@ def export_session(path: Path | str, formats: Sequence[str], out_dir: Path | str
     writers = {"mcap": lambda: write_mcap(session, out_child(folder, f"{stem}.mcap")),
                "parquet": lambda: write_parquet(session, out_child_folder(folder, stem)),
                "xdf": lambda: write_xdf(session, out_child(folder, f"{stem}.xdf")),
-               "lerobot": lambda: write_lerobot(session, out_child_folder(folder, f"{stem}.lerobot"))}
+               "lerobot": lambda: write_lerobot(session, folder, f"{stem}.lerobot")}
     for name in formats:
         if progress is not None:
             progress(f"{session.path.name}: {name}")
