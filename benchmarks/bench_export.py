@@ -1,5 +1,8 @@
 """`midas export` of long sessions: time, peak memory and file size per format (issue 15), 10 and 60 minutes.
 
+The session is aligned (`midas align`, untimed) before the exports: the LeRobot export reads the aligned
+table (and Parquet then writes aligned.parquet too).
+
 The session is bench_align's (EmHT 4 x 240 Hz, FPS 9 ch x 250 Hz, HandKP 30 Hz, 30 fps video clock,
 random-walk values), written through the session writer and finalised like a recording. Each format runs
 alone in a fresh `python -m midas_cli export SESSION --format F --out DIR` child: wall seconds of the
@@ -24,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_align import write_session  # noqa: E402
 from machine import load_average, machine_info, write_result  # noqa: E402
 
-FORMATS = ("mcap", "parquet", "xdf")
+FORMATS = ("mcap", "parquet", "xdf", "lerobot")  # lerobot reads the aligned table: `midas align` runs first
 WRAPPER = r"""
 import atexit, sys
 result_file = sys.argv[1]
@@ -66,6 +69,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory(prefix="midas-bench-export-") as tmp:
             session = write_session(Path(tmp) / "sessions", minutes)
             csv_mb = sum(p.stat().st_size for p in (session / "streams").glob("*.csv")) / 1e6
+            subprocess.run([sys.executable, "-m", "midas_cli", "align", str(session)], check=True, capture_output=True)
             formats = {}
             for fmt in FORMATS:
                 out = Path(tmp) / f"out-{fmt}"

@@ -297,7 +297,7 @@ def startup_section(s: dict) -> list[str]:
              f"{s['load_average_1min_before_after'][1]}, {m['date_utc']}.", "",
              "| command | median s | bare python s | ratio (median) | min–max | goal | met |",
              "|---|---|---|---|---|---|---|"]
-    for name, c in s["cases"].items():
+    for c in s["cases"].values():
         lines.append(f"| `{c['command']}` | {c['median_s']:.3f} | {c['bare_median_s']:.3f} | {c['ratio_median']:.1f}x | "
                      f"{c['ratio_min']:.1f}–{c['ratio_max']:.1f} | <= {c['goal']:g}x | {'yes' if c['meets_goal'] else 'no'} |")
     return lines + ["", "Before the start-up work (2026-11-25, same machine, load ~1.5, median of 10): --version 70x "

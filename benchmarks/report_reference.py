@@ -48,7 +48,7 @@ def reference_section(r: dict) -> list[str]:
             + ("midas is not slower than the reference (median ratio <= 1; the per-pair spread is the noise)."
                if ratio <= 1.0 else
                f"midas is {100 * (ratio - 1):.0f} % slower than the reference here: see the per-pair spread."),
-            "", 
+            "",
             f"Inference (batch 1, {inf['torch_threads']} torch thread, `torch.no_grad`, eval mode; load "
             f"{_span(inf['load_average_before_after'])}):", "",
             "| side | online: ms per new frame, p50 | online p99 ms | offline: µs per frame |", "|---|---|---|---|"]

@@ -1,5 +1,7 @@
-"""Facts for `midas doctor` and bug reports: versions, serial ports, OBS reachability, GPU, disk; and
-the one repair doctor makes: OBS settings a killed midas left changed are put back (``restore_obs_settings``)."""
+"""Facts for `midas doctor` and bug reports: versions, serial ports and their USB adapters, OBS
+reachability, GPU, disk; and the repairs doctor makes: a USB-serial adapter's latency timer is set to
+1 ms where permitted (``usb_serial_adapters``), OBS settings a killed midas left changed are put back
+(``restore_obs_settings``)."""
 
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ def collect(obs_host: str = "localhost", obs_port: int = 4455, disk_path: Path =
         "packages": {name: _package_version(name) for name in PACKAGES},
         "tools": {name: shutil.which(name) for name in TOOLS},
         "serial_ports": _serial_ports(),
+        "usb_serial": usb_serial_adapters(),
         "obs_websocket": _tcp_reachable(obs_host, obs_port),
         "gpu": _gpu(),
         "disk_free_bytes": shutil.disk_usage(disk_path if disk_path.exists() else Path(".")).free,
@@ -43,6 +46,14 @@ def _serial_ports() -> list[dict[str, str]]:
     from serial.tools import list_ports
 
     return [{"device": p.device, "description": p.description, "hwid": p.hwid} for p in list_ports.comports()]
+
+
+def usb_serial_adapters(sysfs: Path | None = None) -> list[dict[str, Any]]:
+    """Every ``/dev/ttyUSB*`` and ``/dev/ttyACM*`` in sysfs (``sysfs``, else $MIDAS_SYSFS_ROOT, else /sys):
+    its adapter, with the latency timer set to 1 ms where permitted (the ports are not opened)."""
+    from midas_cli.devices.usbserial import adapter_ports, inspect_port
+
+    return [inspect_port(port, sysfs).as_dict() for port in adapter_ports(sysfs)]
 
 
 def _tcp_reachable(host: str, port: int) -> dict[str, Any]:

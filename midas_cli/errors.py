@@ -52,4 +52,4 @@ def disk_full(exc: BaseException | None) -> OSError | None:
 def disk_full_message(full: OSError) -> str:
     """``disk full / read-only: <path> (<reason>); free space and run again``."""
     return (f"disk full / read-only: {full.filename or 'the output folder'} "
-            f"({full.strerror or errno.errorcode.get(full.errno, full.errno)}); free space and run again")
+            f"({full.strerror or errno.errorcode.get(full.errno or 0, full.errno)}); free space and run again")

@@ -7,6 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from helpers.cli import midas
@@ -84,7 +85,8 @@ def test_cli_louo_fold_all_writes_cv_json_md_and_fold_folders(jigsaws, tmp_path)
     for k in range(3):
         assert (out / f"fold-{k}" / "metrics.json").is_file() and (out / "baseline" / f"fold-{k}" / "run.json").is_file()
     table = (out / "cv.md").read_text()
-    assert table.count("| baseline (MLP) | ") == 5 and "| baseline (MLP) | mean ± sd |" in table
+    assert table.count("| baseline (MLP) | ") == 6 and "| baseline (MLP) | mean ± sd |" in table
+    assert "| baseline (MLP) | per video |" in table and report["per_video"]["videos"] == 6
     assert "| baseline (MLP) | pooled |" in table and "| baseline (MLP) | 2 | D |" in table
     assert "| baseline (logistic regression) | mean ± sd |" in table and "none (fixed epochs)" in table
     # folds run elsewhere: cv-summary aggregates what exists and names what is missing
@@ -115,3 +117,18 @@ def test_single_fold_into_fold_folder_aggregates_when_the_last_one_finishes(jigs
     assert cv.complete(tmp_path)
     report = cv.summarise(tmp_path)
     assert len(report["folds"]) == 2 and report["sd"]["accuracy"] is not None
+
+
+def test_pooled_and_per_video_f1_are_both_reported_and_differ_as_defined():
+    """Pooled F1@k sums TP/FP/FN over videos (MS-TCN); per video averages each video's own F1@k."""
+    from midas_cli.models import metrics as M
+
+    long_right = np.repeat([0, 1, 2, 3], 50)  # 4 segments, all found
+    short_truth = np.array([0, 0, 1, 1])
+    short_wrong = np.array([2, 2, 3, 3])  # 2 segments, none found
+    preds, truths = [long_right, short_wrong], [long_right, short_truth]
+    per_video = cv.per_video_means(preds, truths)
+    pooled = M.evaluate(preds, truths, ["a", "b", "c", "d"])["summary"]
+    assert per_video["f1@50"] == pytest.approx(50.0)  # (100 + 0) / 2
+    assert pooled["f1@50"] == pytest.approx(100 * 2 * 4 / (2 * 4 + 2 + 2))  # TP 4, FP 2, FN 2 summed
+    assert per_video["accuracy"] == pytest.approx(0.5) and per_video["videos"] == 2

@@ -138,24 +138,27 @@ def test_via_file_with_wrong_types_is_exit_4_naming_it(gestures, tmp_path, break
 FULL_DISK = textwrap.dedent('''
     import errno, os, sys
     UNDER, MATCH = os.environ["FULL_DISK_UNDER"], os.environ.get("FULL_DISK_MATCH", "")
+    BESIDE = os.environ.get("FULL_DISK_BESIDE", "")
     def full(event, args):  # every file opened for writing under UNDER (whose path has MATCH): ENOSPC
         if event != "open" or not isinstance(args[0], (str, bytes, os.PathLike)):
             return
         path, mode, flags = os.path.abspath(os.fsdecode(args[0])), args[1], args[2]
         writing = any(c in mode for c in "wax+") if mode else bool((flags or 0) & (os.O_WRONLY | os.O_RDWR | os.O_CREAT))
-        if writing and path.startswith(UNDER) and MATCH in path:
+        beside = not BESIDE or os.path.exists(os.path.join(os.path.dirname(path), BESIDE))  # (once BESIDE exists)
+        if writing and path.startswith(UNDER) and MATCH in path and beside:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), path)
     sys.addaudithook(full)
 ''')
 
 
-def full_disk_env(tmp_path: Path, under: Path, match: str = "") -> dict[str, str]:
-    """Environment whose Python sees a full disk under ``under`` (a sitecustomize audit hook)."""
+def full_disk_env(tmp_path: Path, under: Path, match: str = "", beside: str = "") -> dict[str, str]:
+    """Environment whose Python sees a full disk under ``under`` (a sitecustomize audit hook), for
+    paths holding ``match`` (and, with ``beside``, only once a file of that name is beside them)."""
     hook = tmp_path / "hook"
     hook.mkdir(exist_ok=True)
     (hook / "sitecustomize.py").write_text(FULL_DISK)
     return {"PYTHONPATH": os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")]),
-            "FULL_DISK_UNDER": str(under.resolve()), "FULL_DISK_MATCH": match}
+            "FULL_DISK_UNDER": str(under.resolve()), "FULL_DISK_MATCH": match, "FULL_DISK_BESIDE": beside}
 
 
 def assert_disk_full(result, path_part: str) -> None:
@@ -187,12 +190,52 @@ def test_repair_on_a_full_disk_loses_nothing_and_can_run_again(tmp_path):
     assert json.loads((session / "manifest.json").read_text())["status"] == "recovered"
 
 
-def test_record_on_a_full_disk_is_exit_4(tmp_path):
+def test_record_on_a_full_disk_is_exit_4_and_names_the_folder_it_made(tmp_path):
     out = tmp_path / "rec"
     out.mkdir()
     result = midas("record", "--simulate", "--duration", "1", "--out", str(out), "--subject", "1", "--task", "t",
                    "--trial", "1", env=full_disk_env(tmp_path, out, "midas.log"))
     assert_disk_full(result, "midas.log")
+    (session,) = out.iterdir()  # made before the log could not be: `path=$(midas record ... | tail -n 1)` finds it
+    assert result.stdout.splitlines()[-1] == str(session)
+
+
+def _files_of_200_kb() -> None:
+    """Every file the recorder writes may grow to 200 kB: a stream's write fails (a row is dropped)."""
+    import resource
+    import signal
+
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+
+
+@pytest.mark.parametrize("mode", ["--no-tui", "--status-json"])
+def test_record_without_room_for_its_final_manifest_names_the_folder_and_repair_keeps_how_it_ended(tmp_path, mode):
+    """The disk fills during a recording (a row read but not written) and leaves no room for the final
+    manifest either (manifest.json can be written once, never replaced)."""
+    out = tmp_path / "rec"
+    out.mkdir()
+    result = midas("record", "--simulate", "--duration", "30", "--out", str(out), "--subject", "1", "--task", "t",
+                   "--trial", "1", mode, env=full_disk_env(tmp_path, out, "manifest.json.tmp", beside="manifest.json"),
+                   preexec_fn=_files_of_200_kb, timeout=90)
+    assert result.returncode == 4 and "Traceback" not in result.stderr, result.stderr
+    assert "midas session repair" in result.stderr.strip().splitlines()[-1]
+    (session,) = out.iterdir()
+    last = result.stdout.splitlines()[-1]
+    if mode == "--status-json":
+        final = json.loads(last)
+        assert final["event"] == "stopped" and final["status"] == "recording"
+        assert final["session_path"] == str(session) and "midas session repair" in final["reason"]
+    else:
+        assert last == str(session)
+    assert json.loads((session / "manifest.json").read_text())["status"] == "recording"
+    midas("session", "repair", str(session), check=True)
+    manifest = json.loads((session / "manifest.json").read_text())
+    assert manifest["status"] == "recovered" and "File too large" in manifest["stop_reason"]
+    assert "writing the session failed" in manifest["stop_reason"] and "status interrupted" in manifest["stop_reason"]
+    assert sum(entry.get("dropped", 0) for entry in manifest["streams"].values()) >= 1
+    assert not (session / "logs" / "stop-facts.json").exists()
+    midas("session", "verify", str(session), check=True)
 
 
 # --- progress when nobody is looking at a terminal ------------------------------------------------

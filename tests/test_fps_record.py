@@ -58,6 +58,8 @@ def test_record_loses_nothing_the_board_sent(tmp_path: Path, duration: float) ->
     assert entry["corrupt"] == 0 and entry["seq_gaps"]["missing"] == len(outage)
     assert entry["missing_explained"]["outage"] == len(outage)
     assert manifest["devices"]["fps"]["info"]["firmware"] == "1.0.0"
+    adapter = manifest["devices"]["fps"]["info"]["usb_serial"]  # what was in force on the port (issue 26)
+    assert adapter["note"] == "not a USB serial adapter (a pseudo-terminal)" and adapter["low_latency"] == "unsupported"
 
 
 def test_one_percent_corruption_completes_counts_and_keeps_bad_values_out(tmp_path: Path) -> None:

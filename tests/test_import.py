@@ -59,7 +59,7 @@ def _write_dcs_folder(root: Path) -> Path:
         for sensor in range(4):
             track.append(f"54,{sensor},{sensor * 10 + record},1,2,3,4,5,{100.0 + record / 240},{T0 + record * 4_000_000 + sensor}")
     (folder / "Trakstar" / "trakstar.csv").write_text("\n".join(track) + "\n")
-    header = "server_time,trakstar_SensorID,trakstar_Status,trakstar_x,trakstar_y,trakstar_z,trakstar_azimuth,trakstar_elevation,trakstar_roll,trakstar_atime,video_time,video_id,3d_camera_time,3d_camera_frame_id,smartwatch_1_time,smartwatch_1_wrist_position,smartwatch_1_sensor_type,smartwatch_1_value_X_Axis,smartwatch_1_value_Y_Axis,smartwatch_1_value_Z_Axis,smartwatch_2_time,smartwatch_2_wrist_position,smartwatch_2_sensor_type,smartwatch_2_value_X_Axis,smartwatch_2_value_Y_Axis,smartwatch_2_value_Z_Axis,PDS_time,pedal_1,pedal_2,pedal_3,pedal_4,pedal_5,pedal_6,pedal_7"
+    header = "server_time,trakstar_SensorID,trakstar_Status,trakstar_x,trakstar_y,trakstar_z,trakstar_azimuth,trakstar_elevation,trakstar_roll,trakstar_atime,video_time,video_id,3d_camera_time,3d_camera_frame_id,smartwatch_1_time,smartwatch_1_wrist_position,smartwatch_1_sensor_type,smartwatch_1_value_X_Axis,smartwatch_1_value_Y_Axis,smartwatch_1_value_Z_Axis,smartwatch_2_time,smartwatch_2_wrist_position,smartwatch_2_sensor_type,smartwatch_2_value_X_Axis,smartwatch_2_value_Y_Axis,smartwatch_2_value_Z_Axis,PDS_time,pedal_1,pedal_2,pedal_3,pedal_4,pedal_5,pedal_6,pedal_7"  # noqa: E501 - the original system's header, as it writes it
     synced = [header]
     for frame in range(4):
         video = [str(T0 + frame * 33_333_333), f"./Data/x/imgs/{frame}_{T0 + frame * 33_333_333}.png"] if frame != 2 else ["0", "0"]

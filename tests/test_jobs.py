@@ -16,7 +16,7 @@ from helpers.cli import midas
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.rundir import Plan, RunDir, Unit
 from midas_cli.jobs.runner import run_unit
-from midas_cli.jobs.slurm import SlurmSettings, array_spec, script
+from midas_cli.jobs.slurm import SlurmSettings, array_spec, sbatch_arguments, script
 from midas_cli.jobs.status import statuses
 
 
@@ -48,19 +48,35 @@ def test_units_run_once_then_skip_until_their_fingerprint_changes(tmp_path):
         run.write_plan(Plan("other", []))
 
 
-def test_slurm_settings_flags_over_config_and_the_script():
+def test_slurm_settings_flags_over_config_and_the_sbatch_arguments():
     settings = SlurmSettings.merged({"time": "00:05:00", "gpus": None, "mem": None},
                                     {"time": "01:00:00", "mem": "2G", "gpus": 1, "partition": "gpu",
                                      "array_parallelism": 4, "account": "lab"})
     assert (settings.time, settings.mem, settings.gpus, settings.partition) == ("00:05:00", "2G", 1, "gpu")
-    text = script(RunDir("/shared/run"), "align", [0, 1, 2, 5, 7, 8], settings)
-    assert "#SBATCH --array=0-2,5,7-8%4" in text and "#SBATCH --gres=gpu:1" in text
-    assert '#SBATCH --output="/shared/run/logs/unit-%a.log"' in text and "#SBATCH --account=lab" in text
-    assert text.rstrip().endswith('jobs run-unit /shared/run --unit "$SLURM_ARRAY_TASK_ID"')
+    arguments = sbatch_arguments(RunDir("/shared/run \"x\""), "align", [0, 1, 2, 5, 7, 8], settings)
+    assert arguments == ["--job-name=midas-align", "--array=0-2,5,7-8%4", '--output=/shared/run "x"/logs/unit-%a.log',
+                         "--partition=gpu", "--time=00:05:00", "--mem=2G", "--account=lab", "--gres=gpu:1"]
+    text = script()
+    assert "#SBATCH" not in text and "gpu" not in text and "/shared/run" not in text  # nothing from a flag or file
+    assert text.rstrip().endswith('jobs run-unit "$1" --unit "$SLURM_ARRAY_TASK_ID"')
     assert array_spec([3], None) == "3"
-    for bad in ({"time": "soon"}, {"mem": "lots"}, {"array_parallelism": 0}, {"gpus": -1}):
-        with pytest.raises(ConfigError):
-            SlurmSettings(**bad)
+    for good in ("10", "10:30", "1:00:00", "2-12", "2-12:30", "2-12:30:00"):  # SLURM's six time formats
+        assert SlurmSettings(time=good).sbatch_options() == [f"--time={good}"]
+    with pytest.raises(ConfigError, match="'%' and"):
+        sbatch_arguments(RunDir("/shared/run%j"), "align", [0], settings)
+
+
+@pytest.mark.parametrize(("bad", "named"), [
+    ({"time": "soon"}, "--slurm-time"), ({"time": "10\n"}, "--slurm-time"), ({"time": "1:2:3:4"}, "--slurm-time"),
+    ({"time": "\uff11\uff10"}, "--slurm-time"), ({"mem": "lots"}, "--slurm-mem"), ({"mem": "8GB"}, "--slurm-mem"),
+    ({"array_parallelism": 0}, "--slurm-array-parallelism"), ({"gpus": -1}, "--slurm-gpus"),
+    ({"partition": "gpu\ntouch /tmp/INJ"}, "--slurm-partition"), ({"partition": "gpu;id"}, "--slurm-partition"),
+    ({"account": "lab --wrap=id"}, "[slurm] account"), ({"qos": "$(id)"}, "[slurm] qos"),
+    ({"cpus_per_task": 0}, "[slurm] cpus_per_task")])
+def test_slurm_settings_outside_slurms_grammar_are_refused_naming_the_setting(bad, named):
+    with pytest.raises(ConfigError) as caught:
+        SlurmSettings(**bad)
+    assert str(caught.value).startswith(f"{named} {next(iter(bad.values()))!r} ") and "\n" not in str(caught.value)
 
 
 @pytest.fixture(scope="module")
@@ -98,6 +114,48 @@ def test_align_with_a_run_folder_resumes_and_reports_a_failed_session(sessions, 
 def test_executor_options_are_checked(sessions, extra, needle):
     result = midas("align", str(sessions[0]), *extra)
     assert result.returncode == 2 and needle in result.stderr
+
+
+def fake_slurm(tmp_path: Path, config: str) -> tuple[dict[str, str], Path]:
+    """An environment whose sbatch (and scontrol) are scripts that record their arguments, one per line, and
+    a config file holding ``config``; the file sbatch writes."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "sbatch-args"
+    (bin_dir / "sbatch").write_text(f"#!/bin/sh\nprintf '%s\\n' \"$@\" > '{calls}'\necho 4242\n")
+    (bin_dir / "scontrol").write_text("#!/bin/sh\necho 'MaxArraySize = 1001'\n")
+    for tool in bin_dir.iterdir():
+        tool.chmod(0o755)
+    (tmp_path / "config.toml").write_text(config, encoding="utf-8")
+    return {"PATH": f"{bin_dir}:{os.environ['PATH']}", "MIDAS_CONFIG": str(tmp_path / "config.toml")}, calls
+
+
+@pytest.mark.parametrize(("config", "flags", "named"), [
+    ('[slurm]\npartition = "gpu\\ntouch INJ"\n', [], "[slurm] partition = 'gpu\\ntouch INJ'"),
+    ('[slurm]\naccount = "lab\\ntouch INJ"\n', [], "[slurm] account = 'lab\\ntouch INJ'"),
+    ("", ["--slurm-partition", "gpu\ntouch INJ"], "--slurm-partition 'gpu\\ntouch INJ'")])
+def test_a_slurm_setting_with_a_command_in_it_is_refused_and_nothing_is_submitted(sessions, tmp_path, config, flags,
+                                                                                   named):
+    env, calls = fake_slurm(tmp_path, config)
+    result = midas("align", str(sessions[0]), "--executor", "slurm", "--run-dir", str(tmp_path / "run"), "--no-wait",
+                   *flags, env=env, cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().count("\n") == 0 and named in result.stderr
+    assert not calls.exists() and not (tmp_path / "INJ").exists() and not (tmp_path / "run").exists()
+
+
+def test_valid_slurm_settings_reach_sbatch_as_its_arguments(sessions, tmp_path):
+    env, calls = fake_slurm(tmp_path, '[slurm]\naccount = "surgical-ai"\nqos = "normal"\nmem = "500M"\n')
+    run = tmp_path / "run dir"
+    result = midas("align", str(sessions[0]), "--executor", "slurm", "--run-dir", str(run), "--no-wait",
+                   "--slurm-partition", "gpu,debug", "--slurm-time", "1-02:00", env=env)
+    assert result.returncode == 0, result.stderr
+    arguments = calls.read_text().splitlines()
+    assert arguments == ["--parsable", "--job-name=midas-align", "--array=0", f"--output={run.resolve()}/logs/unit-%a.log",
+                         "--partition=gpu,debug", "--time=1-02:00", "--mem=500M", "--account=surgical-ai",
+                         "--qos=normal", str(run.resolve() / "slurm-0.sh"), str(run.resolve())]
+    assert json.loads((run / "submissions.json").read_text())[0]["sbatch"] == arguments[1:]
+    assert "surgical-ai" not in (run / "slurm-0.sh").read_text()
 
 
 def test_a_slurm_task_that_left_the_queue_without_a_marker_is_failed(tmp_path, monkeypatch):

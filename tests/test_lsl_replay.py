@@ -301,3 +301,18 @@ def test_replay_of_no_session_is_a_session_error(tmp_path: Path) -> None:
     result = midas("replay", str(tmp_path / "nowhere"))
     assert result.returncode == 4
     assert result.stderr.count("\n") == 1 and "is not a folder" in result.stderr
+
+
+def test_a_host_time_far_outside_the_session_ends_the_replay_instead_of_a_wait_for_ever(tmp_path: Path) -> None:
+    """Only the file was edited (the manifest still gives the old last time): the sample itself is
+    refused when its turn comes, with one line, where replay used to wait 3 years for it."""
+    session = _source_session(tmp_path)
+    path = session / "streams" / "arm.csv"
+    lines = path.read_bytes().splitlines(keepends=True)
+    fields = lines[-1].split(b",")
+    fields[1] = str(int(fields[1]) + 10**17).encode()
+    path.write_bytes(b"".join(lines[:-1]) + b",".join(fields))
+    result = midas("replay", str(session), "--delay", "0", "--speed", "20", timeout=60)
+    assert result.returncode == 4, result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("midas: error: ") and "streams/arm.csv holds t_host_ns" in last and "far outside" in last

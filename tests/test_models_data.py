@@ -95,9 +95,9 @@ def test_mstcn_has_the_published_layout():
     gen = model.generation
     assert len(gen.layers) == 11 and len(model.refinements) == 3
     assert all(len(r.layers) == 10 for r in model.refinements)
-    assert [l.conv_small.dilation[0] for l in gen.layers] == [2 ** i for i in range(11)]
-    assert [l.conv_large.dilation[0] for l in gen.layers] == [2 ** (10 - i) for i in range(11)]
-    assert [l.conv_dilated.dilation[0] for l in model.refinements[0].layers] == [2 ** i for i in range(10)]
+    assert [layer.conv_small.dilation[0] for layer in gen.layers] == [2 ** i for i in range(11)]
+    assert [layer.conv_large.dilation[0] for layer in gen.layers] == [2 ** (10 - i) for i in range(11)]
+    assert [layer.conv_dilated.dilation[0] for layer in model.refinements[0].layers] == [2 ** i for i in range(10)]
     assert gen.conv_in.out_channels == 64
     stages = model(torch.randn(2, 10, 30), torch.ones(2, 30, dtype=torch.bool))
     assert stages.shape == (4, 2, 5, 30)

@@ -330,3 +330,80 @@ def test_damaged_sessions_are_refused_or_read_honestly_never_crash_or_escape(
     if code == 0 and damage.kind in DOUBTFUL and command == "align":
         said = [line for line in text.splitlines() if "warning" in line.lower()]
         assert any(f"{damage.target}.csv" in line for line in said), f"{what} used it without a word: {text[-2000:]}"
+
+
+# ------------------------------------------------------------------ issue 23: manifest strings as names
+
+NAME_EXAMPLES = max(20, EXAMPLES // 6)
+# strings no name may be, wherever they come from: whole values, and pieces that spoil any value
+ABSOLUTE = "/tmp/midas-property-absolute"  # checked for after each run: it is outside the workspace
+HOSTILE_WHOLE = ["..", ".", "", "../X", "../../X", ABSOLUTE, "streams/../../X", "x" * 300, "Ωmega"]
+HOSTILE_PIECES = ["/", "../", "\n", "\r", "\x00", "\\", "\t", " ", "\x7f", "é", "名", "\u202e"]
+hostile_names = st.one_of(
+    st.sampled_from(HOSTILE_WHOLE),
+    st.builds(lambda head, piece, tail: head + piece + tail, st.text("abcXYZ019_-.", max_size=12),
+              st.sampled_from(HOSTILE_PIECES), st.text("abcXYZ019_-.", max_size=12)),
+)
+# where a session's strings become part of a path: the manifest's names, and a label set's file name
+NAME_FIELDS = ["session_id", "stream key", "device key", "stream device", "label set file"]
+# commands with an --out ({o}, under the workspace) or none: none may write outside --out or derived/
+NAME_COMMANDS = {
+    "verify": ["session", "verify", "{s}"],
+    "export": ["export", "{s}", "--format", "mcap,parquet,xdf", "--out", "{o}"],
+    "plot": ["plot", "{s}", "--out", "{o}/page.png"],
+    "labels-export": ["labels", "export", "{s}", "--format", "via", "--out", "{o}/labels.json"],
+}
+
+
+def _name_damage(session: Path, field: str, name: str) -> None:
+    """Put ``name`` where ``field`` is: a manifest name, or the file name of a copy of a label set."""
+    if field == "label set file":
+        shutil.copy(session / "labels" / "gestures.csv", session / "labels" / f"{name}.csv")
+        return
+    manifest = json.loads((session / "manifest.json").read_text())
+    if field == "session_id":
+        manifest["session_id"] = name
+    elif field == "stream key":
+        manifest["streams"] = {name if k == "emht" else k: v for k, v in manifest["streams"].items()}
+    elif field == "device key":
+        manifest["devices"][name] = {"kind": "test"}
+    else:
+        manifest["streams"]["emht"]["device"] = name
+    (session / "manifest.json").write_text(json.dumps(manifest))
+
+
+def _can_be_file_name(name: str) -> bool:
+    return "/" not in name and "\x00" not in name and name not in ("", ".", "..") and len(name.encode()) < 250
+
+
+@settings(max_examples=NAME_EXAMPLES, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(field=st.sampled_from(NAME_FIELDS), name=hostile_names, command=st.sampled_from(sorted(NAME_COMMANDS)))
+def test_manifest_strings_used_as_names_are_refused_and_never_name_files_outside_the_out_folder(
+        pristine: Path, tmp_path_factory, field: str, name: str, command: str) -> None:
+    if field == "label set file" and not _can_be_file_name(name):
+        name = name.replace("/", "_").replace("\x00", "_").strip(".")[:200] + "\n"  # still no label set name
+    workspace = tmp_path_factory.mktemp("names")
+    session, out = workspace / pristine.name, workspace / "out"
+    shutil.copytree(pristine, session, symlinks=True)
+    _name_damage(session, field, name)
+    before_outside = snapshot(workspace, skip=session)
+    before_inside = _recorded(snapshot(session), session)
+
+    args = [a.format(s=session, o=out) for a in NAME_COMMANDS[command]]
+    code, text = run_midas(args, session)
+
+    what = f"`midas {' '.join(NAME_COMMANDS[command][:2])}` with {field} = {name!r}"
+    assert code in (0, 2, 4) and "Traceback" not in text, f"{what} exited {code}: {text[-2000:]}"
+    written = {k for k in set(snapshot(workspace, skip=session)) - set(before_outside)}
+    assert all(Path(k) == out or out in Path(k).parents for k in written), f"{what} wrote outside --out: {written}"
+    assert not list(Path(ABSOLUTE).parent.glob(Path(ABSOLUTE).name + "*")), f"{what} wrote {ABSOLUTE}"
+    assert _recorded(snapshot(session), session) == before_inside, f"{what} changed the recorded session"
+    if field != "label set file":  # the manifest is read by every command: one line, naming the field
+        lines = text.strip().splitlines()
+        assert code == 4 and len(lines) == 1, f"{what} was not refused in one line: {text[-2000:]}"
+        assert ("session_id" if field == "session_id" else "streams" if "stream" in field else "devices") in lines[0]
+    elif command != "labels-export":  # these read every label set (labels export: only the one it exports)
+        assert code == 4, f"{what} exited {code}: {text[-2000:]}"
+        if command == "verify":
+            assert len([line for line in text.splitlines() if "problem:" in line]) == 1, text

@@ -31,8 +31,9 @@ META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 TRACEBACK = "Traceback (most recent call last)"
 
 
-def _spawn(out: Path, *extra: str, group: bool = False, faulthandler: bool = False) -> subprocess.Popen:
-    env = {**os.environ, "NO_COLOR": "1", **({"PYTHONFAULTHANDLER": "1"} if faulthandler else {})}
+def _spawn(out: Path, *extra: str, group: bool = False, faulthandler: bool = False,
+           env_extra: dict[str, str] | None = None) -> subprocess.Popen:
+    env = {**os.environ, "NO_COLOR": "1", **({"PYTHONFAULTHANDLER": "1"} if faulthandler else {}), **(env_extra or {})}
     return subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--out", str(out), *META, *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             start_new_session=group)
@@ -63,9 +64,33 @@ def _sessions(out: Path) -> list[Path]:
     return [p for p in out.iterdir() if p.is_dir()] if out.exists() else []
 
 
-def _semaphores() -> set[str]:
-    shm = Path("/dev/shm")
-    return {p.name for p in shm.glob("sem.mp-*")} if shm.is_dir() else set()
+# Logs every named semaphore (multiprocessing's SemLock: a /dev/shm/sem.mp-* file) that a process creates.
+# It watches midas's own processes only: a count of /dev/shm failed whenever another program on the
+# machine used multiprocessing meanwhile.
+_SEMAPHORE_HOOK = """import os
+import _multiprocessing
+
+_Real = _multiprocessing.SemLock
+
+
+class _LoggedSemLock(_Real):
+    def __new__(cls, kind, value, maxvalue, name, unlink, *rest):
+        with open(os.environ["MIDAS_TEST_SEMAPHORE_LOG"], "a") as fh:
+            fh.write(f"{os.getpid()} {name}\\n")
+        return super().__new__(cls, kind, value, maxvalue, name, unlink, *rest)
+
+
+_multiprocessing.SemLock = _LoggedSemLock
+"""
+
+
+def _semaphore_logging(folder: Path) -> tuple[dict[str, str], Path]:
+    """Environment that makes every midas process log the named semaphores it creates, and the log."""
+    (folder / "hook").mkdir(parents=True)
+    (folder / "hook" / "sitecustomize.py").write_text(_SEMAPHORE_HOOK)
+    log = folder / "semaphores.log"
+    path = os.pathsep.join(p for p in (str(folder / "hook"), os.environ.get("PYTHONPATH", "")) if p)
+    return {"PYTHONPATH": path, "MIDAS_TEST_SEMAPHORE_LOG": str(log)}, log
 
 
 def _descendants(pid: int) -> set[int]:
@@ -110,7 +135,7 @@ def test_a_signal_right_after_the_manifest_appears_still_stops_the_recording(tmp
         stdout, stderr = process.communicate(timeout=60)
     except subprocess.TimeoutExpired:
         process.kill()
-        raise AssertionError(f"{sig.name} {delay_ms} ms after the manifest appeared was ignored")
+        raise AssertionError(f"{sig.name} {delay_ms} ms after the manifest appeared was ignored") from None
     assert process.returncode == 0, stderr
     assert TRACEBACK not in stderr
     (path,) = _sessions(tmp_path)
@@ -131,7 +156,7 @@ def test_ctrl_c_during_start_up_never_prints_a_traceback(tmp_path: Path, delay_s
     except subprocess.TimeoutExpired:  # say where it hangs: faulthandler dumps every thread on SIGABRT
         process.send_signal(signal.SIGABRT)
         stdout, stderr = process.communicate(timeout=30)
-        raise AssertionError(f"SIGINT {delay_s} s after start did not end midas record:\n{stderr[-6000:]}")
+        raise AssertionError(f"SIGINT {delay_s} s after start did not end midas record:\n{stderr[-6000:]}") from None
     assert TRACEBACK not in stderr and "KeyboardInterrupt" not in stderr, stderr
     sessions = _sessions(tmp_path)
     if process.returncode == 130:
@@ -147,32 +172,33 @@ def test_ctrl_c_during_start_up_never_prints_a_traceback(tmp_path: Path, delay_s
 @pytest.mark.slow
 def test_twenty_kills_of_the_process_group_leave_nothing_but_repairable_sessions(tmp_path: Path) -> None:
     rng = random.Random(13)
-    before = _semaphores()
+    semaphore_env, semaphore_log = _semaphore_logging(tmp_path)
     for attempt in range(20):
         out = tmp_path / f"kill{attempt}"
         duration = rng.choice(["1", "2"])
-        process = _spawn(out, "--simulate", "--duration", duration, "--no-tui", group=True)
+        process = _spawn(out, "--simulate", "--duration", duration, "--no-tui", group=True, env_extra=semaphore_env)
         moment = rng.random()
         if moment < 0.3:  # start-up: before or while the workers start
             time.sleep(rng.uniform(0.0, 1.5))
         elif moment < 0.7:  # while recording
-            _wait_for(lambda: _manifest_appeared(out), step_s=0.01)
+            _wait_for(lambda out=out: _manifest_appeared(out), step_s=0.01)
             time.sleep(rng.uniform(0.0, 1.0))
         else:  # around the stop and finalise
-            _wait_for(lambda: _manifest_appeared(out), step_s=0.01)
+            _wait_for(lambda out=out: _manifest_appeared(out), step_s=0.01)
             manifest = _manifest_appeared(out)
-            _wait_for(lambda: _status(manifest) not in ("recording", None), timeout_s=60, step_s=0.002)
+            _wait_for(lambda manifest=manifest: _status(manifest) not in ("recording", None), timeout_s=60,
+                      step_s=0.002)
             time.sleep(rng.uniform(0.0, 0.05))
         tree = {process.pid} | _descendants(process.pid)
         os.killpg(process.pid, signal.SIGKILL)
         process.communicate(timeout=30)
-        _wait_for(lambda: not any(_alive(pid) for pid in tree), timeout_s=10, step_s=0.05)
+        _wait_for(lambda tree=tree: not any(_alive(pid) for pid in tree), timeout_s=10, step_s=0.05)
         for path in _sessions(out):
             midas("session", "repair", str(path), check=True)
             verified = midas("session", "verify", str(path))
             assert verified.returncode == 0, (attempt, verified.stdout, verified.stderr)
             assert not list(path.rglob("*.tmp")), list(path.rglob("*.tmp"))
-    assert _semaphores() - before == set()
+    assert not semaphore_log.exists(), semaphore_log.read_text()  # pipes only: nothing a kill could leave in /dev/shm
 
 
 def test_a_killed_recorder_takes_its_workers_with_it(tmp_path: Path) -> None:
@@ -202,6 +228,16 @@ def test_a_start_that_fails_is_marked_failed_and_hidden_from_lists(tmp_path: Pat
     assert json.loads(listed.stdout) == []
     listed_all = midas("session", "list", str(tmp_path), "--json", "--all", check=True)
     assert [s["status"] for s in json.loads(listed_all.stdout)] == ["failed"]
+
+
+def test_a_start_that_fails_still_ends_stdout_with_the_session_path(tmp_path: Path) -> None:
+    """`path=$(midas record ... | tail -n 1)` finds the folder however recording ends (issue 23 item 6)."""
+    url = f"obs://127.0.0.1:{free_port()}?timeout=0.5"
+    result = midas("record", "--device", f"video={url}", "--device", "emht=sim://emht", "--duration", "60",
+                   "--out", str(tmp_path), *META, "--no-tui", timeout=120)  # the failed open ends it
+    assert result.returncode == 3, result.stderr
+    (path,) = _sessions(tmp_path)
+    assert result.stdout.splitlines()[-1] == str(path)
 
 
 def test_a_full_disk_at_the_start_leaves_no_folder(tmp_path: Path) -> None:

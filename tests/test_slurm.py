@@ -57,9 +57,9 @@ def test_align_on_slurm_matches_local_and_a_rerun_skips_done_sessions(slurm, ses
         (cols_a, values_a), (cols_b, values_b) = aligned(a), aligned(b)
         assert cols_a == cols_b
         np.testing.assert_array_equal(values_a, values_b)
-    script = (run / "slurm-0.sh").read_text()
-    assert "#SBATCH --array=0-7" in script and "--partition=debug" in script and "--time=00:10:00" in script
-    assert "--mem=500M" in script and "jobs run-unit" in script
+    sbatch = json.loads((run / "submissions.json").read_text())[0]["sbatch"]  # settings: sbatch's arguments
+    assert "--array=0-7" in sbatch and "--partition=debug" in sbatch and "--time=00:10:00" in sbatch
+    assert "--mem=500M" in sbatch and "jobs run-unit" in (run / "slurm-0.sh").read_text()
     status = json.loads(midas("jobs", "status", str(run), "--json", env=env, check=True).stdout)
     assert status["counts"]["done"] == 8 and {u["host"] for u in status["units"]} != {None}
 

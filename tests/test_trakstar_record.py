@@ -48,6 +48,8 @@ def test_record_from_the_emulator_loses_nothing_at_4_sensors_200_hz(emulator, tm
     manifest = Session.open(path).manifest
     assert manifest["devices"]["emht"]["info"]["serial"] == "4242"
     assert abs(manifest["streams"]["emht"]["measured_rate_hz"] - 200) < 2
+    adapter = manifest["devices"]["emht"]["info"]["usb_serial"]  # what was in force on the port (issue 26)
+    assert (adapter["adapter"], adapter["low_latency"]) == ("not usb", "unsupported")
 
 
 @pytest.mark.slow

@@ -31,6 +31,7 @@ from typing import Any, Callable
 import numpy as np
 
 from midas_cli.analysis.calibration import MODEL_CHOICES, SOURCES, TARGETS, Calibration, load_calibration
+from midas_cli.analysis.clockfit import fit_stream
 from midas_cli.analysis.columns import ColumnSet, in_parallel
 from midas_cli.analysis.hand_features import (EMHT_SENSORS, HANDS, add_clutch, add_emht_features,
                                               add_handkp_features, add_robot_orientation, emht_sensor_arrays,
@@ -46,6 +47,7 @@ from midas_cli.session.values import FLOAT_LIMIT, REMEDY
 log = logging.getLogger(__name__)
 
 METHODS = ("causal", "nearest")
+TIMES = ("host", "fitted")
 REFERENCE = "video"
 
 
@@ -64,8 +66,11 @@ class AlignOptions:
     stale_periods: float = 3.0
     clock_hz: float | None = None
     model: str = "best"
+    times: str = "host"  # host: the stamps as recorded; fitted: each stream's fit against its device clock
 
     def __post_init__(self) -> None:
+        if self.times not in TIMES:
+            raise ConfigError(f"--times must be one of {', '.join(TIMES)}, got {self.times!r}")
         if self.model not in MODEL_CHOICES:
             raise ConfigError(f"--calibration-model {self.model!r} is unknown "
                               f"(expected one of {', '.join(MODEL_CHOICES)})")
@@ -244,11 +249,14 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
     session = Session.open(path)
     if options.clock_hz is None:
         video = session.read_columns(REFERENCE) if REFERENCE in session.stream_names else None
-        frames, frame_ns = reference_frames(session, video)
         data = read_streams(session)
+        fits = fit_clocks(session, {REFERENCE: video, **data} if video is not None else data, options.times)
+        video = fits.pop(REFERENCE, video)
+        frames, frame_ns = reference_frames(session, video)
         time_order = time_order_warnings(session, {REFERENCE: video, **data})
     else:
         data = read_streams(session, with_reference=True)
+        fits = fit_clocks(session, data, options.times)
         frames, frame_ns = regular_frames(data, options.clock_hz)
         time_order = time_order_warnings(session, data)
     t_s = (frame_ns - frame_ns[0]) / 1e9
@@ -271,6 +279,8 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
                       f"regular clock at {options.clock_hz:g} Hz from the first to the last sample of any stream; "
                       "frame = tick index"),
         "clock_hz": options.clock_hz,
+        "times": options.times,
+        "clock_fit": fits.pop("_stats"),
         "coverage": covered,
         "time_order": time_order,
         "method": options.method,
@@ -284,6 +294,25 @@ def align_session(path: Path | str, options: AlignOptions = AlignOptions(),
         "producer": provenance("midas align", asdict(options), _inputs(session, calibrations)),
     }
     return build_table(frames, frame_ns, columns, downsample_rows(frame_ns, options.rate_hz), meta)
+
+
+def fit_clocks(session: Session, data: dict[str, np.ndarray], times: str) -> dict[str, Any]:
+    """Each stream's clock fit (analysis/clockfit.py) under ``"_stats"`` (stream -> its JSON); with
+    ``times`` "fitted" every stream in ``data`` is replaced, there and in the result, by a copy whose
+    ``t_host_ns`` are the fitted times."""
+    stats: dict[str, Any] = {}
+    replaced: dict[str, np.ndarray] = {}
+    for name, table in data.items():
+        spec = session.stream_spec(name)
+        fit = fit_stream(table, spec.columns, spec.nominal_rate_hz)
+        if fit is None:
+            continue
+        stats[name] = fit.to_json()
+        if times == "fitted":
+            table = np.array(table)  # a memory-mapped binary copy is read-only
+            table["t_host_ns"] = fit.fitted_ns
+            replaced[name] = data[name] = table
+    return {**replaced, "_stats": stats}
 
 
 def _inputs(session: Session, calibrations: list[Calibration]) -> dict[str, dict[str, Any]]:

@@ -18,8 +18,8 @@ from midas_cli.analysis.metrics import binary_scores
 from midas_cli.analysis.report import json_safe, write_tables
 from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.session.derived import (AlignedTable, calib_path, find_calibration, output_dir, read_aligned,
-                                       read_pedals_ground_truth)
+from midas_cli.session.derived import (PEDALS_GT, AlignedTable, aligned_files, calib_path, find_calibration,
+                                       output_dir, read_aligned, read_pedals_ground_truth)
 from midas_cli.session.outputs import out_folder, out_target, write_json
 from midas_cli.session.reader import Session
 
@@ -220,7 +220,10 @@ def optimise_pedals(paths: list[Path], out: Path | None) -> dict[str, Any]:
     """Per pedal, the threshold (V) and polarity maximising F1 over all frames of ``paths`` against the
     ground truth; reports F1 of the recorded states (before) and of the rule (after). Writes
     ``calib/fps_optimized.json`` into each session (or ``out``). Pedals never pressed are left out."""
-    targets = [out_target(out)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]  # checked first
+    for path in paths:  # a folder that is no valid session gets nothing written into it
+        Session.open(path)
+    read = [file for p in paths for file in (*aligned_files(p), Path(p) / PEDALS_GT)]
+    targets = [out_target(out, inputs=read)] if out else [calib_path(p, FPS_RULES_FILE) for p in paths]  # checked first
     volts: dict[str, list[np.ndarray]] = {}
     truths: dict[str, list[np.ndarray]] = {}
     before: dict[str, list[np.ndarray]] = {}

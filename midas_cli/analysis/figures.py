@@ -106,3 +106,23 @@ def _save(plt, fig, path: Path) -> Path:
     finally:
         plt.close(fig)
     return path
+
+
+def sync_figure(pairs: list[tuple[str, list[tuple[float, float]], float]], threshold_ms: float, path: Path,
+                title: str) -> Path:
+    """Offset (ms) of each modality pair over the session: one marker per window or matched event, the
+    pair's overall offset as a line, the threshold as a band."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(10, 3.2))
+    ax.axhspan(-threshold_ms, threshold_ms, color="tab:green", alpha=0.12, label=f"within ±{threshold_ms:g} ms")
+    for k, (name, points, offset) in enumerate(pairs):
+        colour = f"C{k}"
+        if points:
+            t, ms = zip(*points)
+            ax.plot(t, ms, "o", ms=4, color=colour, label=name)
+        ax.axhline(offset, color=colour, lw=1, ls="--")
+    ax.set_xlabel("time since session start (s)")
+    ax.set_ylabel("offset (ms, + = second is late)")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=8)
+    return _save(plt, fig, path)

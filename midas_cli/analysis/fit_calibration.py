@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -24,9 +24,12 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import (fit_similarity, matrices_from_angles, matrices_from_quaternions,
                                            mean_rotation, rotation_angle_deg)
 from midas_cli.models.mlp_config import MLPConfig
-from midas_cli.session.derived import calib_path
+from midas_cli.session.derived import aligned_files, calib_path
 from midas_cli.session.outputs import out_target
 from midas_cli.session.reader import Session
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 log = logging.getLogger(__name__)
 
@@ -73,11 +76,20 @@ def nearest_index(t_ns: np.ndarray, query_ns: np.ndarray) -> np.ndarray:
     return np.where(np.abs(t_ns[after] - query_ns) < np.abs(query_ns - t_ns[after - 1]), after, after - 1)
 
 
+def _sorted_rows(session: Session, name: str) -> pd.DataFrame:
+    """Stream ``name`` in host-time order; SessionError when it holds fewer than 2 rows (nothing to pair)."""
+    data = session.read_stream(name)
+    if len(data) < 2:
+        raise SessionError(f"{session.path / 'streams' / (name + '.csv')}: {len(data)} data rows, a calibration "
+                           "needs a recording with samples in it (record again or leave this session out)")
+    return data.sort_values("t_host_ns", kind="stable")
+
+
 def robot_arrays(session: Session, target: str) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Robot times (M,) ns, positions hand -> (M, 3) mm and rotations hand -> (M, 3, 3) (if logged)."""
     if target not in session.stream_names:
         raise SessionError(f"{session.path} has no {target!r} stream (robot kinematics) to calibrate against")
-    data = session.read_stream(target).sort_values("t_host_ns", kind="stable")
+    data = _sorted_rows(session, target)
     t_ns = data["t_host_ns"].to_numpy(np.int64)
     pos = {h: data[[f"{h}_{a}_mm" for a in "xyz"]].to_numpy(float) for h in HANDS}
     quat_cols = {h: [f"{h}_q{a}" for a in "xyzw"] for h in HANDS}
@@ -88,7 +100,7 @@ def robot_arrays(session: Session, target: str) -> tuple[np.ndarray, dict[str, n
 
 def emht_arrays(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """EmHT times (K,) ns, sensor positions (K, 4, 3) mm and sensor rotations (K, 4, 3, 3)."""
-    data = session.read_stream("emht").sort_values("t_host_ns", kind="stable")
+    data = _sorted_rows(session, "emht")
     try:
         pos = data[[f"s{s}_{a}_mm" for s in range(1, 5) for a in "xyz"]].to_numpy(float).reshape(-1, 4, 3)
         ang = data[[f"s{s}_{a}_deg" for s in range(1, 5) for a in ("azimuth", "elevation", "roll")]].to_numpy(float)
@@ -100,7 +112,7 @@ def emht_arrays(session: Session) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def handkp_arrays(session: Session) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """HandKP times (K,) ns and keypoint midpoints hand -> (K, 3) mm, camera frame (NaN = missed)."""
-    data = session.read_stream("handkp").sort_values("t_host_ns", kind="stable")
+    data = _sorted_rows(session, "handkp")
     points = {}
     for hand in HANDS:
         thumb = data[[f"{hand}_thumb_{a}_mm" for a in "xyz"]].to_numpy(float)
@@ -294,8 +306,9 @@ def calibrate_sessions(paths: list[Path], source: str, target: str, options: Cal
     on it); ``out`` (a .json path) gets the model fitted on all sessions. Returns a JSON-able report."""
     build = emht_pairs if source == "emht" else handkp_pairs
     if out is not None:  # checked before the fit: never a session's own file (the weights go beside it)
-        out = out_target(out)
-        out_target(out.with_suffix(".pt"))
+        read = [file for path in paths for file in aligned_files(path)]
+        out = out_target(out, inputs=read)
+        out_target(out.with_suffix(".pt"), inputs=read)
     pairs = []
     for path in paths:
         progress(f"pairing {Path(path).name}")

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from midas_cli.analysis.figures import draw_markers, pyplot
-from midas_cli.session.labels import list_label_sets, read_frame_labels
+from midas_cli.session.labels import label_set_files, list_label_sets, read_frame_labels
 from midas_cli.session.outputs import out_target, replacing, session_target
 from midas_cli.session.reader import Session
 
@@ -75,7 +75,7 @@ def quicklook(session_path: Path | str, out: Path | str | None = None, dpi: int 
     session = Session.open(session_path)
     start_ns = int(session.manifest["start"]["host_ns"])
     title = Path(session_path).resolve().name
-    target = default_out(session_path) if out is None else out_target(out)
+    target = default_out(session_path) if out is None else out_target(out, inputs=label_set_files(session.path, "gestures"))
     streams = {name: _read(session, name, start_ns) for name in session.stream_names}
     events = streams.pop("events", None)  # markers: dotted lines on every panel, not a panel of their own
     gaps = [g for name in streams for g in _seq_gaps(session, name, streams[name])] + _outages(session, start_ns)

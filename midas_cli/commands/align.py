@@ -24,6 +24,9 @@ def align(
     clock: str = typer.Option("video", "--clock", help="Reference clock: 'video' (the video frame times) or a "
                               "rate in Hz, e.g. 30: a regular clock spanning every stream's samples, for a "
                               "session whose video clock is short or absent."),
+    times: str = typer.Option("host", "--times", help="Sample times used: host (the stamps as recorded) or fitted "
+                              "(each stream's stamps fitted against its device clock: jitter removed; the fit's "
+                              "drift and jitter are in derived/aligned.json either way)."),
     model: str = typer.Option("best", "--calibration-model", help="Calibration model to use downstream (eval): "
                               "best (the winner of calibrate's held-out comparison), rigid or mlp. Both models' "
                               "columns are written; the choice is recorded in derived/aligned.json."),
@@ -64,7 +67,7 @@ def align(
     choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
                                 slurm_array_parallelism)
     downsample = take_renamed(downsample, rate, "--rate", "--downsample", error_line)
-    options = AlignOptions(method=method, rate_hz=downsample, clock_hz=parse_clock(clock), model=model)
+    options = AlignOptions(method=method, rate_hz=downsample, clock_hz=parse_clock(clock), model=model, times=times)
     outcome = ex.run_plan(TASK, plan_units(sessions, options, csv), choice, "aligning sessions")
     if outcome.submitted:
         ex.submitted_line(outcome)

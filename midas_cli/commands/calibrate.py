@@ -96,8 +96,6 @@ def _ask(prompt: str) -> None:
 
 def _measure(live: LiveCalibration, target: FpsTarget, seconds: float, what: str, channel: int | None) -> np.ndarray:
     """Measure with live bars on a terminal, or a plain line per second otherwise."""
-    import numpy as np
-
     if not err.is_terminal:
         last = [0.0]
 

@@ -115,7 +115,7 @@ def _render(report: dict[str, Any], as_json: bool) -> None:
         out.print(table)
     else:
         err.print("one session: no cross-validation (the calibration is fitted on it)", markup=False)
-    for session, files in report["written"].items():
+    for files in report["written"].values():
         err.print(f"wrote {', '.join(files)}", markup=False)
 
 

@@ -8,6 +8,7 @@ from midas_cli import diagnostics
 from midas_cli.commands.common import out, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.console import human_bytes
+from midas_cli.devices.usbserial import AdapterReport
 
 
 def doctor(
@@ -17,6 +18,8 @@ def doctor(
 ) -> None:
     """Report versions, serial ports, OBS reachability, GPU and free disk.
 
+    Each USB serial adapter (/dev/ttyUSB*, /dev/ttyACM*) is listed with its driver, USB ids and latency
+    timer; an FTDI timer above 1 ms is set to 1 ms where permitted, else the line says how (a udev rule).
     OBS settings that a killed `midas record` left changed (its saved copy under
     $XDG_STATE_HOME/midas/) are put back.
 
@@ -34,6 +37,10 @@ def doctor(
         out.print(f"  {name:24} {where or 'not found'}", markup=False)
     ports = facts["serial_ports"]
     out.print(f"serial ports: {', '.join(p['device'] for p in ports) if ports else 'none'}", markup=False)
+    if not facts["usb_serial"]:
+        out.print("USB serial adapters: none", markup=False)
+    for adapter in facts["usb_serial"]:
+        out.print(f"USB serial adapter {AdapterReport(**adapter).summary()}", markup=False, soft_wrap=True)
     obs = facts["obs_websocket"]
     out.print(f"OBS websocket {obs['address']}: {'reachable' if obs['reachable'] else 'unreachable'}", markup=False)
     for saved in facts["obs_saved_settings"]:

@@ -1,4 +1,5 @@
-"""`midas eval correlation|pedals`: the paper's validation tables from aligned sessions."""
+"""`midas eval correlation|pedals|sync`: the paper's validation tables from aligned sessions, and the
+measured offsets between modalities."""
 
 from __future__ import annotations
 
@@ -62,6 +63,45 @@ def pedals(sessions: list[Path] = ALIGNED_SESSIONS_ARG, out_dir: Optional[Path] 
 
     _render(run_pedals(sessions, out_dir, plots, optimized, lambda m: err.print(f"evaluating {m}", markup=False)),
             as_json)
+
+
+@app.command()
+def sync(sessions: list[Path] = typer.Argument(..., help="Session folders (align not needed).", show_default=False),
+         out_dir: Optional[Path] = typer.Option(None, "--out", file_okay=False, help="Folder for the table (CSV, "
+                                                "JSON, Markdown, LaTeX); default with one session: its derived/eval/."),
+         threshold_ms: float = typer.Option(5.0, "--threshold-ms", help="Largest offset (ms) between two "
+                                            "modalities, overall and in any window, that is still ok."),
+         windows: int = typer.Option(6, "--windows", help="Stretches of the session the motion offset is also "
+                                     "measured in (their spread and slope give its uncertainty and drift)."),
+         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write derived/plots/sync.png per session."),
+         as_json: bool = JSON_OPTION) -> None:
+    """How late each modality sees what another sees too: the offsets between streams.
+
+    From events two modalities both observe: hand motion in the EmHT and the robot kinematics (speed
+    cross-correlation, over the session and in --windows stretches: spread and drift), pedal presses
+    in the console video (derived/pedals_gt.csv) and on the pedal board. Offset = how late the second
+    of the pair is (ms); a verdict against --threshold-ms. Exit 4 when a session has no such pair.
+
+    Example: midas eval sync data/raven/*/ --out results/sync --threshold-ms 5
+    """
+    from midas_cli.analysis.sync_eval import run_sync
+
+    pairs, files = run_sync(sessions, out_dir, threshold_ms, windows, plots,
+                            lambda m: err.print(f"measuring {m}", markup=False))
+    if as_json:
+        print_json([p.to_json() for p in pairs])
+    else:
+        table = Table("session", "pair", "evidence", "offset ms", "spread ms", "drift ppm", "worst ms", "verdict",
+                      title="Offsets between modalities (+ = the second is late)", header_style="bold")
+        for p in pairs:
+            table.add_row(p.session, p.pair, p.evidence, f"{p.offset_ms:.2f}", _num(p.spread_ms, ".2f"),
+                          _num(p.drift_ppm, ".0f"), f"{p.worst_ms:.2f}", p.verdict)
+        out.print(table)
+    err.print(f"wrote {len(files)} file(s), e.g. {files[-1]}" if files else "wrote nothing", markup=False)
+
+
+def _num(value: Optional[float], spec: str) -> str:
+    return "—" if value is None else format(value, spec)
 
 
 def _render(result: EvalResult, as_json: bool) -> None:

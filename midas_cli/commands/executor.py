@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import tempfile
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional, Sequence
 
@@ -53,13 +53,14 @@ class ExecutorChoice:
     jobs: int = 1
     run_dir: Optional[Path] = None
     wait: bool = True
-    slurm_flags: dict[str, Any] = field(default_factory=dict)
+    slurm: Any = None  # jobs.slurm.SlurmSettings with --executor slurm: the flags over the config's [slurm]
 
 
 def executor_choice(executor: str, jobs: int, run_dir: Optional[Path], no_wait: bool, partition: Optional[str],
                     time: Optional[str], mem: Optional[str], gpus: Optional[int],
                     parallelism: Optional[int]) -> ExecutorChoice:
-    """The executor options of a command, checked (one-line ConfigError on a bad one)."""
+    """The executor options of a command, checked (one-line ConfigError on a bad one), with slurm the
+    settings too (flags and the config's ``[slurm]``, in SLURM's grammar) before any work starts."""
     if executor not in EXECUTORS:
         raise ConfigError(f"--executor must be {' or '.join(EXECUTORS)}, got {executor!r}")
     if jobs < 1:
@@ -69,10 +70,14 @@ def executor_choice(executor: str, jobs: int, run_dir: Optional[Path], no_wait: 
         given = [f"--slurm-{k.replace('_', '-')}" for k, v in flags.items() if v is not None]
         if no_wait or given:
             raise ConfigError(f"{(['--no-wait'] if no_wait else given)[0]} needs --executor slurm")
-    elif jobs != 1:
+        return ExecutorChoice(executor, jobs, run_dir, not no_wait)
+    if jobs != 1:
         raise ConfigError("--jobs is for --executor local; SLURM runs every unit as its own task "
                           "(--slurm-array-parallelism caps how many at once)")
-    return ExecutorChoice(executor, jobs, run_dir, not no_wait, flags)
+    from midas_cli import config
+    from midas_cli.jobs.slurm import SlurmSettings
+
+    return ExecutorChoice(executor, jobs, run_dir, not no_wait, SlurmSettings.merged(flags, config.section("slurm")))
 
 
 def task_function(task: str) -> Callable[..., dict[str, Any]]:
@@ -149,13 +154,11 @@ def _display(given: Any) -> Iterator[Any]:
 
 def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, label: str,
             extra: Optional[dict[str, Any]], shown: Any) -> Outcome:
-    from midas_cli import config
     from midas_cli.jobs import slurm, status
     from midas_cli.jobs.local import run_local
     from midas_cli.jobs.rundir import Plan, now_utc
 
     if choice.executor == "slurm":
-        settings = slurm.SlurmSettings.merged(choice.slurm_flags, config.section("slurm"))
         busy = slurm.in_use(run_dir) if (run_dir.path / "submissions.json").exists() else None
         if busy:
             raise ConfigError(f"run folder {run_dir.path} is in use by SLURM job {busy} (still queued or running): "
@@ -176,7 +179,7 @@ def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, la
                 bar = progress.add_task(label, total=len(todo), info="")
                 run_local(run_dir, todo, fn, choice.jobs, on_unit=lambda k, ok: progress.advance(bar), **(extra or {}))
     elif todo:
-        entry = slurm.submit(run_dir, task, todo, settings)
+        entry = slurm.submit(run_dir, task, todo, choice.slurm)
         run_dir.add_submission({**entry, "submitted": now_utc()})
         job_id = entry["job_id"]
         error_line(f"midas: submitted SLURM job {job_id}: {len(todo)} array tasks ({entry['script']}); "

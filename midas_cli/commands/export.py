@@ -1,4 +1,4 @@
-"""`midas export`: sessions out to MCAP, Parquet and XDF."""
+"""`midas export`: sessions out to MCAP, Parquet, XDF and LeRobot datasets."""
 
 from __future__ import annotations
 
@@ -11,18 +11,20 @@ from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG
 
 
 def export(sessions: list[Path] = SESSIONS_ARG,
-           formats: list[str] = typer.Option(..., "--format", help="mcap, parquet and/or xdf (repeat the option or "
+           formats: list[str] = typer.Option(..., "--format", help="mcap, parquet, xdf and/or lerobot (repeat the option or "
                                              "separate with commas)."),
            out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),
            with_video: bool = typer.Option(False, "--with-video", help="MCAP: also the RGB-D frames as JPEG "
                                            "images (every frame decoded and re-encoded: slow)."),
            as_json: bool = JSON_OPTION) -> None:
-    """Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.
+    """Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) and/or LeRobot datasets.
 
     Per session: <out>/<id>.mcap (for Foxglove: a topic per stream, EmHT poses, markers as logs, labels,
     the manifest as metadata; --with-video: the RGB-D frames as images),
     <out>/<id>/<stream>.parquet (+ labels_<set>.parquet, aligned.parquet), <out>/<id>.xdf (a stream per
-    stream, units in the headers, clock offsets 0: the host clock is the session's only clock).
+    stream, units in the headers, clock offsets 0: the host clock is the session's only clock),
+    <out>/<id>.lerobot/ (a LeRobot v3.0 dataset of one episode on the aligned frame clock; needs
+    `midas align` first).
     Streams are read and written a piece at a time.
 
     Example: midas export sessions/suturing_S1_T1_20240703T104640Z --format mcap,parquet,xdf --out exported

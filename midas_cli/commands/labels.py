@@ -15,7 +15,8 @@ from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResul
 from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
 from midas_cli.labels.stats import GestureStats, gesture_stats, transition_heatmap
-from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy
+from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy, shipped_taxonomy
+from midas_cli.session.labels import label_set_files
 from midas_cli.session.outputs import out_target, write_text
 
 app = typer.Typer(help="Gesture taxonomies, annotation import/export and label statistics.\n\n"
@@ -158,7 +159,7 @@ def export(
     if out_file is None:
         sys.stdout.write(text)
         return
-    write_text(out_target(out_file), text)
+    write_text(out_target(out_file, inputs=label_set_files(session, name)), text)
     err.print(f"wrote {out_file}", markup=False)
 
 
@@ -181,8 +182,9 @@ def stats(
     Example: midas labels stats ../shared/data/compass-suturing-gestures --taxonomy jigsaws-suturing
     """
     recordings, recorded_taxonomy = load_recordings(paths, name, fps)
-    chosen = taxonomy_name or recorded_taxonomy
-    result = gesture_stats(recordings, load_taxonomy(chosen) if chosen else None, exclude)
+    taxonomy = (load_taxonomy(taxonomy_name) if taxonomy_name
+                else shipped_taxonomy(recorded_taxonomy) if recorded_taxonomy else None)
+    result = gesture_stats(recordings, taxonomy, exclude)
     if plot is not None:
         transition_heatmap(result, plot)
         err.print(f"wrote {plot}", markup=False)

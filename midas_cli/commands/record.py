@@ -21,7 +21,7 @@ from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl, redact_url
 from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
-from midas_cli.errors import ConfigError, DeviceError, SessionError
+from midas_cli.errors import ConfigError, DeviceError, MidasError, SessionError
 from midas_cli.record.foxglove_live import DEFAULT_ADDRESS as DEFAULT_FOXGLOVE, parse_address
 from midas_cli.record.markers import check_stream_names, events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
@@ -116,7 +116,19 @@ def record(
 
 def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float],
             remote: "RemoteControl") -> None:
-    """Create the session, show the devices opening, record until told, finalise, report."""
+    """Create the session, show the devices opening, record until told, finalise, report. However it
+    ends, once the session folder exists its path is stdout's last line (--status-json: the final
+    object's session_path)."""
+    try:
+        _record_session(recorder, display, stop, duration, remote)
+    except BaseException as exc:
+        if recorder.writer is not None:  # the folder exists: a full disk, an error while finalising...
+            display.after_error(recorder.path, exc)
+        raise
+
+
+def _record_session(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration: Optional[float],
+                    remote: "RemoteControl") -> None:
     should_stop = lambda: stop.asked or recorder.fatal_error is not None  # noqa: E731
     recorder.start()
     remote.attach(recorder)
@@ -134,7 +146,7 @@ def _record(recorder: Recorder, display: "_Display", stop: "_StopFlag", duration
         if failed:
             remote.finish("")
             manifest = recorder.stop("failed", f"could not open {', '.join(failed)} at the start")
-            display.final(manifest, recorder.path, show_path=False)
+            display.final(manifest, recorder.path)
             details = "; ".join(f"{name}: {error}" for name, error in failed.items())
             raise DeviceError(f"{details} (nothing recorded; the session folder is marked failed: {recorder.path})")
         if not ready and not ended():
@@ -256,6 +268,7 @@ class _Display:
         self._last_plain = 0.0
         self._last_json = 0.0
         self.control_line = None  # a callable giving the live screen's marker line (markers, armed)
+        self.path_shown = False  # the session path (or the final JSON object) is on stdout
 
     def __enter__(self) -> "_Display":
         if self.mode == "tui":
@@ -296,10 +309,11 @@ class _Display:
         else:
             self._safely(lambda: error_line(text))
 
-    def final(self, manifest: dict, path: Path, show_path: bool = True) -> None:
+    def final(self, manifest: dict, path: Path) -> None:
         """The end-of-run summary on stderr, then the session path (or the final JSON object)."""
         if self.stop.hung_up:
             return
+        self.path_shown = True
         self._safely(lambda: err.print(_final_table(manifest)))
         problems = recording_problems(manifest)
         if problems:
@@ -311,14 +325,38 @@ class _Display:
                      "duration_s": _duration_s(manifest), "problems": problems,
                      "streams": stream_outcomes(manifest)}
             self._safely(lambda: _write_line(sys.stdout, json.dumps(final, default=str)))
-        elif show_path:
+        else:
             self._safely(lambda: _write_line(sys.stdout, str(path)))
+
+    def after_error(self, path: Path, error: BaseException) -> None:
+        """The session path (or a final JSON object with the status on disk and the error as reason)
+        when the recording ended in an error before ``final`` showed it."""
+        if self.stop.hung_up or self.path_shown:
+            return
+        self.path_shown = True
+        if self.mode != "json":
+            self._safely(lambda: _write_line(sys.stdout, str(path)))
+            return
+        reason = str(error) or type(error).__name__
+        final = {"event": "stopped", "status": _status_on_disk(path), "reason": reason, "session_path": str(path),
+                 "session_id": path.name, "duration_s": None, "problems": [reason], "streams": {}}
+        self._safely(lambda: _write_line(sys.stdout, json.dumps(final, default=str)))
 
     def _safely(self, action) -> None:
         try:
             action()
         except OSError:  # terminal gone (EIO/EPIPE): keep recording, stop talking
             self.stop.hung_up = True
+
+
+def _status_on_disk(path: Path) -> Optional[str]:
+    """The status the session's manifest says, or None when it cannot be read."""
+    from midas_cli.session.reader import Session
+
+    try:
+        return Session.open(path, allow_failed=True).status
+    except (MidasError, OSError):
+        return None
 
 
 def _write_line(stream, text: str) -> None:

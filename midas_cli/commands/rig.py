@@ -28,9 +28,11 @@ def check(
 
     Each device is opened as `midas record` opens it (all at once), read for --seconds and closed;
     the table shows per device its state (ok / failed / skipped), streams, measured vs nominal rate
-    and the error. Nothing is recorded and nothing is written to disk. obs:// and raven:// devices
-    work only inside a session folder and are skipped (`midas doctor` checks OBS). Exit 3 when any
-    device failed.
+    and the error; below it, per serial device, the USB adapter behind its port, its latency timer
+    (set to 1 ms where permitted, else how to) and the port's low-latency flag. Nothing is recorded
+    and no file is written (an adapter's latency timer aside). obs:// and raven:// devices work only
+    inside a session folder and are skipped (`midas doctor` checks OBS). Exit 3 when any device
+    failed.
 
     Example: midas rig check sessions_template/rigs/simulated.toml --seconds 3
     """
@@ -64,5 +66,8 @@ def check(
                 table.add_row(r.device if k == 0 else "", r.state if k == 0 else "", name,
                               "-" if s is None else str(s["samples"]), rate, (r.error or "") if k == 0 else "")
         out.print(table)
+        for r in results:
+            if r.serial_line():
+                out.print(f"{r.device} serial port: {r.serial_line()}", markup=False, soft_wrap=True)
     if failed:
         raise DeviceError(f"rig check: {len(failed)} device(s) failed: {', '.join(failed)}")

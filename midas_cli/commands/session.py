@@ -36,7 +36,7 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
 
     Example: midas session info sessions/suturing_S1_T1_20260101T120000Z
     """
-    summary = summarize_session(Session.open(path, allow_failed=True))
+    summary = summarize_session(Session.open(path, allow_failed=True), clock_fits=True)
     for device in summary["devices"].values():  # a manifest from an older midas may hold a URL's password
         device["url"] = redact_url(device["url"]) if isinstance(device["url"], str) else device["url"]
     if as_json:
@@ -58,6 +58,12 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
                       _fmt(s["corrupt"]), _fmt(s["latency_p99_ms"]), _fmt(s["first_s"], ".3f"),
                       _fmt(s["last_s"], ".3f"))
     out.print(table)
+    for name, s in summary["streams"].items():
+        fit = s["clock_fit"]
+        if fit and fit.get("drift_ppm") is not None:
+            out.print(f"clock {name}: host stamps vs {fit['clock']}: drift {_fmt(fit['drift_ppm'], '.1f')} ppm, "
+                      f"jitter sd {_fmt(fit['jitter_sd_ms'], '.3f')} ms, p99 {_fmt(fit['jitter_p99_ms'], '.3f')} ms "
+                      f"({_fmt(fit['segments'])} segment(s); midas align)", markup=False)
     for name, d in summary["devices"].items():
         out.print(f"device {name}: {d['kind']} {d['url']}  serial {d['serial'] or '—'}  "
                   f"reconnects {_fmt(d['reconnects'])}", markup=False)

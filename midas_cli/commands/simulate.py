@@ -24,11 +24,15 @@ def dataset(
     seed: int = typer.Option(0, "--seed", help="Seed: the same seed gives byte-identical sessions."),
     subjects: int = typer.Option(1, "--subjects", help="Subjects the trials are spread over."),
     latency_ms: float = typer.Option(40.0, "--latency-ms", callback=non_negative, help="True EmHT latency in ms."),
-    distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative, help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
+    distortion_mm: float = typer.Option(1.0, "--distortion-mm", callback=non_negative,
+                                        help="Peak field distortion in mm (trakSTAR static accuracy is ~1.4 mm RMS)."),
     max_seconds: Optional[float] = typer.Option(None, "--max-seconds", callback=positive, help="Cut each trial to this length (s)."),
     difficulty: str = typer.Option("real", "--difficulty", help="real (subjects differ in speed, style and "
                                    "handedness; blended gestures, pauses, unlabelled stretches, sensor placement) "
                                    "or easy (every subject moves alike)."),
+    emht_drift_ppm: float = typer.Option(0.0, "--emht-drift-ppm", help="The EmHT's host stamps drift by this "
+                                         "much (ppm) against true time: its offset to the robot grows over the "
+                                         "trial (what `midas eval sync` measures)."),
     as_json: bool = JSON_OPTION,
     executor: str = ex.EXECUTOR_OPT,
     jobs: int = ex.JOBS_OPT,
@@ -55,7 +59,7 @@ def dataset(
     choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
                                 slurm_array_parallelism)
     configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
-                           difficulty)
+                           difficulty, emht_drift_ppm)
     outcome = ex.run_plan(TASK, plan_units(configs), choice, "simulating trials")
     if outcome.submitted:
         ex.submitted_line(outcome)

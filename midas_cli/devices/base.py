@@ -190,7 +190,7 @@ class Device(ABC):
         finalised); put what was checked in ``final_info``. Default: nothing to add."""
         return {}
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - a hook: most devices hold nothing to release
         """Release the device; must be safe to call twice."""
 
     def settings(self) -> dict[str, Any]:

@@ -12,23 +12,21 @@ calibrated pedal thresholds back and validates the result); ``midas_cli/rig.py``
 
 from __future__ import annotations
 
-import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+from midas_cli.config import read_toml
 from midas_cli.devices.base import KINDS, WHERE_PASSWORDS_GO, DeviceUrl, is_secret_key
 from midas_cli.errors import ConfigError
+from midas_cli.session.names import check_name
 
 RIG_KEYS = {"name": str, "platform": str, "master_rate_hz": (int, float), "description": str}
 METADATA_KEYS = {"subject": (str, int), "task": str, "trial": int, "operator_note": str}
 DEVICE_KEYS = {"url": str, "kind": str, "description": str, "sensors": dict, "pedals": dict,
                "password_env": str, "password_file": str}
 PASSWORD_SOURCES = ("password_env", "password_file")  # where a password is: they travel as URL parameters
-
-DEVICE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
 
 
 @dataclass
@@ -44,9 +42,7 @@ class DeviceConfig:
 
 def check_device_name(name: str) -> None:
     """A device name names its stream files: a letter, then up to 31 letters, digits, '_' or '-'."""
-    if not DEVICE_NAME.match(name):
-        raise ConfigError(f"device name {name!r} must be a letter followed by up to 31 letters, digits, '_' or '-' "
-                          f"(it names the stream files)")
+    check_name(name, "device", "device name", ConfigError)
 
 
 @dataclass
@@ -83,15 +79,13 @@ def _with_password_source(device: DeviceConfig) -> str:
 
 
 def load_rig(path: Path | str) -> RigConfig:
+    """The rig file at ``path``, checked; ConfigError for a missing, special (/dev/zero), huge, non-UTF-8,
+    invalid or too deeply nested file (``config.read_toml``) and for any bad section, key or value."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = read_toml(path, "rig file")
     except FileNotFoundError:
         raise ConfigError(f"rig file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"cannot read rig file {path}: {exc}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"rig file {path} is not valid TOML: {exc}") from exc
     return parse_rig(data, str(path))
 
 

@@ -76,6 +76,13 @@ class ReplayPlan:
         return sum(s.samples for s in self.streams)
 
     @property
+    def max_wait_s(self) -> float:
+        """The longest one wait for a sample may last (s): the session's plausible span
+        (``Session.plausible_host_ns``) at this speed, a bound that holds whatever the files say."""
+        low, high = self.session.plausible_host_ns()
+        return (self.cycle_s if high is None else (high - low) / 1e9) / self.speed
+
+    @property
     def cycle_s(self) -> float:
         """Play time from one pass's start to the next's (see the module docstring)."""
         span = (max(s.last_ns for s in self.streams if s.last_ns is not None) - self.t0_ns) / 1e9
@@ -117,7 +124,21 @@ def plan_replay(path: Path | str, streams: Sequence[str] = (), speed: float = 1.
     chosen = [_replay_stream(session, name) for name in names]
     if not any(s.samples for s in chosen):
         raise SessionError(f"{session.path.name}: the chosen streams ({', '.join(names)}) hold no rows to replay")
+    bounds = session.plausible_host_ns()
+    for stream in chosen:
+        for t_ns in (stream.first_ns, stream.last_ns):
+            if t_ns is not None:
+                check_plausible(session, stream.spec, t_ns, bounds)
     return ReplayPlan(session, chosen, speed, loop, delay_s)
+
+
+def check_plausible(session: Session, spec: StreamSpec, t_ns: int, bounds: tuple[int, int | None]) -> None:
+    """SessionError when ``t_ns`` (a sample's host time) is outside ``bounds``
+    (``session.plausible_host_ns()``): playing it would wait that long (years, for a damaged value)."""
+    low, high = bounds
+    if t_ns < low or (high is not None and t_ns > high):
+        raise SessionError(f"{session.path}: {spec.file} holds t_host_ns {t_ns}, far outside the session's time "
+                           f"span: not replayed (`midas session verify {session.path}` names the line)")
 
 
 def _replay_stream(session: Session, name: str) -> ReplayStream:
@@ -163,13 +184,15 @@ def replay(plan: ReplayPlan, should_stop: Callable[[], bool] = lambda: False,
             result.stopped = True
             return result
         start, t0, last_report = clock(), plan.t0_ns, 0.0
+        bounds, max_wait_s = plan.session.plausible_host_ns(), plan.max_wait_s
         while not result.stopped and (result.passes == 0 or plan.loop):
             offset_s = result.passes * plan.cycle_s
             result.passes += 1
             merged = heapq.merge(*(_samples(plan.session, i, s.spec) for i, s in enumerate(plan.streams)))
             for t_ns, index, values in merged:
+                check_plausible(plan.session, plan.streams[index].spec, t_ns, bounds)  # the file, not the manifest
                 play_s = offset_s + (t_ns - t0) / 1e9
-                if not _wait_until(start + play_s / plan.speed, clock, should_stop):
+                if not _wait_until(min(start + play_s / plan.speed, clock() + max_wait_s), clock, should_stop):
                     result.stopped = True
                     break
                 outlets[index].push_sample(values, start + play_s)

@@ -6,7 +6,8 @@
   CSV's values. Types come from the stream's declared columns, never from its content (a stream whose text
   column is empty is still ``string``), so files of many sessions read as one table. Each field's metadata
   holds its unit, dtype and description; the schema metadata holds ``midas.manifest`` (the whole
-  manifest), ``midas.stream`` (the stream's entry) and ``midas.units``;
+  manifest), ``midas.stream`` (the stream's entry), ``midas.units`` and ``midas.sync`` (the session's sync
+  statement, session/sync_statement.py);
 * every file ends with the session's columns ``session_id``, ``subject``, ``task`` (strings) and ``trial``
   (int64), the same on every row (null where the manifest lacks them; dictionary-encoded, so nearly free),
   so ``read_parquet('DIR/*/emht.parquet')`` in DuckDB, polars or pyarrow tells sessions apart;
@@ -28,8 +29,9 @@ import numpy as np
 from midas_cli.interop.common import column_facts, frame_clock
 from midas_cli.session.derived import read_aligned
 from midas_cli.session.labels import list_label_sets, read_frame_labels
-from midas_cli.session.outputs import replacing
+from midas_cli.session.outputs import out_child, replacing
 from midas_cli.session.reader import Session
+from midas_cli.session.sync_statement import statement
 
 ALIGNED_ROWS = 65536  # rows per row group of aligned.parquet
 SESSION_COLUMNS = ("session_id", "subject", "task", "trial")  # appended to every file's rows
@@ -86,7 +88,8 @@ def _stream_schema(session: Session, name: str, head: Any) -> Any:
     if clash:
         raise ValueError(f"stream {name} has a column named {clash[0]}, which Parquet export adds per session")
     return pa.schema(fields + _session_fields(), metadata={
-        b"pandas": _pandas_metadata(head), b"midas.manifest": _meta(session.manifest),
+        b"pandas": _pandas_metadata(head), b"midas.sync": _meta(statement(session.path, session.manifest)),
+        b"midas.manifest": _meta(session.manifest),
         b"midas.stream": _meta({"name": name, **session.manifest["streams"][name]}),
         b"midas.units": _meta({k: v.get("unit", "") for k, v in facts.items()})})
 
@@ -111,7 +114,7 @@ def write_parquet(session: Session, folder: Path) -> dict[str, Any]:
         chunks = session.iter_stream(name)  # at least one piece, empty for a stream without rows
         first = next(chunks)
         schema = _stream_schema(session, name, first)
-        target = folder / f"{name}.parquet"
+        target = out_child(folder, f"{name}.parquet")
         rows[target.name] = 0
         with replacing(target) as tmp, pq.ParquetWriter(tmp, schema) as writer:
             for chunk in itertools.chain([first], chunks):
@@ -128,7 +131,7 @@ def write_parquet(session: Session, folder: Path) -> dict[str, Any]:
             table = table.append_column(field, array)
         table = table.replace_schema_metadata({b"midas.labels": _meta(labels.meta),
                                                b"midas.manifest": _meta(session.manifest)})
-        target = folder / f"labels_{name}.parquet"
+        target = out_child(folder, f"labels_{name}.parquet")
         with replacing(target) as tmp:
             pq.write_table(table, tmp)
         rows[target.name] = table.num_rows

@@ -24,13 +24,25 @@ import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Literal, overload
 
-from midas_cli.errors import ConfigError
+from midas_cli.errors import ConfigError, SessionError
 
 PLAN = "plan.json"
 SUBMISSIONS = "submissions.json"
 MARKERS = ("running", "done", "failed")
+_SLURM_IDS = {"job_id": (str,), "task_id": (str,), "step_job_id": (str,)}
+# what a marker's keys must hold when present (a run folder is data: it may have been edited or damaged)
+MARKER_TYPES: dict[str, dict[str, tuple[type, ...]]] = {
+    "running": {"unit": (int,), "name": (str,), "host": (str,), "pid": (int,), "started": (str,), **_SLURM_IDS},
+    "done": {"unit": (int,), "name": (str,), "fingerprint": (str,), "finished": (str,), "seconds": (float, int),
+             "host": (str,), "outputs": (list,), **_SLURM_IDS},
+    "failed": {"unit": (int,), "name": (str,), "fingerprint": (str,), "finished": (str,), "error": (str,),
+               "log": (str,), "exit_code": (int,), "host": (str,), **_SLURM_IDS},
+}
+UNIT_TYPES: dict[str, tuple[type, ...]] = {"index": (int,), "name": (str,), "args": (dict,), "fingerprint": (str,)}
+SUBMISSION_TYPES: dict[str, tuple[type, ...]] = {"executor": (str,), "job_id": (str,), "units": (list,),
+                                                 "script": (str,), "submitted": (str,), "jobs": (int,)}
 
 
 @dataclass(frozen=True)
@@ -62,7 +74,8 @@ def fingerprint(*parts: Any) -> str:
 
 
 def file_digest(path: Path) -> str:
-    """sha256 of a file's bytes ('' for a missing file)."""
+    """sha256 of a file's bytes ('' for a missing file); SessionError when it cannot be read (a folder, or
+    a file where a folder above it should be)."""
     digest = hashlib.sha256()
     try:
         with open(path, "rb") as f:
@@ -70,6 +83,9 @@ def file_digest(path: Path) -> str:
                 digest.update(block)
     except FileNotFoundError:
         return ""
+    except OSError as exc:
+        raise SessionError(f"cannot read {path}: {exc.strerror or exc} (a file where a folder should be, or the "
+                           "other way round?)") from None
     return digest.hexdigest()
 
 
@@ -85,6 +101,27 @@ def write_json(path: Path, data: Any) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+_JSON_NAMES = {int: "an integer", float: "a number", str: "a string", dict: "an object", list: "a list"}
+
+
+def type_problem(data: dict[str, Any], types: dict[str, tuple[type, ...]]) -> str | None:
+    """The first key of ``data`` whose value has the wrong type, said as ``key = value should be a T``
+    (None: all fit; a key may be missing; a bool is not an int; lists hold str, or int for ``units``)."""
+    for key, accepted in types.items():
+        if key not in data:
+            continue
+        value = data[key]
+        item = int if key == "units" else str
+        ok = isinstance(value, accepted) and not isinstance(value, bool)
+        if ok and isinstance(value, list):
+            ok = all(isinstance(v, item) and not isinstance(v, bool) for v in value)
+        if not ok:
+            expected = (f"a list of {'integers' if item is int else 'strings'}" if list in accepted
+                        else _JSON_NAMES[accepted[0]])
+            return f"{key} = {json.dumps(value, default=str)[:60]} should be {expected}"
+    return None
 
 
 def read_json(path: Path) -> Any | None:
@@ -127,21 +164,35 @@ class RunDir:
                                                  "fingerprint": u.fingerprint} for u in units]})
         return plan
 
+    @overload
+    def read_plan(self, missing_ok: Literal[False] = False) -> Plan: ...
+
+    @overload
+    def read_plan(self, missing_ok: bool) -> Plan | None: ...
+
     def read_plan(self, missing_ok: bool = False) -> Plan | None:
+        """The plan; ConfigError when there is none (not a run folder), SessionError when it is malformed."""
         data = read_json(self.path / PLAN)
         if data is None:
             if missing_ok and not (self.path / PLAN).exists():
                 return None
             raise ConfigError(f"{self.path} is not a midas run folder (no readable {PLAN})")
-        try:
-            units = [Unit(u["name"], u["args"], u["fingerprint"], u["index"]) for u in data["units"]]
-            return Plan(data["task"], units, data.get("created", ""))
-        except (KeyError, TypeError) as exc:
-            raise ConfigError(f"{self.path / PLAN} is malformed ({exc}); remove the run folder and run again") from None
+        problem = _plan_problem(data)
+        if problem:
+            raise SessionError(f"{self.path / PLAN} is malformed ({problem}); remove the run folder and run again")
+        units = [Unit(u["name"], u["args"], u["fingerprint"], u["index"]) for u in data["units"]]
+        return Plan(data["task"], units, data.get("created", ""))
 
     def read_marker(self, index: int, kind: str) -> dict[str, Any] | None:
+        """Unit ``index``'s ``kind`` marker (None: none, or unreadable); SessionError naming the file and key
+        when a value has the wrong type."""
         data = read_json(self.marker(index, kind))
-        return data if isinstance(data, dict) else None
+        if not isinstance(data, dict):
+            return None
+        problem = type_problem(data, MARKER_TYPES[kind])
+        if problem:
+            raise SessionError(f"{self.marker(index, kind)}: {problem}; delete the file (the unit runs again)")
+        return data
 
     def write_marker(self, index: int, kind: str, data: dict[str, Any]) -> None:
         write_json(self.marker(index, kind), data)
@@ -157,11 +208,37 @@ class RunDir:
                     and all(Path(p).exists() for p in done.get("outputs", [])))
 
     def submissions(self) -> list[dict[str, Any]]:
+        """Every submission so far ([] when none); SessionError naming the entry and key when one is malformed."""
         data = read_json(self.path / SUBMISSIONS)
-        return data if isinstance(data, list) else []
+        if not isinstance(data, list):
+            return []
+        for n, entry in enumerate(data):
+            problem = "not an object" if not isinstance(entry, dict) else type_problem(entry, SUBMISSION_TYPES)
+            if problem:
+                raise SessionError(f"{self.path / SUBMISSIONS}: entry {n}: {problem}; remove the run folder and "
+                                   "run again")
+        return data
 
     def add_submission(self, entry: dict[str, Any]) -> None:
         write_json(self.path / SUBMISSIONS, [*self.submissions(), entry])
+
+
+def _plan_problem(data: Any) -> str | None:
+    """What is wrong with plan.json's content (None: a task name and units numbered 0..n-1 in order)."""
+    if not isinstance(data, dict) or not isinstance(data.get("task"), str) or not isinstance(data.get("units"), list):
+        return "expected {\"task\": name, \"units\": [...]}"
+    if not isinstance(data.get("created", ""), str):
+        return "created should be a str"
+    for k, unit in enumerate(data["units"]):
+        if not isinstance(unit, dict):
+            return f"unit {k} is not an object"
+        missing = next((key for key in UNIT_TYPES if key not in unit), None)
+        problem = f"no {missing}" if missing else type_problem(unit, UNIT_TYPES)
+        if problem:
+            return f"unit {k}: {problem}"
+        if unit["index"] != k:
+            return f"unit {k} says index {unit['index']}"
+    return None
 
 
 def log_error_line(path: Path, max_bytes: int = 65536) -> str:

@@ -2,7 +2,9 @@
 
 Each array task runs ``<this python> -m midas_cli jobs run-unit RUN_DIR --unit $SLURM_ARRAY_TASK_ID``
 (the same code a local run calls), its stdout and stderr in ``RUN_DIR/logs/unit-<k>.log``. The script
-is kept as ``RUN_DIR/slurm-<n>.sh`` so an admin can read, or resubmit, exactly what ran. The run
+is kept as ``RUN_DIR/slurm-<n>.sh`` and the sbatch arguments in ``submissions.json``, so an admin can
+read, or resubmit, exactly what ran. Settings reach sbatch only as arguments (checked against SLURM's
+grammar), never as text of the script, which holds nothing taken from a flag or a file. The run
 folder must be on a file system the compute nodes share (so must the sessions and the Python
 environment); the job inherits the submitting shell's environment (sbatch's default ``--export=ALL``).
 """
@@ -18,18 +20,22 @@ import sys
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Sequence
 
+from midas_cli.config import slurm_value_problem
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.rundir import RunDir
 
 SBATCH_TIMEOUT_S = 60.0
-TIME_PATTERN = re.compile(r"^(\d+-)?\d+(:\d{1,2}){0,2}$|^\d+-\d+$")
-MEM_PATTERN = re.compile(r"^\d+[KMGT]?$", re.IGNORECASE)
+FLAGGED = {"partition", "time", "mem", "gpus", "array_parallelism"}  # the settings with a --slurm-* flag
+SBATCH_FLAGS = (("partition", "--partition"), ("time", "--time"), ("mem", "--mem"), ("account", "--account"),
+                ("qos", "--qos"), ("cpus_per_task", "--cpus-per-task"))
+OUTPUT_PATTERN_CHARS = "%\\\n"  # sbatch reads % and \ in --output as a file name pattern
 
 
 @dataclass(frozen=True)
 class SlurmSettings:
     """What every array task asks for (None: the cluster's default). ``gpus`` > 0 adds ``--gres=gpu:N``;
-    ``array_parallelism`` caps the tasks running at once (``--array=...%N``)."""
+    ``array_parallelism`` caps the tasks running at once (``--array=...%N``). Every value is checked
+    against SLURM's grammar (``config.slurm_value_problem``) and reaches sbatch only as an argument."""
 
     partition: str | None = None
     time: str | None = None
@@ -41,15 +47,12 @@ class SlurmSettings:
     cpus_per_task: int | None = None
 
     def __post_init__(self) -> None:
-        if self.time is not None and not TIME_PATTERN.match(self.time):
-            raise ConfigError(f"--slurm-time {self.time!r} is not a SLURM time (MM, HH:MM:SS or D-HH:MM:SS)")
-        if self.mem is not None and not MEM_PATTERN.match(self.mem):
-            raise ConfigError(f"--slurm-mem {self.mem!r} is not a SLURM memory size (e.g. 4000M, 8G)")
-        for name in ("gpus", "array_parallelism", "cpus_per_task"):
+        for name in (f.name for f in fields(self)):
             value = getattr(self, name)
-            if value is not None and (value < 0 or (value == 0 and name != "gpus")):
-                raise ConfigError(f"--slurm-{name.replace('_', '-')} must be {'>= 0' if name == 'gpus' else '>= 1'}, "
-                                  f"got {value}")
+            problem = None if value is None else slurm_value_problem(name, value)
+            if problem:
+                where = f"--slurm-{name.replace('_', '-')}" if name in FLAGGED else f"[slurm] {name}"
+                raise ConfigError(f"{where} {value!r} {problem}")
 
     @classmethod
     def merged(cls, flags: dict[str, Any], config: dict[str, Any]) -> SlurmSettings:
@@ -60,11 +63,8 @@ class SlurmSettings:
         return cls(**values)
 
     def sbatch_options(self) -> list[str]:
-        options = []
-        for name, flag in (("partition", "--partition"), ("time", "--time"), ("mem", "--mem"),
-                           ("account", "--account"), ("qos", "--qos"), ("cpus_per_task", "--cpus-per-task")):
-            if getattr(self, name) is not None:
-                options.append(f"{flag}={getattr(self, name)}")
+        """The settings as sbatch arguments (``--partition=gpu``, ...)."""
+        options = [f"{flag}={getattr(self, name)}" for name, flag in SBATCH_FLAGS if getattr(self, name) is not None]
         if self.gpus:
             options.append(f"--gres=gpu:{self.gpus}")
         return options
@@ -85,20 +85,26 @@ def array_spec(indices: Sequence[int], parallelism: int | None) -> str:
     return ",".join(parts) + (f"%{parallelism}" if parallelism else "")
 
 
-def script(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSettings) -> str:
-    """The batch script of one submission."""
-    if '"' in str(run_dir.path) or "\n" in str(run_dir.path):
-        raise ConfigError(f"run folder {str(run_dir.path)!r}: a path with a double quote or a line break cannot go "
-                          "into an sbatch script; choose another --run-dir")
-    command = [sys.executable, "-m", "midas_cli", "jobs", "run-unit", str(run_dir.path), "--unit"]
-    lines = ["#!/bin/bash", f"#SBATCH --job-name=midas-{task}",
-             f"#SBATCH --array={array_spec(indices, settings.array_parallelism)}",
-             f"#SBATCH --output=\"{run_dir.path / 'logs' / 'unit-%a.log'}\"",  # quoted: a folder name may hold spaces
-             *(f"#SBATCH {option}" for option in settings.sbatch_options()),
-             "# one unit of a midas run folder per array task (midas jobs status RUN_DIR shows them)",
+def sbatch_arguments(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSettings) -> list[str]:
+    """Everything sbatch is told besides the script, as separate arguments (never as script text)."""
+    log = str(run_dir.path / "logs" / "unit-%a.log")
+    if any(c in str(run_dir.path) for c in OUTPUT_PATTERN_CHARS):
+        raise ConfigError(f"run folder {str(run_dir.path)!r}: sbatch reads '%' and '\\' in a log path as a pattern "
+                          "(and a line break cannot be one); choose another --run-dir")
+    return [f"--job-name=midas-{task}", f"--array={array_spec(indices, settings.array_parallelism)}",
+            f"--output={log}", *settings.sbatch_options()]
+
+
+def script() -> str:
+    """The batch script of every submission: it only runs the array task's unit (the run folder is its
+    first argument; the sbatch options are arguments of sbatch, listed in ``submissions.json``)."""
+    command = [sys.executable, "-m", "midas_cli", "jobs", "run-unit"]
+    lines = ["#!/bin/bash",
+             "# one unit of a midas run folder per array task (midas jobs status RUN_DIR shows them);",
+             "# usage: sbatch [options] slurm-N.sh RUN_DIR (the options of each submission: submissions.json)",
              "# numpy, torch and OpenCV threads: the CPUs SLURM gave the task, not the whole node's",
              'export OMP_NUM_THREADS="${OMP_NUM_THREADS:-${SLURM_CPUS_PER_TASK:-1}}"',
-             f"exec {shlex.join(command)} \"$SLURM_ARRAY_TASK_ID\""]
+             f'exec {shlex.join(command)} "$1" --unit "$SLURM_ARRAY_TASK_ID"']
     return "\n".join(lines) + "\n"
 
 
@@ -133,11 +139,12 @@ def submit(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSe
                           "--run-dir, or ask the cluster's admin to raise MaxArraySize")
     number = len(run_dir.submissions())
     path = run_dir.path / f"slurm-{number}.sh"
-    path.write_text(script(run_dir, task, indices, settings), encoding="utf-8")
+    arguments = [*sbatch_arguments(run_dir, task, indices, settings), str(path), str(run_dir.path)]
+    path.write_text(script(), encoding="utf-8")
     for k in indices:  # a task's log starts empty (sbatch appends to nothing, a local run's log goes)
         run_dir.log(k).unlink(missing_ok=True)
     try:
-        result = subprocess.run([_tool("sbatch"), "--parsable", str(path)], capture_output=True, text=True,
+        result = subprocess.run([_tool("sbatch"), "--parsable", *arguments], capture_output=True, text=True,
                                 timeout=SBATCH_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         raise ConfigError(f"sbatch did not answer within {SBATCH_TIMEOUT_S:.0f} s (is slurmctld up?)") from None
@@ -145,7 +152,7 @@ def submit(run_dir: RunDir, task: str, indices: Sequence[int], settings: SlurmSe
         raise ConfigError(f"sbatch refused {path}: {result.stderr.strip() or result.stdout.strip()}")
     job_id = result.stdout.strip().split(";")[0]
     return {"executor": "slurm", "job_id": job_id, "units": list(indices), "script": str(path),
-            "settings": asdict(settings)}
+            "settings": asdict(settings), "sbatch": arguments}
 
 
 def queued(job_id: str) -> dict[int, str] | None:

@@ -17,7 +17,7 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.labels.segments import (FrameClock, FrameSegment, RasterReport, TimedSegment, rasterize,
                                       segments_from_labels)
 from midas_cli.labels.stats import Recording, natural_key
-from midas_cli.labels.taxonomy import Taxonomy, load_taxonomy
+from midas_cli.labels.taxonomy import Taxonomy, load_taxonomy, shipped_taxonomy
 from midas_cli.labels.transcription import JIGSAWS_FPS, read_transcription, transcription_files
 from midas_cli.labels.via import annotators, read_via, via_csv_text, via_project, via_segments
 from midas_cli.session.labels import list_label_sets, read_frame_labels, write_frame_labels
@@ -163,7 +163,7 @@ def _timed(seg: FrameSegment, clock: FrameClock) -> TimedSegment:
 def _gesture_ids(segments: Sequence[FrameSegment], meta: dict[str, Any]) -> list[str]:
     used = sorted({s.label for s in segments}, key=natural_key)
     try:
-        ids = load_taxonomy(str(meta.get("taxonomy"))).ids
+        ids = shipped_taxonomy(str(meta.get("taxonomy"))).ids
     except ConfigError:  # no or unknown taxonomy recorded: the labels themselves are the options
         return used
     return ids + [u for u in used if u not in ids]
@@ -187,7 +187,7 @@ def load_recordings(paths: Sequence[Path], name: str = "gestures",
         if (path / MANIFEST_NAME).is_file():
             segments, clock, meta = session_segments(path, name)
             recordings.append(Recording(path.name, tuple(segments), clock.fps))
-            taxonomies.add(meta.get("taxonomy"))
+            taxonomies.add(meta.get("taxonomy") if isinstance(meta.get("taxonomy"), str) else None)
         else:
             for file in transcription_files(path):
                 recordings.append(Recording(file.name, tuple(read_transcription(file)), fps))

@@ -98,6 +98,14 @@ def load_taxonomy(name_or_path: str) -> Taxonomy:
     return parse_taxonomy(data, str(path))
 
 
+def shipped_taxonomy(name: str) -> Taxonomy:
+    """A taxonomy shipped with midas, by name only: for the names label sets record, which come from the
+    session and are never read as a path (ConfigError for any other name)."""
+    if name not in list_taxonomies():
+        raise ConfigError(f"unknown taxonomy {name!r}; shipped: {', '.join(list_taxonomies())}")
+    return load_taxonomy(name)
+
+
 def parse_taxonomy(data: dict[str, Any], where: str) -> Taxonomy:
     """Validate a taxonomy mapping (as read from TOML); ``where`` names it in error messages."""
     unknown = set(data) - _TOP_KEYS

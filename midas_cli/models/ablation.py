@@ -106,18 +106,23 @@ def run_cell(sessions: Sequence[Path], model: str, row: GridRow, base: TrainConf
                                   progress, cv)
     except MidasError as exc:
         log.warning("ablation row %s / %s skipped: %s", model, row.slug(), exc)
-        return {"skipped": {"model": model, "row": row.slug(), "reason": str(exc)}}
+        return {"skipped": {"model": model, "row": row.slug(), "reason": str(exc), "exit_code": exc.exit_code}}
     return {"dataset": title, "model": MODEL_TITLES[model], "modality": row.modality_title(),
             "features": row.feature_title(), **summary}
 
 
 def finish_ablation(out_dir: Path, cells: Sequence[dict], base: TrainConfig, cv: bool) -> dict:
-    """Write ``table.{md,tex,csv}`` and ``ablation.json`` from the cells (in table order)."""
+    """Write ``table.{md,tex,csv}`` and ``ablation.json`` from the cells (in table order). When no cell ran,
+    the error has the first skipped cell's exit code (damaged data: 4, as when a command reads it)."""
     results = [c for c in cells if "skipped" not in c]
     skipped = [c["skipped"] for c in cells if "skipped" in c]
     if not results:
-        raise ConfigError(f"no ablation row could run ({len(skipped)} skipped; first reason: "
-                          f"{skipped[0]['reason'] if skipped else 'empty grid'})")
+        error = ConfigError(f"no ablation row could run ({len(skipped)} skipped; first reason: "
+                            f"{skipped[0]['reason'] if skipped else 'empty grid'})")
+        code = skipped[0].get("exit_code") if skipped else None
+        if type(code) is int and code in (3, 4):  # a unit's result is a file: only a known code is taken
+            error.exit_code = code
+        raise error
     report = {"results": results, "skipped": skipped, "train_config": {**base.__dict__}, "cross_validation": cv}
     write_tables(out_dir, results, skipped)
     write_text(out_target(Path(out_dir) / "ablation.json"), json.dumps(report, indent=2) + "\n")

@@ -12,8 +12,10 @@
 *mean ± sd* is over folds (sample standard deviation, ddof = 1; none with one fold). *pooled* (micro) is
 every test frame / segment of every fold evaluated together with models/metrics.py: accuracy over all
 labelled test frames, edit averaged over all test sequences, F1@k from TP/FP/FN summed over all of
-them. Pooled figures are read back from each fold's ``predictions/<trial>.csv`` (every test trial is
-one whole sequence in a group split). Finished folds (``metrics.json`` present) are reused, so an
+them (the MS-TCN way). *per video* (macro) scores each test video alone and averages over the videos
+(accuracy, edit, F1@k): some papers report F1@k that way, and the two differ. Pooled figures are read
+back from each fold's ``predictions/<trial>.csv`` (every test trial is one whole sequence in a group
+split). Finished folds (``metrics.json`` present) are reused, so an
 interrupted run resumes and folds run elsewhere are picked up by ``summarise`` (``midas train
 cv-summary OUT``).
 """
@@ -161,6 +163,7 @@ def collect(root: Path) -> dict:
             truths.append(y)
     values = {key: np.array([f[key] for f in folds], dtype=float) for key in KEYS}
     pooled = M.evaluate(preds, truths, classes)["summary"]
+    per_video = per_video_means(preds, truths)
     return {"protocol": split["kind"], "protocol_text": PROTOCOLS[split["kind"]],
             "validation": split.get("validation") or "next group (before issue 19)",
             "model": first["model"], "epochs": first["train_config"]["epochs"], "seed": split["seed"],
@@ -171,10 +174,28 @@ def collect(root: Path) -> dict:
             "mean": {key: float(v.mean()) for key, v in values.items()},
             "sd": {key: (float(v.std(ddof=1)) if len(v) > 1 else None) for key, v in values.items()},
             "pooled": {**{key: pooled[key] for key in KEYS}, "frames": pooled["frames"], "sequences": len(preds)},
+            "per_video": per_video,
             "definitions": {"mean/sd": "over folds; sd = sample standard deviation (ddof 1), null with one fold",
-                            "pooled": "all test frames / sequences of all folds evaluated together (micro)",
+                            "pooled": "all test frames / sequences of all folds evaluated together (micro): "
+                                      "F1@k from TP/FP/FN summed over every test video (the MS-TCN way)",
+                            "per_video": "each test video scored alone, then the mean over videos (macro): "
+                                         "accuracy, edit and F1@k as papers that average per video report them",
                             "units": "accuracy, f1, precision, recall: fractions; edit, f1@k: 0-100",
                             **M.DEFINITIONS}}
+
+
+def per_video_means(preds: Sequence[np.ndarray], truths: Sequence[np.ndarray]) -> dict[str, float | int]:
+    """Accuracy, edit and F1@k of each test video alone, averaged over the videos (0-1 for accuracy,
+    0-100 for the rest, as ``metrics.evaluate``)."""
+    accuracy, edit, f1 = [], [], {k: [] for k in M.OVERLAPS}
+    for p, y in zip(preds, truths):
+        labelled = y != M.IGNORE
+        accuracy.append(float((p[labelled] == y[labelled]).mean()) if labelled.any() else np.nan)
+        edit.append(M.edit_score(p, y, M.IGNORE))
+        for overlap in M.OVERLAPS:
+            f1[overlap].append(M.f1_from_counts(*(int(c) for c in M.overlap_counts(p, y, overlap, M.IGNORE))))
+    return {"accuracy": float(np.nanmean(accuracy)), "edit": float(np.mean(edit)),
+            **{f"f1@{int(k * 100)}": float(np.mean(v)) for k, v in f1.items()}, "videos": len(preds)}
 
 
 def summarise(root: Path) -> dict:
@@ -209,8 +230,9 @@ def _read_predictions(path: Path, classes: list[str]) -> tuple[np.ndarray, np.nd
 def cell(report: dict, key: str, which: str = "mean") -> str:
     """A figure as papers print it: percent for accuracy, 0-100 for edit/F1@k; mean ± sd."""
     scale = 100.0 if key in ("accuracy", "f1", "precision", "recall") else 1.0
-    if which == "pooled":
-        return f"{report['pooled'][key] * scale:.1f}"
+    if which in ("pooled", "per_video"):
+        value = report.get(which, {}).get(key)
+        return "" if value is None else f"{value * scale:.1f}"
     sd = report["sd"][key]
     return f"{report['mean'][key] * scale:.1f}" + (f" ± {sd * scale:.1f}" if sd is not None else "")
 
@@ -221,7 +243,8 @@ def markdown(report: dict) -> str:
              f"Protocol: {report['protocol_text']}; {len(report['folds'])} of {report['n_folds']} folds.  ",
              f"Validation: {report['validation']}; {report['epochs']} epochs; seed {report['seed']}.  ",
              "Acc in %, edit and F1@k 0-100; mean ± sd over folds (sample sd); pooled = all test frames and "
-             "segments of all folds together.", "",
+             "segments of all folds together (F1@k from TP/FP/FN summed over every test video, the MS-TCN way); "
+             "per video = each test video scored alone, then averaged.", "",
              "| Model | Fold | Test group | " + " | ".join(TITLES[k] for k in TABLE_KEYS) + " |",
              "|---|---|---|" + "---:|" * len(TABLE_KEYS)]
     for fold in report["folds"]:
@@ -233,6 +256,7 @@ def markdown(report: dict) -> str:
         title = title or MODEL_NAMES.get(part["model"], part["model"])
         lines.append(f"| {title} | mean ± sd | | " + " | ".join(cell(part, k) for k in TABLE_KEYS) + " |")
         lines.append(f"| {title} | pooled | | " + " | ".join(cell(part, k, "pooled") for k in TABLE_KEYS) + " |")
+        lines.append(f"| {title} | per video | | " + " | ".join(cell(part, k, "per_video") for k in TABLE_KEYS) + " |")
     if report["missing_folds"]:
         lines += ["", f"Missing folds (not finished): {', '.join(map(str, report['missing_folds']))}"]
     return "\n".join(lines) + "\n"

@@ -67,7 +67,7 @@ def extract_features(video: Path, weights: Path, options: ExtractOptions, out: P
     """Encode every ``options.every``-th frame of ``video``; write the NPZ ``out``; return a summary."""
     if options.device == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--device cuda asked for, but torch sees no CUDA GPU (use --device cpu)")
-    out = out_target(out)  # checked before the (long) encoding: never a session's own file
+    out = out_target(out, inputs=(video, weights))  # checked before the (long) encoding: never a session's own file
     model = load_backbone(options.backbone, weights).to(options.device)
     frames, chunks = [], []
     total = _frame_count(video)

@@ -41,7 +41,7 @@ from midas_cli.models.plots import write_confusion_png, write_timeline_png
 from midas_cli.models.splits import PARTS, Split, instances, make_split
 from midas_cli.models.torch_io import load_weights_only
 from midas_cli.models.transformer import GestureTransformer, TransformerConfig
-from midas_cli.session.outputs import out_folder, out_target, replacing, write_text
+from midas_cli.session.outputs import out_child, out_folder, out_target, replacing, write_text
 
 log = logging.getLogger(__name__)
 
@@ -372,8 +372,8 @@ def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, 
         rows = ["frame,truth,prediction"] + [
             f"{f},{dataset.classes[t] if t >= 0 else ''},{dataset.classes[p]}"
             for f, t, p in zip(trial.frames[tested], trial.labels[tested], timeline[tested])]
-        write_text(out_target(out_dir / "predictions" / f"{name}.csv"), "\n".join(rows) + "\n")
-        write_timeline_png(out_dir / "plots" / f"{name}.png", trial.labels, timeline, dataset.classes, name)
+        write_text(out_child(out_dir / "predictions", f"{name}.csv"), "\n".join(rows) + "\n")
+        write_timeline_png(out_child(out_dir / "plots", f"{name}.png"), trial.labels, timeline, dataset.classes, name)
 
 
 def _new_run_dir(out_dir: Path) -> Path:

@@ -28,7 +28,8 @@ from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.stats import DeviceRecord, StreamStats, device_labels
-from midas_cli.record.spawn import stop_signals_blocked, worker_context
+from midas_cli.record.spawn import (reap_workers, start_worker, start_worker_server, stop_signals_blocked,
+                                    worker_context)
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.schema import StreamSpec
@@ -111,9 +112,11 @@ class Recorder:
         """Create the session folder and every stream file (with its header), start the workers and
         the bookkeeping thread; return the folder. Elapsed time and ``--duration`` count from here.
 
-        The stop signals are blocked while the workers are created (never ignored): one that arrives
-        meanwhile stays pending and reaches this process's handler as soon as they are unblocked,
-        while each worker sets them to ignored before it unblocks them (it stops when told)."""
+        The stop signals are blocked while the fork server and the workers are created (never
+        ignored): one that arrives meanwhile, also one sent to the whole process group, stays pending
+        and reaches this process's handler as soon as they are unblocked, while each worker sets them
+        to ignored before it unblocks them (it stops when told). A worker that cannot be started
+        (its fork server gone) is reported as crashed; the others record and the session is finalised."""
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         if self.plan.foxglove is not None:  # a port in use is refused before anything is on disk
             self.live = FoxgloveLive(self.plan.foxglove, specs, f"midas record {self.plan.metadata.subject}")
@@ -125,6 +128,7 @@ class Recorder:
         self.bytes_written = self.writer.bytes_written
         start_ns = self.writer.manifest["start"]["host_ns"]
         folder = self.path.resolve()
+        start_worker_server()
         with stop_signals_blocked():
             for name, url in self.plan.devices.items():
                 files = {s: str(folder / self.streams[s].spec.file) for s in self.devices[name].streams}
@@ -132,19 +136,23 @@ class Recorder:
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
                                 session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size,
                                 lsl_out=self.plan.lsl_out, kind=self.devices[name].kind)
-                receiver, sender = self._ctx.Pipe(duplex=False)
-                process = self._ctx.Process(target=worker_main, args=(job, sender, self._stop_workers.reader),
-                                            name=f"midas-{name}", daemon=True)
-                process.start()
-                sender.close()  # the worker holds the only sending end: EOF here means it is gone
-                self._inbox.add(name, receiver)
-                self._processes[name] = process
+                self._start_worker(name, job)
         self._stop_workers.close_reader()
         self._bookkeeping_thread = threading.Thread(target=self._bookkeeping_loop, name="midas-bookkeeping",
                                                     daemon=True)
         self._bookkeeping_thread.start()
         log.info("recording %s with devices %s", self.writer.folder, ", ".join(self.devices))
         return self.writer.folder
+
+    def _start_worker(self, device: str, job: WorkerJob) -> None:
+        """Fork the device's worker. If that fails (its fork server died), its pipe still joins the
+        inbox: it reads EOF at once, so the device is reported as crashed like a worker that died."""
+        receiver, sender = self._ctx.Pipe(duplex=False)
+        process = start_worker(self._ctx, f"midas-{device}", worker_main, (job, sender, self._stop_workers.reader))
+        if process is not None:
+            self._processes[device] = process
+        sender.close()  # the worker holds the only sending end: EOF here means it is gone
+        self._inbox.add(device, receiver)
 
     def wait_ready(self, timeout_s: float = 15.0, should_stop: Callable[[], bool] = lambda: False,
                    on_tick: Callable[[RecorderSnapshot], None] | None = None, tick_s: float = 0.25) -> bool:
@@ -316,7 +324,7 @@ class Recorder:
         self._stop_workers.set()
         self._bookkeeping_done.wait(STOP_GRACE_S + 1.0)
         self._bookkeeping_thread.join(timeout=1.0)
-        self._reap_workers(self._stop_deadline + 1.0)
+        reap_workers(self._processes, self._stop_deadline + 1.0, lambda name: self.devices[name].exited)
         if self.live is not None:
             self.live.close()
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
@@ -329,25 +337,6 @@ class Recorder:
         log.info("session %s finalised: %s (%s)", self.path, status, reason)
         self._detach_log()
         return manifest
-
-    def _reap_workers(self, deadline: float) -> None:
-        """Wait for every worker process to end. One that said 'exited' has closed its files and
-        is only tearing its interpreter down: on a busy machine that can take a while, so it gets
-        until ``deadline`` and is then ended quietly. One that never said 'exited' is an error."""
-        for name, process in self._processes.items():
-            process.join(timeout=max(0.0, deadline - time.monotonic()))
-            if not process.is_alive():
-                continue
-            said_exited = self.devices[name].exited
-            level = logging.INFO if said_exited else logging.ERROR
-            log.log(level, "worker %s %s; terminating it", process.name,
-                    "is slow to exit after it finished" if said_exited else "did not exit")
-            process.terminate()
-            process.join(timeout=2.0)
-            if process.is_alive():  # it writes its own rows: it must be gone before the files are hashed
-                log.error("worker %s ignored SIGTERM; killing it", process.name)
-                process.kill()
-                process.join(timeout=2.0)
 
     def _detach_log(self) -> None:
         if self._log_handler is not None:

@@ -19,6 +19,7 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.registry import create_device
 from midas_cli.devices.rigconfig import RigConfig
+from midas_cli.devices.usbserial import AdapterReport
 from midas_cli.errors import ConfigError, DeviceError, MidasError
 
 NEEDS_SESSION = {"obs": "obs:// records into a session folder (check OBS with `midas doctor`)",
@@ -51,6 +52,12 @@ class DeviceCheck:
     open_s: float | None = None
     read_s: float = 0.0
     streams: dict[str, StreamCheck] = field(default_factory=dict)
+
+    def serial_line(self) -> str:
+        """What was in force on the device's serial port (adapter, latency timer, low-latency flag), '' for
+        devices without one."""
+        report = self.info.get("usb_serial")
+        return AdapterReport(**report).summary() if isinstance(report, dict) else ""
 
     def as_dict(self) -> dict[str, Any]:
         return {"device": self.device, "url": self.url, "state": self.state, "error": self.error,
@@ -135,5 +142,7 @@ def _message(exc: BaseException) -> str:
 
 
 def _plain(info: Any) -> dict[str, Any]:
-    return {str(k): (v if isinstance(v, (str, int, float, bool, type(None))) else str(v))
-            for k, v in (info or {}).items()} if isinstance(info, dict) else {}
+    """``info`` with JSON-plain values: scalars as they are, dicts (e.g. ``usb_serial``) made plain in turn,
+    anything else as text."""
+    return {str(k): (v if isinstance(v, (str, int, float, bool, type(None))) else _plain(v) if isinstance(v, dict)
+                     else str(v)) for k, v in (info or {}).items()} if isinstance(info, dict) else {}

@@ -6,11 +6,13 @@ their headers): no second process stands between a device read and the disk. The
 bookkeeping only (sequence numbers, times, bytes) and fsyncs the files about once a second, so a
 worker never blocks on fsync.
 
-It ignores SIGINT and SIGHUP (the recorder decides when to stop and tells it through ``stop``; it
-starts with them blocked, so none can reach it before it ignores them), reconnects with
-exponential back-off when its device fails or goes silent, and exits if the recorder disappears.
-Messages go through a pipe (``record/link.py``): nothing a SIGKILL could leave behind. A failed write (disk full, file too large) ends the worker with a
-``write_failed`` event: the recorder then stops the whole recording and keeps what is on disk.
+It ignores SIGINT, SIGTERM and SIGHUP, also those a terminal or ``kill -- -PGID`` sends to the whole
+process group: the recorder decides when to stop and tells it through ``stop`` (or SIGKILLs a worker
+that does not stop), and it starts with them blocked, so none can reach it before it ignores them. It
+reconnects with exponential back-off when its device fails or goes silent, and exits if the recorder
+disappears. Messages go through a pipe (``record/link.py``): nothing a SIGKILL could leave behind. A
+failed write (disk full, file too large) ends the worker with a ``write_failed`` event: the recorder
+then stops the whole recording and keeps what is on disk.
 """
 
 from __future__ import annotations
@@ -194,10 +196,10 @@ class WorkerOutput:
 def worker_main(job: WorkerJob, sender: Connection, stop_reader: Connection) -> None:
     """Entry point of the worker process: the signals first (they arrive blocked, see
     ``Recorder.start``), then the pipes, then ``run_worker``."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, (signal.SIGINT, signal.SIGHUP, signal.SIGTERM))
+    stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    for signum in stop_signals:
+        signal.signal(signum, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, stop_signals)
     link = WorkerLink(sender, job.queue_size)
     try:
         run_worker(job, link, StopSignal(stop_reader))

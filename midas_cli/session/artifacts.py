@@ -28,5 +28,5 @@ def write_npz(session_path: Path | str, relative: str, **arrays: np.ndarray) -> 
     """Write ``arrays`` as an uncompressed .npz to ``session/relative`` (loadable without pickle)."""
     path = inside_session(session_path, relative)
     with replacing(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
+        np.savez(fh, **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as savez's allow_pickle
     return path

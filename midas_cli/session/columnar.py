@@ -115,6 +115,7 @@ def copy_differences(folder: Path, name: str, entry: dict[str, Any], parsed: np.
         return [f"binary copy {binary.get('file')!r} unreadable ({exc}); {remedy}"]
     if binary.get("csv_sha256") != entry.get("sha256"):
         return [f"binary copy {binary['file']} was made from another version of the CSV; {remedy}"]
+    fields = parsed.dtype.names or ()
     same = copy.dtype.names == parsed.dtype.names and len(copy) == len(parsed) and all(
-        np.array_equal(copy[f], parsed[f], equal_nan=parsed[f].dtype.kind == "f") for f in parsed.dtype.names)
+        np.array_equal(copy[f], parsed[f], equal_nan=parsed[f].dtype.kind == "f") for f in fields)
     return [] if same else [f"binary copy {binary['file']} differs from the CSV; {remedy}"]

@@ -38,6 +38,8 @@ if TYPE_CHECKING:
     import pandas as pd
 
 from midas_cli.errors import SessionError
+from midas_cli.session.freshness import align_command, changed_inputs
+from midas_cli.session.manifest import load_manifest
 from midas_cli.session.outputs import (provenance, replacing, session_folder, session_lock, session_read_lock,
                                        session_target, temporary_beside)
 
@@ -202,9 +204,17 @@ def write_aligned_csv(path: Path, table: AlignedTable) -> None:
     frame.to_csv(path, index=False, float_format="%.6g")
 
 
-def read_aligned(session_path: Path | str) -> AlignedTable:
-    """Read ``derived/aligned.*``; SessionError if ``midas align`` has not run. The values are
-    memory-mapped read-only (tables written before they had their own file come from the npz)."""
+def aligned_files(session_path: Path | str) -> list[Path]:
+    """The files of the session's aligned table (``derived/aligned.npz|values.npy|json|csv``): what a
+    command reading it reads, so what its ``--out`` must never be."""
+    base = Path(session_path) / ALIGNED_STEM
+    return [base.with_suffix(s) for s in (".npz", ".values.npy", ".json", ".csv")]
+
+
+def read_aligned(session_path: Path | str, current: bool = True) -> AlignedTable:
+    """Read ``derived/aligned.*``; SessionError if ``midas align`` has not run, or (``current``) when the
+    session's manifest is not valid or the table is older than its streams or calibrations. The values
+    are memory-mapped read-only (tables written before they had their own file come from the npz)."""
     base = Path(session_path) / ALIGNED_STEM
     npz_path, values_path, json_path = (base.with_suffix(s) for s in (".npz", ".values.npy", ".json"))
     if not npz_path.is_file():
@@ -218,6 +228,7 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
             else:
                 values, values_run = np.load(values_path, mmap_mode="r"), values_run_id(values_path)
             meta = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {}
+            made_ns = json_path.stat().st_mtime_ns if json_path.is_file() else npz_path.stat().st_mtime_ns
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged or not an npz at all
         raise SessionError(f"cannot read {npz_path}: {exc} (re-run `midas align {session_path}`)") from exc
     json_run = (meta.get("producer") or {}).get("run_id") if isinstance(meta, dict) else None
@@ -229,7 +240,19 @@ def read_aligned(session_path: Path | str) -> AlignedTable:
     if values.shape != (len(frame), len(columns)):
         raise SessionError(f"{values_path} holds {values.shape} values for {len(frame)} frames x {len(columns)} "
                            f"columns: re-run `midas align {session_path}`")
+    if current:
+        _refuse_stale(Path(session_path), meta, made_ns)
     return AlignedTable(frame, t_host_ns, columns, values, meta)
+
+
+def _refuse_stale(folder: Path, meta: dict[str, Any], made_ns: int) -> None:
+    """SessionError, with the exact `midas align` command to run, when the session's manifest is not
+    valid or an input of the aligned table changed after it was made (``freshness.changed_inputs``)."""
+    changed = changed_inputs(folder, load_manifest(folder), meta, made_ns)
+    if changed:
+        csv = (folder / f"{ALIGNED_STEM}.csv").is_file()
+        raise SessionError(f"{folder}: derived/aligned was made before {'; '.join(changed)} changed: run "
+                           f"`{align_command(folder, meta, csv)}` to align it again")
 
 
 def aligned_problems(session_path: Path | str) -> list[str]:
@@ -237,7 +260,7 @@ def aligned_problems(session_path: Path | str) -> list[str]:
     if not (Path(session_path) / f"{ALIGNED_STEM}.npz").is_file():
         return []
     try:
-        read_aligned(session_path)
+        read_aligned(session_path, current=False)  # integrity only: an older table is not damage
     except SessionError as exc:
         return [str(exc)]
     return []

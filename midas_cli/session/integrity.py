@@ -14,12 +14,14 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from midas_cli import __version__
 from midas_cli.errors import SessionError
+from midas_cli.session import stop_facts
 from midas_cli.session.columnar import add_binary_copies, copy_differences
 from midas_cli.session.derived import aligned_problems
+from midas_cli.session.labels import list_label_sets
 from midas_cli.session.manifest import (MANIFEST_NAME, MANIFEST_TMP, fsync_dir, load_manifest, read_manifest_file,
                                         write_manifest)
 from midas_cli.session.outputs import is_locked, session_lock
@@ -28,6 +30,9 @@ from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import StreamSummary, complete_line_end, summarize_bytes, summarize_stream
 from midas_cli.session.values import parse_stream_bytes, read_regular_file, structured
 from midas_cli.session.writer import utc_iso
+
+if TYPE_CHECKING:
+    import numpy as np
 
 FINISHED = ("complete", "interrupted", "recovered")
 TEMP_SUFFIXES = (".tmp", ".tmp.npz")  # path + ".tmp" everywhere; artifacts.write_npz: path + ".tmp.npz"
@@ -86,8 +91,8 @@ class VerifyReport:
 
 def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
     """Check every stream file against the manifest: presence (a regular file), header, whole lines,
-    every value against its column's type and range, sample count, sha256, strictly increasing host time, sequence gaps, and that its binary copy (if any) holds
-    exactly what the CSV holds. Gaps the manifest declares (a device
+    every value against its column's type and range, sample count, sha256, strictly increasing host
+    time, sequence gaps, and that its binary copy (if any) holds exactly what the CSV holds. Gaps the manifest declares (a device
     outage the recorder saw) are notes, or problems with ``strict``; undeclared gaps are problems.
     Temporary files left by an interrupted write, and a recording that failed to start, are problems
     too (a failed session's streams are not checked)."""
@@ -114,6 +119,10 @@ def verify_session(path: Path | str, strict: bool = False) -> VerifyReport:
         )
     for name in session.stream_names:
         _verify_stream(session, name, report, strict)
+    try:  # a label set's name names files of exports, like the manifest's names
+        list_label_sets(session.path)
+    except SessionError as exc:
+        report.problems.append(str(exc))
     if locked:  # its derived files are being replaced: checking them would wait for the writer, or see half
         report.notes.append("derived/aligned.*: not checked, another midas command is writing this session now")
     else:
@@ -146,9 +155,25 @@ def _verify_stream(session: Session, name: str, report: VerifyReport, strict: bo
     if session.status in FINISHED:
         problems += _manifest_mismatches(entry, found)
     problems += _gap_findings(entry, found, strict, report.notes, name)
+    if parsed is not None:
+        problems += _times_outside(session, entry["file"], parsed["t_host_ns"])
     if not problems:
         problems += copy_differences(session.path, name, entry, parsed)
     report.problems.extend(f"{name}: {p}" for p in problems)
+
+
+def _times_outside(session: Session, file: str, times: np.ndarray) -> list[str]:
+    """The host times (ns, one per data line) outside ``session.plausible_host_ns()``: the first one's
+    line and value, and how many there are (nothing when all are inside)."""
+    low, high = session.plausible_host_ns()
+    outside = (times < low) if high is None else (times < low) | (times > high)
+    where = outside.nonzero()[0]
+    if not len(where):
+        return []
+    first = int(where[0])
+    span = f"{low} .. {'(no stop)' if high is None else high}"
+    return [f"{file} line {first + 2}: t_host_ns {int(times[first])} is far outside the session's time span "
+            f"(start and stop -/+ max(1 min, its length): {span}); {len(where)} such sample(s)"]
 
 
 def _file_problems(found: StreamSummary) -> list[str]:
@@ -224,6 +249,7 @@ def _repair_locked(folder: Path) -> RepairReport:
         return RepairReport(folder, repaired=False, status=manifest["status"], removed=removed,
                             restored_manifest=restored)
     report = RepairReport(folder, repaired=True, status="recovered", removed=removed, restored_manifest=restored)
+    facts = stop_facts.read(folder)
     last_times = []
     for name, entry in manifest["streams"].items():
         spec = StreamSpec.from_manifest(name, entry)
@@ -235,6 +261,7 @@ def _repair_locked(folder: Path) -> RepairReport:
         _cut_torn_tail(folder, name, stream_path, spec, report)
         found = summarize_stream(stream_path, spec)
         entry.update(found.manifest_fields())
+        entry.update(facts["streams"].get(name, {}) if facts else {})
         entry["seq_gaps"]["note"] = "derived from the file by repair"
         if found.last_t_host_ns is not None:
             last_times.append(found.last_t_host_ns)
@@ -242,14 +269,23 @@ def _repair_locked(folder: Path) -> RepairReport:
     manifest.update(
         status="recovered",
         stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns},
-        stop_reason="the recorder stopped without finalising (crash or kill); recovered by `midas session repair`",
+        stop_reason=_recovered_reason(facts),
         repair={"utc": utc_iso(time.time_ns()), "midas_version": __version__, "cut": report.cut,
                 "created_empty_streams": report.created},
     )
     write_manifest(folder, manifest)  # recovered first: the binary copies are an extra
+    stop_facts.release(folder)
     add_binary_copies(folder, manifest)
     write_manifest(folder, manifest)
     return report
+
+
+def _recovered_reason(facts: dict[str, Any] | None) -> str:
+    """The stop reason of a repaired session: the recorder's own, when it kept one (``stop_facts``)."""
+    if facts is None:
+        return "the recorder stopped without finalising (crash or kill); recovered by `midas session repair`"
+    return (f"{facts['stop_reason']} (status {facts['status']}; the recorder could not write the final manifest; "
+            f"recovered by `midas session repair`)")
 
 
 def _restore_manifest(folder: Path) -> bool:

@@ -9,7 +9,6 @@ acquisition and is not rewritten; label sets live beside it and say where they c
 from __future__ import annotations
 
 import json
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -19,11 +18,11 @@ import pandas as pd
 
 from midas_cli import __version__
 from midas_cli.errors import SessionError
+from midas_cli.session.names import check_name
 from midas_cli.session.outputs import replacing, session_lock, session_target
 
 LABELS_DIR = "labels"
 FRAME_CONVENTION = "0-based video frame index = seq of the session's video stream"
-_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
 @dataclass
@@ -41,32 +40,36 @@ class FrameLabels:
 def write_frame_labels(session_path: Path | str, frames: Sequence[int], labels: Sequence[str],
                        meta: dict[str, Any], name: str = "gestures") -> Path:
     """Write (replace) label set ``name``; ``meta`` should name the taxonomy and the source."""
-    if not _NAME_OK.match(name):
-        raise SessionError(f"label set name {name!r} must be letters, digits, '_', '.' or '-'")
-    frames = np.asarray(frames, dtype=np.int64)
-    labels = np.asarray(labels, dtype=object)
-    if frames.shape != labels.shape or frames.ndim != 1:
-        raise SessionError(f"frames {frames.shape} and labels {labels.shape} must be equal-length 1-D")
-    if len(frames) > 1 and not (np.diff(frames) > 0).all():
+    check_name(name, "label set", "label set name")
+    frame_array = np.asarray(frames, dtype=np.int64)
+    label_array = np.asarray(labels, dtype=object)
+    if frame_array.shape != label_array.shape or frame_array.ndim != 1:
+        raise SessionError(f"frames {frame_array.shape} and labels {label_array.shape} must be equal-length 1-D")
+    if len(frame_array) > 1 and not (np.diff(frame_array) > 0).all():
         raise SessionError("label frames must be strictly increasing")
     csv_path = session_target(session_path, f"{LABELS_DIR}/{name}.csv")
     json_path = session_target(session_path, f"{LABELS_DIR}/{name}.json")
     full_meta = {"frame_convention": FRAME_CONVENTION, "midas_version": __version__, **meta,
-                 "frames": int(len(frames))}
+                 "frames": int(len(frame_array))}
     with session_lock(session_path), replacing(json_path) as tmp_json, replacing(csv_path) as tmp_csv:
-        pd.DataFrame({"frame": frames, "label": labels}).to_csv(tmp_csv, index=False)
+        pd.DataFrame({"frame": frame_array, "label": label_array}).to_csv(tmp_csv, index=False)
         tmp_json.write_text(json.dumps(full_meta, indent=2) + "\n", encoding="utf-8")
     return csv_path
 
 
-def read_frame_labels(session_path: Path | str, name: str = "gestures") -> FrameLabels:
+def label_set_files(session_path: Path | str, name: str) -> tuple[Path, Path]:
+    """``labels/<name>.csv`` and ``labels/<name>.json`` of the session (the label set and its provenance)."""
     folder = Path(session_path) / LABELS_DIR
-    csv_path = folder / f"{name}.csv"
+    return folder / f"{check_name(name, 'label set', 'label set name')}.csv", folder / f"{name}.json"
+
+
+def read_frame_labels(session_path: Path | str, name: str = "gestures") -> FrameLabels:
+    """Label set ``name`` of the session (SessionError when it is missing, misnamed or malformed)."""
+    csv_path, meta_path = label_set_files(session_path, name)
     if not csv_path.is_file():
         have = ", ".join(list_label_sets(session_path)) or "none"
         raise SessionError(f"{session_path} has no label set {name!r} (label sets: {have})")
     frame = _read_label_csv(csv_path)
-    meta_path = folder / f"{name}.json"
     meta = _read_label_meta(meta_path) if meta_path.is_file() else {}
     return FrameLabels(frame["frame"].to_numpy(), frame["label"].to_numpy(dtype=object), meta)
 
@@ -97,5 +100,10 @@ def _read_label_meta(meta_path: Path) -> dict[str, Any]:
 
 
 def list_label_sets(session_path: Path | str) -> list[str]:
+    """Names of the session's label sets (``labels/<name>.csv``), sorted; SessionError when a file there
+    has a name no label set may have (it would name files of exports)."""
     folder = Path(session_path) / LABELS_DIR
-    return sorted(p.stem for p in folder.glob("*.csv")) if folder.is_dir() else []
+    names = sorted(p.name[:-len(".csv")] for p in folder.glob("*.csv")) if folder.is_dir() else []
+    for name in names:
+        check_name(name, "label set", f"the name of a label set in {folder} (<name>.csv)")
+    return names

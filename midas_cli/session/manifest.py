@@ -6,9 +6,10 @@ import json
 import math
 import os
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, Mapping
 
 from midas_cli.errors import SessionError
+from midas_cli.session.names import check_name, shown
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "manifest.json"
@@ -79,13 +80,27 @@ def validate_manifest(manifest: Any, folder: Path) -> None:
         _check_fields(manifest[section], fields, f"{section}.", folder)
     if manifest.get("stop") is not None:
         _check_fields(manifest["stop"], TIME_FIELDS, "stop.", folder)
+    _check_names(manifest, folder)
     for name, device in manifest["devices"].items():
         _check_type(device, (dict,), f"devices.{name}", folder)
     for name, stream in manifest["streams"].items():
         _check_stream(name, stream, folder)
     for key, rel in (manifest.get("files") or {}).items():
         _check_type(rel, (str,), f"files.{key}", folder)
-        check_inside(folder, rel)
+        check_inside(folder, rel, f"manifest in {folder}: files.{key}")
+
+
+def _check_names(manifest: dict[str, Any], folder: Path) -> None:
+    """The manifest's strings that name files (session_id, device and stream names) follow
+    ``names.NAME_RULES``: a session from elsewhere cannot make a command write outside its folder."""
+    where = f"manifest in {folder}:"
+    check_name(manifest["session_id"], "session id", f"{where} session_id")
+    for name in manifest["devices"]:
+        check_name(name, "device", f"{where} a key of devices")
+    for name, stream in manifest["streams"].items():
+        check_name(name, "stream", f"{where} a key of streams")
+        if isinstance(stream, dict) and isinstance(stream.get("device"), str):
+            check_name(stream["device"], "device", f"{where} streams.{name}.device")
 
 
 def _check_stream(name: str, stream: Any, folder: Path) -> None:
@@ -93,13 +108,15 @@ def _check_stream(name: str, stream: Any, folder: Path) -> None:
         raise SessionError(f"stream {name!r} in {folder} names no file")
     where = f"streams.{name}."
     _check_fields(stream, STREAM_FIELDS, where, folder)
-    check_inside(folder, stream["file"])
+    check_inside(folder, stream["file"], f"manifest in {folder}: {where}file")
     for k, column in enumerate(stream.get("columns") or []):
         _check_type(column, (dict,), f"{where}columns[{k}]", folder)
         _check_fields(column, COLUMN_FIELDS, f"{where}columns[{k}].", folder)
     for key, fields in (("seq_gaps", GAP_FIELDS), ("binary", BINARY_FIELDS)):
         if isinstance(stream.get(key), dict):
             _check_fields(stream[key], fields, f"{where}{key}.", folder)
+    if isinstance(stream.get("binary"), dict) and "file" in stream["binary"]:
+        check_inside(folder, stream["binary"]["file"], f"manifest in {folder}: {where}binary.file")
 
 
 INT, FLOAT, STR, NONE = (int,), (int, float), (str,), (type(None),)
@@ -121,7 +138,7 @@ _TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", dict: "an 
                type(None): "null"}
 
 
-def _check_fields(entry: dict[str, Any], fields: dict[str, tuple[type, ...]], where: str, folder: Path) -> None:
+def _check_fields(entry: dict[str, Any], fields: Mapping[str, tuple[type, ...]], where: str, folder: Path) -> None:
     for key, types in fields.items():
         if key in entry:
             _check_type(entry[key], types, where + key, folder)
@@ -138,17 +155,18 @@ def _check_type(value: Any, types: tuple[type, ...], where: str, folder: Path) -
                            f"restore manifest.json from a copy or correct that field")
 
 
-def check_inside(folder: Path, rel: Any) -> Path:
-    """The path ``rel`` names inside the session folder; refuse absolute paths, '..' and symlinks out."""
-    if not isinstance(rel, str) or not rel or "\\" in rel or "\0" in rel:
-        raise SessionError(f"manifest path {rel!r} is not a relative POSIX path")
+def check_inside(folder: Path, rel: Any, where: str = "manifest path") -> Path:
+    """The path ``rel`` names inside the session folder; refuse absolute paths, '..', control characters
+    and symlinks out (SessionError: ``where`` the path was found, and what it holds)."""
+    if not isinstance(rel, str) or not rel or "\\" in rel or any(ord(c) < 32 or ord(c) == 127 for c in rel):
+        raise SessionError(f"{where} {shown(rel)} is not a relative POSIX path")
     pure = PurePosixPath(rel)
-    if pure.is_absolute() or ".." in pure.parts:
-        raise SessionError(f"manifest path {rel!r} escapes the session folder {folder}")
+    if pure.is_absolute() or ".." in pure.parts or not pure.parts:
+        raise SessionError(f"{where} {shown(rel)} escapes the session folder {folder}")
     root = Path(folder).resolve()
     resolved = (root / pure).resolve()
     if root != resolved and root not in resolved.parents:
-        raise SessionError(f"manifest path {rel!r} escapes the session folder {folder} (via a link)")
+        raise SessionError(f"{where} {shown(rel)} escapes the session folder {folder} (via a link)")
     return resolved
 
 

@@ -7,9 +7,14 @@ a unique temporary name and renamed into place, under the session's lock.
   is created.
 * ``out_target(path)``: a file named by the user (``--out``, ``--plot``). It may be anywhere, but never a
   file a session owns: ``manifest.json`` (and its temporary), the lock file, anything under
-  ``streams/``, ``video/`` or ``logs/``, and any file the manifest lists (ConfigError, exit 2). A
-  missing parent folder is created (as ``eval --out`` and ``train --out`` always did); one that cannot
-  be is ConfigError.
+  ``streams/``, ``video/`` or ``logs/``, and any file the manifest lists, nor one of the files the
+  command reads (its ``inputs``: ``labels export --out`` is never the label set it exports) (ConfigError,
+  exit 2). A missing parent folder is created (as ``eval --out`` and ``train --out`` always did); one
+  that cannot be is ConfigError.
+* ``out_child(folder, name)``: a file in an output folder whose name comes from the data (``<session
+  id>.mcap``, ``predictions/<trial>.csv``): ``name`` must be one plain file name that stays in the
+  folder (SessionError, exit 4), then it is checked as ``out_target``. Sessions' names are checked when
+  they are read (``names.py``); this is the writers' own guard.
 * ``replacing(target)``: yields a unique temporary beside ``target`` (``.<name>.<random>.tmp``: two runs
   never share one; ``session verify`` reports and ``session repair`` removes them if a run is killed),
   renames it over ``target`` when the block succeeds and removes it when it fails. Held under the lock
@@ -37,11 +42,12 @@ import time
 import uuid
 from datetime import datetime, timezone
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 from midas_cli import __version__
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.session.manifest import MANIFEST_NAME, MANIFEST_TMP
+from midas_cli.session.names import shown
 
 log = logging.getLogger(__name__)
 
@@ -142,10 +148,14 @@ def session_folder(session: Path | str, relative: str) -> Path:
     return resolved
 
 
-def out_target(path: Path | str, option: str = "--out") -> Path:
+def out_target(path: Path | str, option: str = "--out", inputs: Iterable[Path | str] = ()) -> Path:
     """The resolved path of a user-named output file, its parent folder created; ConfigError when it
-    names a file a session owns or its folder cannot be made."""
+    names a file a session owns, one of ``inputs`` (the files the command reads), or its folder cannot
+    be made."""
     resolved = Path(path).expanduser().resolve()
+    for read in inputs:
+        if Path(read).expanduser().resolve() == resolved:
+            raise ConfigError(f"{option} {path} is {read}, which this command reads: choose another file")
     session = session_of(resolved.parent)
     if session is not None:
         reason = _owned_reason(session, resolved)
@@ -171,6 +181,29 @@ def out_folder(path: Path | str, option: str = "--out") -> Path:
     except OSError as exc:
         raise ConfigError(f"cannot create {option} folder {path}: {exc.strerror or exc}") from exc
     return resolved
+
+
+def out_child(folder: Path | str, name: str, option: str = "--out") -> Path:
+    """``folder/name`` for a file whose name comes from data (a session id, a stream or label set name),
+    checked like ``out_target``: ``name`` must be one plain file name that stays in ``folder`` once
+    resolved (SessionError, exit 4, otherwise: the data named it)."""
+    return out_target(_child_of(folder, name), option)
+
+
+def out_child_folder(folder: Path | str, name: str, option: str = "--out") -> Path:
+    """Like ``out_child`` for a folder (``out_folder``'s checks), created."""
+    return out_folder(_child_of(folder, name), option)
+
+
+def _child_of(folder: Path | str, name: str) -> Path:
+    """``folder/name`` when ``name`` is a single file name that resolves to an entry of ``folder``."""
+    plain = (isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name
+             and not any(ord(c) < 32 or ord(c) == 127 for c in name) and len(name.encode("utf-8")) <= 255)
+    root = Path(folder).expanduser().resolve()
+    if not plain or (root / name).resolve().parent != root:
+        raise SessionError(f"refusing to write {shown(name)} in {folder}: a name taken from the data must be one "
+                           f"plain file name inside the output folder")
+    return root / name
 
 
 def _make_parent(resolved: Path, error: type[MidasError], option: str = "output") -> None:

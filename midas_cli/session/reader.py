@@ -12,6 +12,7 @@ from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifes
 from midas_cli.session.schema import StreamSpec
 
 log = logging.getLogger(__name__)
+TIME_MARGIN_S = 60  # how far before its start / after its stop a sample's host time may be (at least)
 CHUNK_BYTES = 8 << 20  # iter_stream's pieces: about this much CSV text at a time
 _TORN_WARNED: set[tuple[Path, int]] = set()  # (file, size): each torn file is reported once per process
 
@@ -68,6 +69,15 @@ class Session:
         if "host_ns" not in stop:
             return None
         return (stop["host_ns"] - self.manifest["start"]["host_ns"]) / 1e9
+
+    def plausible_host_ns(self) -> tuple[int, int | None]:
+        """The host times (Unix-epoch ns) a sample of this session can have: from its start to its stop
+        (None while it has none), each widened by ``TIME_MARGIN_S`` or the session's length, whichever
+        is longer. A ``t_host_ns`` outside is damage (`verify` names it; `replay` refuses it)."""
+        start = self.manifest["start"]["host_ns"]
+        stop = (self.manifest.get("stop") or {}).get("host_ns")
+        margin = max(TIME_MARGIN_S * 10**9, 0 if stop is None else stop - start)
+        return start - margin, None if stop is None else stop + margin
 
     def read_stream(self, name: str, allow_incomplete: bool = False) -> pd.DataFrame:
         """One stream as a DataFrame: int columns as int64 (exact ns times), floats with NaN = missing.

@@ -22,14 +22,16 @@ from typing import Any, Iterable
 from midas_cli import __version__
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.session import stop_facts
 from midas_cli.session.columnar import add_binary_copies
 from midas_cli.session.manifest import SCHEMA_VERSION, write_manifest
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
+from midas_cli.session.sync_statement import recorded_statement
 
 SUBFOLDERS = ("streams", "video", "calib", "derived", "logs")
 LOG_FILE = "logs/midas.log"
-_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.-]*$")
+_NAME_OK = re.compile(r"[A-Za-z0-9][A-Za-z0-9.-]{0,63}")  # bounded: the session id they make is too
 
 
 @dataclass(frozen=True)
@@ -46,8 +48,8 @@ class SessionMetadata:
     def __post_init__(self) -> None:
         for key in ("subject", "task", "platform"):
             value = getattr(self, key)
-            if not _NAME_OK.match(value):
-                raise ConfigError(f"{key} {value!r} must be letters, digits, '.' or '-' (it names the folder)")
+            if not _NAME_OK.fullmatch(value):
+                raise ConfigError(f"{key} {value!r} must be up to 64 letters, digits, '.' or '-' (it names the folder)")
         if self.trial < 0:
             raise ConfigError(f"trial must be >= 0, got {self.trial}")
         if not 0 < self.master_rate_hz <= 1000:
@@ -168,10 +170,14 @@ class SessionWriter:
             write_manifest(folder, manifest)  # first: a kill from here on leaves a session `repair` understands
             for sub in SUBFOLDERS:
                 (folder / sub).mkdir(exist_ok=True)
+            stop_facts.reserve(folder)  # room for how it ended, should the disk be full by then
             return cls(folder, manifest, specs)
         except OSError as exc:  # disk full, quota, permissions: nothing was recorded, leave nothing behind
             shutil.rmtree(folder, ignore_errors=True)
             raise SessionError(f"cannot create the session in {out_root}: {exc.strerror or exc}") from exc
+        except SessionError:  # a name no manifest may hold (an imported file's sensor named "../x")
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
 
     def append(self, stream: str, text: str) -> None:
         """Append whole CSV lines to a stream and hand them to the OS (survives a process kill).
@@ -193,7 +199,9 @@ class SessionWriter:
     def finalize(self, status: str, stop_reason: str, stop_ns: int, extra: dict[str, dict[str, Any]]) -> dict:
         """Close the files, describe each from what is on disk, and replace the manifest atomically.
 
-        ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages).
+        ``extra`` maps stream name -> recorder facts (dropped, corrupt, latency, outages). When the
+        manifest cannot be written (disk full) the stop facts go to the space reserved for them
+        (``stop_facts``) for `midas session repair`, and the OSError is raised.
         """
         self.sync()
         for appender in self._appenders.values():
@@ -203,7 +211,13 @@ class SessionWriter:
             entry.update(summarize_stream(self.folder / spec.file, spec).manifest_fields())
             entry.update(extra.get(name, {}))
         self.manifest.update(status=status, stop_reason=stop_reason, stop={"utc": utc_iso(stop_ns), "host_ns": stop_ns})
-        write_manifest(self.folder, self.manifest)  # finished first: the binary copies are an extra
+        self.manifest["sync"] = recorded_statement(self.manifest)  # how the streams were synchronised
+        try:
+            write_manifest(self.folder, self.manifest)  # finished first: the binary copies are an extra
+        except OSError:  # the disk is full: `repair` will need to know how it ended
+            stop_facts.keep(self.folder, status, stop_reason, extra)
+            raise
+        stop_facts.release(self.folder)
         add_binary_copies(self.folder, self.manifest)
         write_manifest(self.folder, self.manifest)
         return self.manifest

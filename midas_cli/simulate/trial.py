@@ -63,6 +63,7 @@ class TrialConfig:
     distortion_mm: float = 1.0
     max_seconds: float | None = None
     difficulty: str = difficulty_style.DEFAULT_DIFFICULTY
+    emht_drift_ppm: float = 0.0  # the EmHT's host stamps drift against true time (eval sync's validation)
 
 
 @dataclass
@@ -155,6 +156,7 @@ def _rig(config: TrialConfig) -> dict[str, Any]:
     return {"simulated": True, "generator": "midas simulate dataset", "seed": config.seed,
             "platform": config.platform, "latency_ms": config.latency_ms, "distortion_mm": config.distortion_mm,
             "difficulty": config.difficulty,
+            **({"emht_drift_ppm": config.emht_drift_ppm} if config.emht_drift_ppm else {}),
             "notes": ["every stream is synthetic: generated from a gesture-driven hand/foot model",
                       "ground truth: calib/ground_truth.json; gesture labels: labels/gestures.csv",
                       "derived/image_features.npz holds SYNTHETIC image features (no video exists), "
@@ -184,7 +186,10 @@ def _write_video(writer: SessionWriter, spec: StreamSpec, trial: _Trial) -> np.n
 
 def _write_emht(writer: SessionWriter, spec: StreamSpec, trial: _Trial, rng: np.random.Generator) -> None:
     k, host = _host_times(trial, 240.0, rng)
-    true_s = np.maximum((host - trial.start_ns) / 1e9 - trial.truth.emht_latency_ms / 1e3, 0.0)
+    since_start_s = (host - trial.start_ns) / 1e9
+    # a stamp at t shows the hands at t - latency - drift * t: the offset to the robot grows with time
+    lateness_s = trial.truth.emht_latency_ms / 1e3 + trial.config.emht_drift_ppm * 1e-6 * since_start_s
+    true_s = np.maximum(since_start_s - lateness_s, 0.0)
     positions, rotations, _ = trial.hands.sensors(true_s)
     positions = positions + rng.normal(0.0, EMHT_NOISE_MM, positions.shape)
     angles = angles_from_matrices(rotations.reshape(-1, 3, 3), wrap=True).reshape(len(k), 4, 3)

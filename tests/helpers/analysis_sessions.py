@@ -10,6 +10,7 @@ R @ R_thumb @ MOUNT; PSM = PSM_SCALE * MTM position + PSM_OFFSET.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.pedals import adc_to_volts
 from midas_cli.devices.registry import describe_device
 from midas_cli.geometry import matrices_from_angles, quaternions_from_matrices
+from midas_cli.record.markers import events_spec
 from midas_cli.session.writer import SessionMetadata, SessionWriter
 from midas_cli.synthetic.surgeon import MotionConfig, SurgeonMotion
 
@@ -54,16 +56,25 @@ def _robot(motion: SurgeonMotion, t: np.ndarray, robot: str) -> np.ndarray:
 
 
 def raven_session(root: Path, trial: int = 1, duration_s: float = 30.0, latency_ms: float = 40.0,
-                  fps_delay_ms: float = 0.0, seed: int = 0) -> Path:
-    """Write one session; ``fps_delay_ms`` delays the FPS pressed column (a known detection lag)."""
+                  fps_delay_ms: float = 0.0, seed: int = 0, markers: Sequence[tuple[float, str]] = (),
+                  dropped_frames: Sequence[int] = ()) -> Path:
+    """Write one session; ``fps_delay_ms`` delays the FPS pressed column (a known detection lag).
+    ``markers`` (seconds after the start, text) adds an ``events`` stream; ``dropped_frames`` are video
+    frames missing from the video stream (as when the recorder missed their stamps)."""
     motion = SurgeonMotion(MotionConfig(seed=seed))
     devices = {k: describe_device(k, f"sim://{k}", seed) for k in ("video", "emht", "handkp", "fps")}
     specs = {k: d.streams[0] for k, d in devices.items()}
     specs.update(mtm=kinematics_spec("mtm"), psm=kinematics_spec("psm"))
+    if markers:
+        specs["events"] = events_spec()
     writer = SessionWriter.create(root, SessionMetadata("1", "peg-transfer", trial, "raven-ii"), HostClock(0),
                                   {k: {"kind": k} for k in specs}, list(specs.values()), start_ns=START_NS)
     t_video = np.arange(0, duration_s, 1 / 30)
-    writer.append("video", specs["video"].format_rows(_rows(t_video, START_NS, t_video)))
+    writer.append("video", specs["video"].format_rows([row for row in _rows(t_video, START_NS, t_video)
+                                                       if row[0] not in set(dropped_frames)]))
+    if markers:
+        writer.append("events", specs["events"].format_rows(
+            [(k, START_NS + round(t * 1e9), text, "mark") for k, (t, text) in enumerate(markers)]))
     t_em = np.arange(0, duration_s, 1 / 240)
     em_values = devices["emht"]._values(t_em)  # SimEmHT rows: device time, 4 x (xyz, angles, quality)
     em_rows = [(k, int(START_NS + round((tk + latency_ms / 1e3) * 1e9)), *v)

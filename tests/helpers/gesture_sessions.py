@@ -46,7 +46,7 @@ def motion(labels: np.ndarray, rng: np.random.Generator, noise: float = 0.3) -> 
         for angle in ("azimuth", "elevation", "roll"):
             columns[f"emht.s{s + 1}_{angle}_deg"] = 30 * directions[labels, s, 0] + rng.normal(0, noise, n)
     for side, offset in (("left", 0), ("right", 2)):
-        for a, axis in enumerate("xyz"):
+        for axis in "xyz":
             columns[f"mtm.{side}_{axis}_mm"] = columns[f"emht.s{offset + 1}_{axis}_mm"] * 0.5
             columns[f"mtm.{side}_v{axis}_mm_s"] = np.gradient(columns[f"mtm.{side}_{axis}_mm"], t)
         for axis in "xyzw":

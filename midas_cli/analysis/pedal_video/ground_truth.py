@@ -79,7 +79,8 @@ def resolve_input(path: Path, out: Path | None) -> tuple[Path, Path | None, Path
     session = session_of_video(path)
     if session is not None:
         return path, session, pedals_gt_path(session)
-    return path, None, out_target(out if out is not None else path.with_name(path.stem + ".pedals_gt.csv"))
+    return path, None, out_target(out if out is not None else path.with_name(path.stem + ".pedals_gt.csv"),
+                                  inputs=(path,))
 
 
 def run_ground_truth(request: GroundTruthRequest,

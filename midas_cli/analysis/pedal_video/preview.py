@@ -1,7 +1,8 @@
 """A picture for checking a layout: one frame's view with every region outlined and its state written.
 
 Green outline = region on, red = off, each with its name and score on a box of that colour; a panel
-in the top-left corner lists each pedal's state. Tiny regions (single pixels) are outlined with a margin so they can be found on the picture.
+in the top-left corner lists each pedal's state. Tiny regions (single pixels) are outlined with a
+margin so they can be found on the picture.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ def preview_frame(video_path: Path | str, layout: Layout, frame_index: int,
         reader = FrameReader(layout, view_size(resolved, info.width, info.height))
         wanted = None if reader.stateful else {frame_index}
         reading, picture = None, None
-        for index, frame in iter_frames(capture, stop=frame_index + 1, wanted=wanted):
+        for index, frame in iter_frames(capture, stop=frame_index + 1, wanted=wanted):  # noqa: B007 - read after
             if frame is not None:
                 picture = cut_view(frame, resolved)
                 reading = reader.read(picture)

@@ -27,6 +27,7 @@ from midas_cli.devices.fps.protocol import (
     MAX_RATE_HZ, PROTO_VERSION, Banner, LineDecoder, Message, Reply, Sample, encode_command, max_rate_hz, rate_fits,
 )
 from midas_cli.devices.pedals import PedalStateTracker, PedalThresholds
+from midas_cli.devices.usbserial import port_fd, prepare_port
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 
@@ -124,8 +125,9 @@ class FpsDevice(Device):
                                                  write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"{self.name}: cannot open {self.port}: {exc} (is the board plugged in?)") from exc
+        adapter = prepare_port(self.port, port_fd(self._serial))
         try:
-            return self._handshake()
+            return {**self._handshake(), "usb_serial": adapter.as_dict()}
         except DeviceError:
             self.close()
             raise

@@ -12,7 +12,9 @@ from typing import Any, Callable, Sequence
 
 from midas_cli import __version__
 from midas_cli.devices.rgbd.handkp import extract_handkp
+from midas_cli.errors import ConfigError
 from midas_cli.jobs.rundir import Unit, fingerprint
+from midas_cli.session.names import check_name
 
 TASK = "extract-handkp"
 
@@ -30,6 +32,7 @@ def _recorded(session: Path) -> list[Any]:
 
 def plan_units(sessions: Sequence[Path], detector: str, device: str | None, stream: str, force: bool,
                mirrored: bool) -> list[Unit]:
+    check_name(stream, "stream", "--stream", ConfigError)  # it names streams/<stream>.csv
     units = []
     for session in sessions:
         path = Path(session).resolve()

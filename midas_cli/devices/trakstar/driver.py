@@ -25,7 +25,8 @@ byte times at the baud rate, at least 0.5 ms; 0 = always wait for the next recor
 16550-class UART hands the host a running transmission in FIFO-trigger chunks of up to 14 bytes, so
 an extra byte sent right after a record reaches the host within that window; 0.5 ms covers the tty
 layer's and the scheduler's delays. A USB-serial adapter holds bytes back up to its latency timer
-(FTDI: 16 ms unless set lower): set its latency timer to 1 ms, or ``idle`` above it. ``read`` never
+(FTDI: 16 ms unless set lower): ``open`` sets it to 1 ms where permitted (:mod:`~midas_cli.devices.usbserial`,
+recorded in the info as ``usb_serial``); else set it by hand, or ``idle`` above it. ``read`` never
 blocks longer than 5 ms; the idle window is waited on the port's file descriptor (ports without one,
 e.g. pyserial's ``socket://``, always wait for the next record).
 """
@@ -42,6 +43,7 @@ import serial
 from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.emht_layout import emht_stream, first_seq, resume_seq
 from midas_cli.devices.trakstar import protocol as fob
+from midas_cli.devices.usbserial import prepare_port
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import StreamSpec
 
@@ -146,8 +148,9 @@ class FobEmHT(Device):
             raise DeviceError(f"{self.name}: cannot open serial port {self.port_path}: {exc} "
                               f"(is the trakSTAR connected and switched on, and is the port right?)") from exc
         self._fd = self._port_fd()
+        adapter = prepare_port(self.port_path, self._fd)
         try:
-            info = self._configure()
+            info = {**self._configure(), "usb_serial": adapter.as_dict()}
         except (serial.SerialException, OSError) as exc:
             self.close()
             raise DeviceError(f"{self.name}: serial port {self.port_path} failed while configuring: {exc}") from exc
