@@ -48,7 +48,7 @@ def _check_mcap(session_path: Path, out: Path) -> None:
                   for cid, topics_id in summary.channels.items()}
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
         first: dict[str, list] = {}
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
             first.setdefault(channel.topic, []).append((message.log_time, message.data))
     assert json.loads(metadata["midas.manifest"]["manifest.json"]) == session.manifest
     for name in session.stream_names:
