@@ -307,3 +307,53 @@ def test_only_six_dof_sensors_become_transforms() -> None:
     assert [(s.name, s.parent_frame) for s in sensors] == [("s1", "emht_transmitter"), ("s2", "emht_transmitter")]
     assert sensors[1].angles == ("s2_azimuth_deg", "s2_elevation_deg", "s2_roll_deg")
     assert sensor_columns(handkp_spec("handkp", 30.0)) == []  # positions without orientation: a time series only
+
+
+def _session_with_console_video(root: Path, colours: list[tuple[int, int, int]]) -> Path:
+    """A session with a 30 fps frame clock (`video` stream) and its recording in video/ (MJPG, not H.264:
+    the export must re-encode), one solid colour per frame."""
+    import cv2
+
+    from midas_cli.clock import HostClock
+    from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    spec = StreamSpec("video", "video", (SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")), 30.0)
+    clock = HostClock.anchored_now()
+    writer = SessionWriter.create(root, SessionMetadata("1", "console", 1), clock, {"video": {"kind": "video"}}, [spec])
+    (writer.folder / "video").mkdir(exist_ok=True)
+    video = cv2.VideoWriter(str(writer.folder / "video" / "console.mkv"), cv2.VideoWriter_fourcc(*"MJPG"), 30, (64, 48))
+    for colour in colours:
+        video.write(np.full((48, 64, 3), colour, dtype=np.uint8))
+    video.release()
+    t0 = clock.now_ns()
+    writer.append("video", spec.format_rows([(k, t0 + k * 33_333_333, k / 30) for k in range(len(colours))]))
+    writer.finalize("complete", "test", t0 + 10**9, {})
+    return writer.folder
+
+
+def test_mcap_with_video_has_the_console_recording_as_h264_foxglove_plays(tmp_path: Path) -> None:
+    """One CompressedVideo message per frame at the frame clock's time; a key frame decodes alone (Annex B
+    with its SPS), read back by Foxglove's packages and decoded by OpenCV's FFmpeg."""
+    import base64
+
+    import cv2
+
+    from midas_cli.interop.mcap_export import write_mcap
+
+    colours = [(0, 0, 250)] * 20 + [(0, 250, 0)] * 20 + [(250, 0, 0)] * 5  # BGR, 45 frames
+    session = Session.open(_session_with_console_video(tmp_path / "in", colours))
+    assert write_mcap(session, tmp_path / "s.mcap", with_video=True)["messages"]["/video/h264"] == len(colours)
+    video = read_with_foxglove(tmp_path / "s.mcap")["topics"]["/video/h264"]
+    assert video["schema"] == "foxglove.CompressedVideo" and video["count"] == len(colours)
+    rows = session.read_stream("video")
+    for message, colour, t_ns in ((video["first"], colours[0], rows["t_host_ns"].iloc[0]),
+                                  (video["last"], colours[-1], rows["t_host_ns"].iloc[-1])):
+        assert message["format"] == "h264" and message["frame_id"] == "endoscope"
+        assert int(message["timestamp"]["seconds"]) * 10**9 + message["timestamp"]["nanos"] == int(t_ns)
+    first = tmp_path / "first.h264"
+    first.write_bytes(base64.b64decode(video["first"]["data"]))
+    capture = cv2.VideoCapture(str(first))
+    ok, image = capture.read()
+    capture.release()
+    assert ok and image.shape == (48, 64, 3) and np.abs(image.mean(axis=(0, 1)) - colours[0]).max() < 12

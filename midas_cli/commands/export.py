@@ -15,12 +15,13 @@ def export(sessions: list[Path] = SESSIONS_ARG,
                                              "separate with commas)."),
            out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),
            with_video: bool = typer.Option(False, "--with-video", help="MCAP: also the RGB-D frames as JPEG "
-                                           "images (every frame decoded and re-encoded: slow)."),
+                                           "images and the console recording as H.264 video (every frame "
+                                           "decoded and re-encoded: slow; the video needs ffmpeg)."),
            as_json: bool = JSON_OPTION) -> None:
     """Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) and/or LeRobot datasets.
 
     Per session: <out>/<id>.mcap (for Foxglove: a topic per stream, EmHT poses, markers as logs, labels,
-    the manifest as metadata; --with-video: the RGB-D frames as images),
+    the manifest as metadata; --with-video: the RGB-D frames as images, the console video as H.264),
     <out>/<id>/<stream>.parquet (+ labels_<set>.parquet, aligned.parquet), <out>/<id>.xdf (a stream per
     stream, units in the headers, clock offsets 0: the host clock is the session's only clock),
     <out>/<id>.lerobot/ (a LeRobot v3.0 dataset of one episode on the aligned frame clock; needs

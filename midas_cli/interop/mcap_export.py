@@ -8,7 +8,9 @@ Topics (see :mod:`midas_cli.interop.foxglove_topics` for the schemas):
   quaternions, frames ``<stream>/<sensor>`` in the transmitter's frame;
 * with ``with_video``: ``/<stream>/image`` (``foxglove.CompressedImage``, JPEG, frame id ``<stream>``)
   for each stream of RGB-D frames (columns ``file`` and ``frame`` into ``video/<device>_NNN.mkv``): one
-  message per recorded frame, the side-by-side stereo pair as recorded, re-encoded as JPEG;
+  message per recorded frame, the side-by-side stereo pair as recorded, re-encoded as JPEG; and the
+  console (endoscope) recording in ``video/`` as ``/video/h264`` (``foxglove.CompressedVideo``, H.264
+  without B-frames, one message per frame on the frame clock; interop/mcap_video.py);
 * ``/labels/<name>``: one JSON message ``{"label", "frame"}`` per labelled video frame, timed on the
   frame clock (the ``/video`` stream's ``seq`` is the frame index labels count in), for a
   state-transitions panel on ``/labels/<name>.label``.
@@ -32,6 +34,7 @@ from midas_cli.interop.common import FRAME_STREAM, frame_clock, json_columns, la
 from midas_cli.interop.foxglove_topics import (json_row, marker_log, transforms_message,
                                                sensor_columns, sensor_poses, stream_json_schema,
                                                timestamp)
+from midas_cli.interop.mcap_video import write_console_video
 from midas_cli.record.markers import EVENTS_STREAM
 from midas_cli.session.outputs import replacing
 from midas_cli.session.reader import Session
@@ -62,6 +65,8 @@ def write_mcap(session: Session, target: Path, with_video: bool = False) -> dict
                 _write_stream(session, name, context, counts)
                 if with_video and is_frame_stream(session.stream_spec(name)):
                     _write_images(session, name, context, counts)
+            if with_video:
+                write_console_video(session, context, counts)
             _write_labels(session, context, writer, counts)
             writer.write_metadata("midas.manifest", {"manifest.json": json.dumps(session.manifest)})
     return {"file": str(target), "messages": counts}
