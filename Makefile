@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= sessions
 
-.PHONY: install demo test test-fast lint clean
+.PHONY: install demo test test-slow lint clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -21,15 +21,17 @@ demo: install
 	$(BIN)/midas session info "$$(tail -n 1 $(VENV)/demo-path.txt)"
 	$(BIN)/midas session verify "$$(tail -n 1 $(VENV)/demo-path.txt)"
 
+# The suite (about 15 minutes on 2 cores); the long checks marked `slow` run with `make test-slow`
+# (.ci/run runs both).
 test: install
-	$(BIN)/python -m pytest -q -rs
+	$(BIN)/python -m pytest -q -rs -m "not slow"
+
+test-slow: install
+	$(BIN)/python -m pytest -q -rs -m slow
 
 lint: install
 	$(BIN)/ruff check midas_cli tests benchmarks
 	$(BIN)/mypy
-
-test-fast: install
-	$(BIN)/python -m pytest -q -m "not slow"
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
