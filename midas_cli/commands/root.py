@@ -46,7 +46,7 @@ COMMAND_SUMMARIES: dict[str, str] = {
     "record": "Record a session from the rig's devices into a new session folder.",
     "mark": "Add a marker to the running recording's events stream.",
     "align": "Align each session's streams onto its video frame clock.",
-    "export": "Export sessions as MCAP (Foxglove), Parquet and/or XDF (LSL) files.",
+    "export": "Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) and/or LeRobot datasets.",
     "replay": "Play a session's streams back as live LSL outlets with their recorded timing.",
     "plot": "Draw a quick-look page of a session: every stream against session time.",
     "doctor": "Report versions, serial ports, OBS reachability, GPU and free disk.",
