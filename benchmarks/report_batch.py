@@ -39,7 +39,11 @@ def export_section(e: dict) -> list[str]:
     lines += ["", "MCAP is written with foxglove-sdk since issue 24: besides the JSON rows, every EmHT row is a "
               "`foxglove.FrameTransforms` message (4 sensors, float64 metres and quaternions), which compresses far "
               "less than the JSON text. The JSON-only file it replaced took 47.5 s and 228 MB for the 60-minute "
-              "session (2026-11-25, load 2–4): about 3x the time and 2x the size now, for the 3-D panel."]
+              "session (2026-11-25, load 2–4): about 2–3x the time and 2x the size now, for the 3-D panel.",
+              "",
+              "LeRobot reads the aligned table (`midas align` runs first, untimed) and writes one episode; this "
+              "session has no console recording, so no video is encoded (a session with one also copies its "
+              "frames to MP4: not timed here). Parquet also writes `aligned.parquet` for an aligned session."]
     return lines + [""]
 
 
