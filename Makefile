@@ -21,7 +21,7 @@ demo: install
 	$(BIN)/midas session info "$$(tail -n 1 $(VENV)/demo-path.txt)"
 	$(BIN)/midas session verify "$$(tail -n 1 $(VENV)/demo-path.txt)"
 
-# The suite (about 15 minutes on 2 cores); the long checks marked `slow` run with `make test-slow`
+# The suite (about 17 minutes on 2 cores); the long checks marked `slow` run with `make test-slow`
 # (.ci/run runs both).
 test: install
 	$(BIN)/python -m pytest -q -rs -m "not slow"

@@ -136,6 +136,7 @@ def test_select_model_picks_by_held_out_rmse_and_keeps_both_errors() -> None:
     assert select_model(cv(2.0, 1.0), ["rigid"])["best"] == "rigid"
 
 
+@pytest.mark.slow
 def test_collapsed_mlp_is_reported_not_used_by_default_and_marked_in_the_table(tmp_path: Path) -> None:
     sessions = [str(raven_session(tmp_path, trial=k, duration_s=15.0, seed=k)) for k in (1, 2)]
     # a huge weight decay and 3 epochs: the direct HandKP MLP cannot beat the hand-eye rigid fit

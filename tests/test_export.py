@@ -127,6 +127,7 @@ def test_simulated_session_round_trips(simulated: tuple[Path, Path]) -> None:
     _check_xdf(session, out)
 
 
+@pytest.mark.slow
 def test_small_pieces_give_the_same_files(simulated: tuple[Path, Path], tmp_path: Path, monkeypatch) -> None:
     """Streams are read a piece at a time: many small pieces give the same values."""
     from midas_cli.interop.export import export_session

@@ -18,7 +18,7 @@ from helpers.cli import midas
 from helpers.gesture_sessions import write_gesture_session
 from midas_cli.session.derived import read_aligned
 
-pytestmark = pytest.mark.slurm
+pytestmark = [pytest.mark.slurm, pytest.mark.slow]  # a real one-node cluster: long checks (make test-slow)
 WAIT_S = 300  # a loaded CI machine is slow; nothing here assumes speed
 
 

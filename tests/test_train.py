@@ -88,6 +88,7 @@ def test_grid_rows_parse_and_title_like_the_paper():
         parse_grid("emht")
 
 
+@pytest.mark.slow
 def test_cli_train_eval_only_and_ablation(sessions, tmp_path):
     root = str(sessions[0].parent)
     run = midas("train", "gestures", root, "--model", "transformer", "--epochs", "1", "--seed", "1",
