@@ -24,7 +24,7 @@ from midas_cli.console import dashboard
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.session.reader import Session
-from helpers.cli import midas
+from helpers.cli import midas, wait_for as _wait_for
 from helpers.net import free_port
 
 META = ("--subject", "1", "--task", "suturing", "--trial", "1")
@@ -37,16 +37,6 @@ def _spawn(out: Path, *extra: str, group: bool = False, faulthandler: bool = Fal
     return subprocess.Popen([sys.executable, "-m", "midas_cli", "record", "--out", str(out), *META, *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             start_new_session=group)
-
-
-def _wait_for(predicate, timeout_s: float = 60.0, step_s: float = 0.002):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(step_s)
-    raise AssertionError("timed out waiting")
 
 
 def _manifest_appeared(out: Path):

@@ -27,6 +27,7 @@ from midas_cli.record.spawn import reap_workers, start_worker
 from midas_cli.session.integrity import verify_session
 from midas_cli.session.reader import Session
 from midas_cli.session.writer import SessionMetadata
+from helpers.cli import wait_for
 
 META = ("--subject", "1", "--task", "suturing", "--trial", "1")
 STATUS = {signal.SIGINT: "complete", signal.SIGTERM: "interrupted"}
@@ -50,16 +51,6 @@ def _signals(pid: int, field: str) -> int:
 
 def _bit(signum: int) -> int:
     return 1 << (signum - 1)
-
-
-def _wait_for(predicate, timeout_s: float = 60.0, step_s: float = 0.001):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(step_s)
-    raise AssertionError("timed out waiting")
 
 
 def _group_members(pgid: int) -> list[int]:
@@ -160,11 +151,11 @@ def _has_rows(out: Path) -> bool:
 
 def _send_at(process: subprocess.Popen, out: Path, anchor: str, delay_ms: int, sig: signal.Signals) -> None:
     if anchor == "midas":  # __main__ has installed its handlers: midas code is running
-        _wait_for(lambda: _signals(process.pid, "SigCgt") & _bit(signal.SIGTERM) or process.poll() is not None)
+        wait_for(lambda: _signals(process.pid, "SigCgt") & _bit(signal.SIGTERM) or process.poll() is not None, step_s=0.001)
     elif anchor == "manifest":
-        _wait_for(lambda: next(out.glob("*/manifest.json"), None) or process.poll() is not None)
+        wait_for(lambda: next(out.glob("*/manifest.json"), None) or process.poll() is not None, step_s=0.001)
     else:
-        _wait_for(lambda: _has_rows(out) or process.poll() is not None)
+        wait_for(lambda: _has_rows(out) or process.poll() is not None, step_s=0.001)
     time.sleep(delay_ms / 1000)
     try:
         os.killpg(process.pid, sig)
@@ -202,7 +193,7 @@ def _record_and_signal(out: Path, anchor: str, delay_ms: int, sig: signal.Signal
     try:
         _send_at(process, out, anchor, delay_ms, sig)
         _, stderr = process.communicate(timeout=60)
-        _wait_for(lambda: not _group_members(process.pid), timeout_s=30, step_s=0.05)  # nothing left behind
+        wait_for(lambda: not _group_members(process.pid), timeout_s=30, step_s=0.05)  # nothing left behind
     finally:
         for pid in _group_members(process.pid):
             os.kill(pid, signal.SIGKILL)

@@ -29,6 +29,20 @@ def midas(*args: str, timeout: float = 120, check: bool = False, env: dict[str, 
     return result
 
 
+def wait_for(predicate, timeout_s: float = 60.0, step_s: float = 0.002):
+    """``predicate()``'s first true value, polled every ``step_s`` for up to ``timeout_s`` (AssertionError
+    after that)."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(step_s)
+    raise AssertionError("timed out waiting")
+
+
 SPEC = StreamSpec("demo", "demo", (SEQ, T_HOST, Column("x_mm", "float", "mm", 2)), 100.0)
 
 
