@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -194,6 +195,12 @@ def test_shell_completion_answers_from_the_commands(words: str, cword: int, expe
 
 
 def test_completion_script_is_offered() -> None:
-    result = subprocess.run([sys.executable, "-m", "midas_cli", "--show-completion", "bash"], capture_output=True,
-                            text=True, timeout=120)
-    assert result.returncode == 0 and "_MIDAS_COMPLETE=complete_bash" in result.stdout
+    # typer finds the user's shell from the parent process: run it from bash, as a user's terminal does
+    # (CI's own parent is sh, which typer does not support). `; true` keeps bash from exec-ing python.
+    command = f"{shlex.quote(sys.executable)} -m midas_cli --show-completion; true"
+    result = subprocess.run(["bash", "-c", command], capture_output=True, text=True, timeout=120)
+    assert "_MIDAS_COMPLETE=complete_bash" in result.stdout, result.stderr
+    # the script is also reachable without any shell detection, the way click documents it
+    env = {**os.environ, "_MIDAS_COMPLETE": "source_bash"}
+    result = subprocess.run([sys.executable, "-m", "midas_cli"], capture_output=True, text=True, env=env, timeout=120)
+    assert result.returncode == 0 and "_MIDAS_COMPLETE=complete_bash" in result.stdout, result.stderr
