@@ -15,8 +15,9 @@ from typing import Any, Sequence
 from midas_cli import __version__
 from midas_cli.analysis.align import AlignOptions, align_and_write
 from midas_cli.jobs.rundir import Unit, file_digest, fingerprint
+from midas_cli.jobs.tasks import task_name
 
-TASK = "align"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 
 
 def session_inputs(session: Path) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.table import Table
@@ -13,7 +13,11 @@ from midas_cli.commands import executor as ex
 from midas_cli.commands.common import err, error_line, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG, renamed_option, take_renamed
 
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import BatchOptions
 
+
+@ex.batch_command
 def align(
     sessions: list[Path] = SESSIONS_ARG,
     method: str = typer.Option("causal", "--method", help=f"Sample chosen per frame: {' or '.join(METHODS)} "
@@ -34,15 +38,8 @@ def align(
                              "slow for long sessions: the npz holds the exact values). Without it, an "
                              "aligned.csv left by an earlier run is removed."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Align each session's streams onto its video frame clock.
 
@@ -64,8 +61,7 @@ def align(
     """
     from midas_cli.analysis.align_units import TASK, plan_units
 
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
+    choice = batch.choice()
     downsample = take_renamed(downsample, rate, "--rate", "--downsample", error_line)
     options = AlignOptions(method=method, rate_hz=downsample, clock_hz=parse_clock(clock), model=model, times=times)
     outcome = ex.run_plan(TASK, plan_units(sessions, options, csv), choice, "aligning sessions")
@@ -78,7 +74,7 @@ def align(
             err.print(f"midas: warning: {r['session']}: {warning}", markup=False, highlight=False, soft_wrap=True)
     if as_json:
         print_json(results)
-        ex.raise_failed(outcome, "sessions")
+        outcome.raise_failed("sessions")
         return
     table = Table("session", "frames", "columns", "masked (per stream)", "calibrations", header_style="bold")
     for r in results:
@@ -87,5 +83,5 @@ def align(
                       ", ".join(f"{Path(c).stem} ({m})" for c, m in r["calibration_models"].items()) or "—")
     if results:
         out.print(table)
-    ex.raise_failed(outcome, "sessions")
+    outcome.raise_failed("sessions")
 

@@ -1,31 +1,33 @@
-"""`--executor local|slurm` for the commands that loop over units (sessions, folds): the shared options,
-the registry of unit tasks, and running a plan to the end with a progress line.
+"""`--executor local|slurm` for the commands that loop over units (sessions, folds): the executor options,
+declared once (``@batch_command``), and the terminal's view of a batch run (``jobs/batch.py`` does the
+work: plan, run here or on SLURM, wait, collect).
 
-A command plans its units (``Unit``: args + input fingerprint), then ``run_plan`` writes them into a run
-folder, skips the units done with the same fingerprint, runs the rest here (``--jobs N``) or submits
-them as one SLURM array (one task per unit: ``python -m midas_cli jobs run-unit RUN_DIR --unit K``),
-waits (unless ``--no-wait``) and returns every unit's result. Failed units are listed by the caller
-after it has rendered the others' results (``raise_failed``).
+A batch command is decorated with ``@batch_command`` (below ``@app.command()``) and takes
+``batch: BatchOptions`` as its last parameter: the decorator adds the nine options of the "Executor"
+help panel to its signature and hands them over as that one object. The command checks them
+(``batch.choice()``), plans its units, calls ``run_plan`` here, renders the results and ends with
+``raise_failed`` (``jobs/batch.py``).
 """
 
 from __future__ import annotations
 
-import tempfile
+import functools
+import inspect
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Optional, Sequence
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from midas_cli.commands.common import error_line
 from midas_cli.commands.progress import progress_display, progress_interval_s
-from midas_cli.errors import ConfigError, UnitsFailedError
+
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import Display, ExecutorChoice, Outcome
+    from midas_cli.jobs.rundir import Unit
 
 PANEL = "Executor"
-EXECUTORS = ("local", "slurm")
-RUNS_FOLDER = Path("midas-runs")
 
 EXECUTOR_OPT = typer.Option("local", "--executor", rich_help_panel=PANEL, help="local (this machine, --jobs "
                             "workers) or slurm (one SLURM array task per unit; settings from --slurm-* or the "
@@ -46,94 +48,44 @@ GPUS_OPT = typer.Option(None, "--slurm-gpus", rich_help_panel=PANEL, help="GPUs 
 PARALLEL_OPT = typer.Option(None, "--slurm-array-parallelism", rich_help_panel=PANEL, help="Most array tasks "
                             "running at once.")
 
-
-@dataclass
-class ExecutorChoice:
-    executor: str = "local"
-    jobs: int = 1
-    run_dir: Optional[Path] = None
-    wait: bool = True
-    slurm: Any = None  # jobs.slurm.SlurmSettings with --executor slurm: the flags over the config's [slurm]
-
-
-def executor_choice(executor: str, jobs: int, run_dir: Optional[Path], no_wait: bool, partition: Optional[str],
-                    time: Optional[str], mem: Optional[str], gpus: Optional[int],
-                    parallelism: Optional[int]) -> ExecutorChoice:
-    """The executor options of a command, checked (one-line ConfigError on a bad one), with slurm the
-    settings too (flags and the config's ``[slurm]``, in SLURM's grammar) before any work starts."""
-    if executor not in EXECUTORS:
-        raise ConfigError(f"--executor must be {' or '.join(EXECUTORS)}, got {executor!r}")
-    if jobs < 1:
-        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    flags = {"partition": partition, "time": time, "mem": mem, "gpus": gpus, "array_parallelism": parallelism}
-    if executor == "local":
-        given = [f"--slurm-{k.replace('_', '-')}" for k, v in flags.items() if v is not None]
-        if no_wait or given:
-            raise ConfigError(f"{(['--no-wait'] if no_wait else given)[0]} needs --executor slurm")
-        return ExecutorChoice(executor, jobs, run_dir, not no_wait)
-    if jobs != 1:
-        raise ConfigError("--jobs is for --executor local; SLURM runs every unit as its own task "
-                          "(--slurm-array-parallelism caps how many at once)")
-    from midas_cli import config
-    from midas_cli.jobs.slurm import SlurmSettings
-
-    return ExecutorChoice(executor, jobs, run_dir, not no_wait, SlurmSettings.merged(flags, config.section("slurm")))
+# The executor options as parameters of a command (names: the fields of jobs.batch.BatchOptions), in the
+# order of the help's "Executor" panel.
+BATCH_PARAMETERS = tuple(
+    inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option, annotation=annotation)
+    for name, option, annotation in (
+        ("executor", EXECUTOR_OPT, str), ("jobs", JOBS_OPT, int), ("run_dir", RUN_DIR_OPT, Optional[Path]),
+        ("no_wait", NO_WAIT_OPT, bool), ("slurm_partition", PARTITION_OPT, Optional[str]),
+        ("slurm_time", TIME_OPT, Optional[str]), ("slurm_mem", MEM_OPT, Optional[str]),
+        ("slurm_gpus", GPUS_OPT, Optional[int]), ("slurm_array_parallelism", PARALLEL_OPT, Optional[int])))
 
 
-def task_function(task: str) -> Callable[..., dict[str, Any]]:
-    """The library function that runs one unit of ``task`` (plan.json's task)."""
-    if task == "align":
-        from midas_cli.analysis.align_units import run_unit
-        return run_unit
-    if task == "train-fold":
-        from midas_cli.models.cv_units import run_unit
-        return run_unit
-    if task == "image-features":
-        from midas_cli.models.image_features_units import run_unit
-        return run_unit
-    if task == "extract-handkp":
-        from midas_cli.devices.rgbd.handkp_units import run_unit
-        return run_unit
-    if task == "ablation-cell":
-        from midas_cli.models.ablation_units import run_unit
-        return run_unit
-    if task == "pedals-gt":
-        from midas_cli.analysis.pedal_video.units import run_unit
-        return run_unit
-    if task == "simulate-trial":
-        from midas_cli.simulate.dataset_units import run_unit
-        return run_unit
-    raise ConfigError(f"unknown unit task {task!r} in the run folder (a newer midas wrote it?)")
+def batch_command(command: Callable[..., None]) -> Callable[..., None]:
+    """Declare ``command`` a batch command: its signature (what typer reads) gets the executor options
+    after its own, and it is called with them as one ``batch: BatchOptions`` argument."""
+    own = [p for name, p in inspect.signature(command).parameters.items() if name != "batch"]
+
+    @functools.wraps(command)
+    def run(**given: Any) -> None:
+        from midas_cli.jobs.batch import BatchOptions
+
+        batch = BatchOptions(**{p.name: given.pop(p.name) for p in BATCH_PARAMETERS})
+        command(**given, batch=batch)
+
+    signature = inspect.Signature([*own, *BATCH_PARAMETERS])
+    run.__signature__ = signature  # type: ignore[attr-defined]
+    run.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
+    return run
 
 
-@dataclass
-class Outcome:
-    """Every unit's result in plan order (None where it has none), and the failed units' states."""
-
-    run_dir: Optional[Path]  # None: a temporary one, gone
-    results: list[Any]
-    failed: list[Any]
-    submitted: Optional[str] = None  # the SLURM job id when not waited for
-
-
-def run_plan(task: str, units: Sequence[Any], choice: ExecutorChoice, label: str,
-             extra: Optional[dict[str, Any]] = None, progress: Any = None) -> Outcome:
-    """Run ``units`` of ``task`` with ``choice``; ``extra`` keyword arguments go to the task function when
-    units run in this process (a progress callback); ``progress``: the caller's open progress display."""
-    from midas_cli.jobs.rundir import RunDir, fingerprint
+def run_plan(task: str, units: Sequence[Unit], choice: ExecutorChoice, label: str,
+             extra: Optional[dict[str, Any]] = None, progress: Optional[Display] = None) -> Outcome:
+    """``jobs.batch.run_plan`` in this terminal: its lines on stderr, its bar on ``progress`` (the caller's
+    open display) or a display of its own; ``extra``: keyword arguments for units run in this process."""
+    from midas_cli.jobs.batch import Watch
+    from midas_cli.jobs.batch import run_plan as run
 
     progress_interval_s()  # a bad MIDAS_PROGRESS_INTERVAL_S is a usage error before any work, shown or not
-    if choice.run_dir is not None:
-        return _run_in(RunDir(choice.run_dir), task, units, choice, label, extra, progress)
-    if choice.executor == "slurm":
-        key = fingerprint(task, sorted(u.name for u in units))  # not the options: a change makes units stale
-        return _run_in(RunDir(RUNS_FOLDER / f"{task}-{key}"), task, units, choice, label, extra, progress)
-    with tempfile.TemporaryDirectory(prefix=f"midas-{task}-") as tmp:
-        outcome = _run_in(RunDir(tmp), task, units, choice, label, extra, progress)
-        for status in outcome.failed:
-            status.log = None  # the temporary run folder goes: the error line says it all
-        outcome.run_dir = None
-        return outcome
+    return run(task, units, choice, label, Watch(error_line, lambda: _display(progress)), extra)
 
 
 def unit_progress():
@@ -150,82 +102,6 @@ def _display(given: Any) -> Iterator[Any]:
         return
     with unit_progress() as progress:
         yield progress
-
-
-def _run_in(run_dir, task: str, units: Sequence[Any], choice: ExecutorChoice, label: str,
-            extra: Optional[dict[str, Any]], shown: Any) -> Outcome:
-    from midas_cli.jobs import slurm, status
-    from midas_cli.jobs.local import run_local
-    from midas_cli.jobs.rundir import Plan, now_utc
-
-    if choice.executor == "slurm":
-        busy = slurm.in_use(run_dir) if (run_dir.path / "submissions.json").exists() else None
-        if busy:
-            raise ConfigError(f"run folder {run_dir.path} is in use by SLURM job {busy} (still queued or running): "
-                              f"wait for it (midas jobs status {run_dir.path}) or cancel it (scancel {busy})")
-    plan = run_dir.write_plan(Plan(task, list(units)))
-    todo = [u.index for u in plan.units if not run_dir.is_done(u)]
-    if len(todo) < len(plan.units):
-        error_line(f"midas: {len(plan.units) - len(todo)} of {len(plan.units)} units done already (same inputs): "
-                   f"skipped ({run_dir.path})")
-    job_id = None
-    if todo and choice.executor == "local":
-        run_dir.add_submission({"executor": "local", "units": todo, "submitted": now_utc(), "jobs": choice.jobs})
-        fn = task_function(task)
-        if len(todo) == 1:  # one unit: its own progress (if any) says it all
-            run_local(run_dir, todo, fn, 1, **(extra or {}))
-        else:
-            with _display(shown) as progress:
-                bar = progress.add_task(label, total=len(todo), info="")
-                run_local(run_dir, todo, fn, choice.jobs, on_unit=lambda k, ok: progress.advance(bar), **(extra or {}))
-    elif todo:
-        entry = slurm.submit(run_dir, task, todo, choice.slurm)
-        run_dir.add_submission({**entry, "submitted": now_utc()})
-        job_id = entry["job_id"]
-        error_line(f"midas: submitted SLURM job {job_id}: {len(todo)} array tasks ({entry['script']}); "
-                   f"follow with: midas jobs status {run_dir.path}")
-        if not choice.wait:
-            return Outcome(run_dir.path, [], [], submitted=job_id)
-        _wait(run_dir, todo, job_id, label, shown)
-    found = status.statuses(run_dir)
-    results = [(run_dir.read_marker(s.index, "done") or {}).get("result") if s.state == "done" else None
-               for s in found]
-    return Outcome(run_dir.path, results, [s for s in found if s.state != "done"])
-
-
-def _wait(run_dir, todo: list[int], job_id: str, label: str, shown: Any) -> None:
-    from midas_cli.jobs import status
-
-    with _display(shown) as progress:
-        bar = progress.add_task(label, total=len(todo), info="")
-
-        def update(found) -> None:
-            n = status.counts(found)
-            progress.update(bar, completed=n["done"] + n["failed"],
-                            info=f"queued {n['queued']}, running {n['running']}, failed {n['failed']}")
-        try:
-            status.wait(run_dir, todo, update)
-        except KeyboardInterrupt:
-            error_line(f"midas: stopped waiting; SLURM job {job_id} goes on (midas jobs status {run_dir.path}; "
-                       f"scancel {job_id} stops it)")
-            raise
-
-
-def raise_failed(outcome: Outcome, what: str = "units") -> None:
-    """UnitsFailedError naming every unit that did not finish (with its error and log), if any."""
-    if not outcome.failed:
-        return
-    parts = []
-    for s in outcome.failed:
-        where = f" (log {s.log})" if s.log and s.state == "failed" else ""
-        parts.append(f"{s.name}: {s.state}" + (f": {s.error}" if s.error else "") + where)
-    kept = f" (run folder {outcome.run_dir})" if outcome.run_dir else ""
-    error = UnitsFailedError(f"{len(outcome.failed)} of {len(outcome.results)} {what} did not finish; the others' "
-                             f"results are kept{kept}: " + "; ".join(parts))
-    codes = {s.exit_code for s in outcome.failed}
-    if None not in codes and codes <= {2, 3, 4}:  # every unit failed on a usage/device/data error: say which
-        error.exit_code = max(codes)
-    raise error
 
 
 def submitted_line(outcome: Outcome) -> None:

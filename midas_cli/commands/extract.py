@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
@@ -11,10 +11,14 @@ from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
 from midas_cli.commands.options import JSON_OPTION
 
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import BatchOptions
+
 app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)
 
 
 @app.command()
+@ex.batch_command
 def handkp(
     sessions: list[Path] = typer.Argument(..., help="Session(s) recorded with a stereo camera (uvc://, zed://, "
                                           "sim://rgbd).", file_okay=False),
@@ -24,15 +28,8 @@ def handkp(
     force: bool = typer.Option(False, "--force", help="Replace a HandKP stream an earlier extraction added."),
     mirrored: bool = typer.Option(False, "--mirrored", help="The camera image is mirrored (MediaPipe handedness)."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Detect fingertips in the stereo frames and add the HandKP stream.
 
@@ -46,13 +43,12 @@ def handkp(
     """
     from midas_cli.devices.rgbd.handkp_units import TASK, plan_units
 
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
+    choice = batch.choice()
     units = plan_units(sessions, detector, device, stream, force, mirrored)
     with ex.unit_progress() as progress:
         frames = progress.add_task("extracting hand keypoints", total=None, info="")
         extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total)} \
-            if choice.executor == "local" and choice.jobs == 1 else None
+            if choice.in_process else None
         outcome = ex.run_plan(TASK, units, choice, "sessions", extra, progress)
     if outcome.submitted:
         ex.submitted_line(outcome)
@@ -65,4 +61,4 @@ def handkp(
             out.print(f"{result['stream']}: {result['frames']} frames from {result['device']}, hands detected left "
                       f"{result['detected']['left']} right {result['detected']['right']}, "
                       f"{result['keypoints_with_depth']} fingertips with depth", markup=False, highlight=False)
-    ex.raise_failed(outcome, "sessions")
+    outcome.raise_failed("sessions")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
@@ -12,10 +12,14 @@ from midas_cli.commands.common import out, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.errors import ConfigError
 
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import BatchOptions
+
 app = typer.Typer(help="Extract learned features from recordings.", no_args_is_help=True)
 
 
 @app.command()
+@ex.batch_command
 def image(
     inputs: list[Path] = typer.Argument(..., help="Video file(s) readable by OpenCV, or session folder(s) with one "
                                         "video in video/."),
@@ -29,15 +33,8 @@ def image(
     crop: int = typer.Option(224, "--crop", help="Centre-crop size in pixels (DINOv2: a multiple of 14)."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Encode every frame of VIDEO into an NPZ of image features.
 
@@ -50,12 +47,7 @@ def image(
     from midas_cli.models.image_features import ExtractOptions  # torch: imported on use
     from midas_cli.models.image_features_units import TASK, plan_units
 
-    if device == "cuda" and executor == "slurm" and slurm_gpus is None:
-        from midas_cli.config import section
-
-        slurm_gpus = section("slurm").get("gpus") or 1
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
+    choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     if out_path is not None and len(inputs) > 1:
         raise ConfigError("--out names one output file: give one input, or leave --out out")
     options = ExtractOptions(backbone=backbone, batch_size=batch_size, every=every, resize=max(256, crop),
@@ -63,7 +55,7 @@ def image(
     with ex.unit_progress() as progress:
         frames = progress.add_task(f"{backbone} frames", total=None, info="")
         extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total or None)} \
-            if choice.executor == "local" and choice.jobs == 1 else None
+            if choice.in_process else None
         outcome = ex.run_plan(TASK, plan_units(inputs, weights, options, out_path), choice, "videos", extra, progress)
     if outcome.submitted:
         ex.submitted_line(outcome)
@@ -75,4 +67,4 @@ def image(
         for summary in results:
             out.print(f"{summary['frames']} frames x {summary['dim']} features ({backbone}) -> {summary['out']}",
                       markup=False)
-    ex.raise_failed(outcome, "inputs")
+    outcome.raise_failed("inputs")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import typer
 from rich.table import Table
@@ -13,6 +13,9 @@ from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.errors import ConfigError
 
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import BatchOptions
+
 app = typer.Typer(help="Ground truth read from recordings (pedal states from the console video).",
                   no_args_is_help=True)
 
@@ -20,6 +23,7 @@ REAL_TIME_FPS = 30.0
 
 
 @app.command("pedals")
+@ex.batch_command
 def pedals(
     inputs: list[Path] = typer.Argument(..., help="Session folders (one video in video/) or video files."),
     layout: str = typer.Option("davinci-xi", "--layout", help="Built-in layout name or a layout TOML file."),
@@ -30,15 +34,8 @@ def pedals(
     out_path: Optional[Path] = typer.Option(None, "--out", help="PNG for --preview; CSV for one bare video "
                                             "(default: <video>.pedals_gt.csv beside it)."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Read pedal states from the console video into derived/pedals_gt.csv.
 
@@ -55,8 +52,7 @@ def pedals(
     if preview is not None:
         _preview(inputs, layout, view, preview, out_path, as_json)
         return
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
+    choice = batch.choice()
     if out_path is not None and len(inputs) > 1:
         raise ConfigError("--out names one output file: give one video, or leave --out out")
     requests = [GroundTruthRequest(p, layout, view, min_duration, out_path) for p in inputs]
@@ -64,7 +60,7 @@ def pedals(
     with ex.unit_progress() as progress:
         frames = progress.add_task("frames", total=None, info="")
         extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total or None)} \
-            if choice.executor == "local" and choice.jobs == 1 else None
+            if choice.in_process else None
         outcome = ex.run_plan(TASK, plan_units(requests), choice, "videos", extra, progress)
     if outcome.submitted:
         ex.submitted_line(outcome)
@@ -79,7 +75,7 @@ def pedals(
         print_json(results)
     else:
         _render([r for r in results if r["ok"]])
-    ex.raise_failed(outcome, "inputs")
+    outcome.raise_failed("inputs")
 
 
 def _preview(inputs: list[Path], layout: str, view: str, frame: int, out_path: Optional[Path], as_json: bool) -> None:

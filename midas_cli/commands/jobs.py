@@ -60,10 +60,10 @@ def run_unit_command(
 
     Example: midas jobs run-unit midas-runs/align-3f2a9c0d1e2b4a5c --unit 3
     """
-    from midas_cli.commands.executor import task_function
     from midas_cli.jobs.rundir import RunDir
     from midas_cli.jobs.runner import run_unit
     from midas_cli.jobs.slurm import is_slurm_task
+    from midas_cli.jobs.tasks import task_function
 
     folder = RunDir(run_dir)
     plan = folder.read_plan()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import typer
 
@@ -13,10 +13,14 @@ from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import BatchOptions
+
 app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
 
 
 @app.command("dataset")
+@ex.batch_command
 def dataset(
     out_root: Path = typer.Option(..., "--out", help="Folder to create the session folders in."),
     platform: str = typer.Option("davinci-xi", "--platform", help="davinci-xi (suturing) or raven-ii (peg transfer)."),
@@ -34,15 +38,8 @@ def dataset(
                                          "much (ppm) against true time: its offset to the robot grows over the "
                                          "trial (what `midas eval sync` measures)."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Write a simulated dataset with known ground truth, one session per trial.
 
@@ -56,8 +53,7 @@ def dataset(
     from midas_cli.simulate.dataset import trial_configs
     from midas_cli.simulate.dataset_units import TASK, plan_units
 
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
+    choice = batch.choice()
     configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
                            difficulty, emht_drift_ppm)
     outcome = ex.run_plan(TASK, plan_units(configs), choice, "simulating trials")
@@ -72,7 +68,7 @@ def dataset(
     else:
         for result in results:
             out.print(result["path"], markup=False)
-    ex.raise_failed(outcome, "trials")
+    outcome.raise_failed("trials")
 
 
 @app.command("console-video")

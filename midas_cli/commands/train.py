@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -15,6 +15,9 @@ from midas_cli.commands.options import JSON_OPTION, SESSION_TREES_ARG, renamed_o
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.session.reader import find_sessions
+
+if TYPE_CHECKING:
+    from midas_cli.jobs.batch import BatchOptions
 
 # midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast.
 
@@ -109,6 +112,7 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 
 
 @app.command()
+@ex.batch_command
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
     model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++), transformer (MTRSAP-style with "
@@ -134,15 +138,8 @@ def gestures(
     out_dir: Path = typer.Option(..., "--out", help="New run folder (config, split, metrics, checkpoint, plots)."),
     eval_only: Optional[Path] = typer.Option(None, "--eval-only", help="Evaluate this checkpoint.pt on its test split."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser.
 
@@ -162,13 +159,8 @@ def gestures(
     fold_index = _parse_fold(fold)
     if fold_index is None and split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
-    if device == "cuda" and executor == "slurm" and slurm_gpus is None:
-        from midas_cli.config import section
-
-        slurm_gpus = section("slurm").get("gpus") or 1  # a CUDA fold asks SLURM for a GPU
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
-    if fold_index is not None and (executor != "local" or jobs != 1 or run_dir is not None):
+    choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
+    if fold_index is not None and (batch.executor != "local" or batch.jobs != 1 or batch.run_dir is not None):
         raise ConfigError("--executor, --jobs and --run-dir run the folds of --fold all; one fold is one run")
     paths = session_paths(sessions)
     if eval_only is None and fold_index is None:
@@ -205,12 +197,12 @@ def _train_folds(paths: list[Path], data, config, out_dir: Path, baseline: Optio
         choice.run_dir = out_dir / "jobs"
     with _progress() as progress:  # epochs of the fold training in this process (local, --jobs 1)
         extra = {"progress": _epoch_progress(progress, f"{config.model} epochs")} \
-            if choice.executor == "local" and choice.jobs == 1 else None
+            if choice.in_process else None
         outcome = ex.run_plan(TASK, units, choice, f"{config.model} folds", extra, progress)
     if outcome.submitted:
         ex.submitted_line(outcome)
         return
-    ex.raise_failed(outcome, "folds")
+    outcome.raise_failed("folds")
     _render_cv(cv.summarise(out_dir), out_dir, as_json)
 
 
@@ -240,6 +232,7 @@ def cv_summary(
 
 
 @app.command()
+@ex.batch_command
 def ablation(
     sessions: list[Path] = SESSION_TREES_ARG,
     models: str = typer.Option("transformer,mstcn", "--models", help="Comma list of models (table order)."),
@@ -255,15 +248,8 @@ def ablation(
     device: str = DEVICE_OPT,
     out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
     as_json: bool = JSON_OPTION,
-    executor: str = ex.EXECUTOR_OPT,
-    jobs: int = ex.JOBS_OPT,
-    run_dir: Optional[Path] = ex.RUN_DIR_OPT,
-    no_wait: bool = ex.NO_WAIT_OPT,
-    slurm_partition: Optional[str] = ex.PARTITION_OPT,
-    slurm_time: Optional[str] = ex.TIME_OPT,
-    slurm_mem: Optional[str] = ex.MEM_OPT,
-    slurm_gpus: Optional[int] = ex.GPUS_OPT,
-    slurm_array_parallelism: Optional[int] = ex.PARALLEL_OPT,
+    *,
+    batch: BatchOptions,
 ) -> None:
     """Train every model x grid row and write the paper-style table.
 
@@ -278,12 +264,7 @@ def ablation(
     from midas_cli.models.train import TrainConfig
     from midas_cli.session.outputs import out_folder
 
-    if device == "cuda" and executor == "slurm" and slurm_gpus is None:
-        from midas_cli.config import section
-
-        slurm_gpus = section("slurm").get("gpus") or 1
-    choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
-                                slurm_array_parallelism)
+    choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     paths = session_paths(sessions)
     rows = parse_grid(grid)
     fold_index = _parse_fold(fold)
@@ -295,12 +276,12 @@ def ablation(
     units = plan_units(paths, rows, model_list, base, out_dir, cv=fold_index is None)
     with _progress() as progress:
         extra = {"progress": _epoch_progress(progress, "epochs")} \
-            if choice.executor == "local" and choice.jobs == 1 else None
+            if choice.in_process else None
         outcome = ex.run_plan(TASK, units, choice, "ablation runs", extra, progress)
     if outcome.submitted:
         ex.submitted_line(outcome)
         return
-    ex.raise_failed(outcome, "ablation cells")
+    outcome.raise_failed("ablation cells")
     report = finish_ablation(out_dir, outcome.results, base, fold_index is None)
     if as_json:
         print_json(report)

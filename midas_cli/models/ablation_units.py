@@ -20,11 +20,12 @@ from typing import Any, Callable, Sequence
 from midas_cli import __version__
 from midas_cli.errors import MidasError
 from midas_cli.jobs.rundir import Unit, file_digest, fingerprint
+from midas_cli.jobs.tasks import task_name
 from midas_cli.models.ablation import MODEL_TITLES, GridRow, run_cell
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.train import TrainConfig
 
-TASK = "ablation-cell"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 log = logging.getLogger(__name__)
 
 

@@ -20,12 +20,13 @@ from typing import Any, Callable, Sequence
 from midas_cli import __version__
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.rundir import Unit, fingerprint
+from midas_cli.jobs.tasks import task_name
 from midas_cli.models import cv
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.splits import GROUP_SPLITS, fold_groups
 from midas_cli.session.outputs import out_folder
 
-TASK = "train-fold"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 log = logging.getLogger(__name__)
 
 

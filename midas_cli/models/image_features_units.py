@@ -15,11 +15,12 @@ from typing import Any, Callable, Sequence
 from midas_cli import __version__
 from midas_cli.errors import SessionError
 from midas_cli.jobs.rundir import Unit, fingerprint
+from midas_cli.jobs.tasks import task_name
 from midas_cli.models.image_features import ExtractOptions, extract_features
 from midas_cli.session.manifest import MANIFEST_NAME
 from midas_cli.session.pedals_gt import session_videos
 
-TASK = "image-features"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 SESSION_OUTPUT = Path("derived") / "image_features.npz"
 
 

@@ -13,9 +13,10 @@ from typing import Any, Sequence
 
 from midas_cli import __version__
 from midas_cli.jobs.rundir import Unit, fingerprint
+from midas_cli.jobs.tasks import task_name
 from midas_cli.simulate.trial import TrialConfig, write_trial
 
-TASK = "simulate-trial"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 
 
 def plan_units(configs: Sequence[TrialConfig]) -> list[Unit]:

@@ -14,8 +14,9 @@ from midas_cli import __version__
 from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest, resolve_input, run_ground_truth
 from midas_cli.errors import MidasError
 from midas_cli.jobs.rundir import Unit, file_digest, fingerprint
+from midas_cli.jobs.tasks import task_name
 
-TASK = "pedals-gt"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 
 
 def _inputs(request: GroundTruthRequest) -> Any:

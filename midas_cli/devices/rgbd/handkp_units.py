@@ -14,9 +14,10 @@ from midas_cli import __version__
 from midas_cli.devices.rgbd.handkp import extract_handkp
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.rundir import Unit, fingerprint
+from midas_cli.jobs.tasks import task_name
 from midas_cli.session.names import check_name
 
-TASK = "extract-handkp"
+TASK = task_name(__name__)  # registered in jobs/tasks.py
 
 
 def _recorded(session: Path) -> list[Any]:
