@@ -66,6 +66,70 @@ def test_slurm_settings_flags_over_config_and_the_sbatch_arguments():
         sbatch_arguments(RunDir("/shared/run%j"), "align", [0], settings)
 
 
+@pytest.mark.parametrize(("config", "flag", "gpus"), [("", None, 1), ("[slurm]\ngpus = 2\n", None, 2),
+                                                      ("[slurm]\ngpus = 2\n", 0, 0), ("[slurm]\ngpus = 0\n", None, 1)])
+def test_units_that_need_a_gpu_ask_slurm_for_one_unless_the_flag_says_otherwise(tmp_path, monkeypatch, config, flag,
+                                                                                  gpus):
+    from midas_cli.jobs.options import BatchOptions
+
+    (tmp_path / "config.toml").write_text(config, encoding="utf-8")
+    monkeypatch.setenv("MIDAS_CONFIG", str(tmp_path / "config.toml"))
+    options = BatchOptions(executor="slurm", slurm_gpus=flag)
+    assert options.choice(gpu=True).slurm.gpus == gpus
+    assert options.choice().slurm.gpus == (flag if flag is not None else int(config[-2:-1] or 0))  # no GPU asked
+    local = BatchOptions(jobs=3).choice(gpu=True)
+    assert (local.executor, local.jobs, local.slurm, local.in_process) == ("local", 3, None, False)
+
+
+def test_a_batch_command_declares_the_executor_options_once_and_gets_them_as_one_object(tmp_path):
+    import typer
+    from typer.testing import CliRunner
+
+    from midas_cli.commands.executor import batch_command
+    from midas_cli.jobs.options import BatchOptions
+
+    app, seen = typer.Typer(), []
+
+    @app.command()
+    @batch_command
+    def work(name: str = typer.Argument(...), loud: bool = typer.Option(False, "--loud"), *, batch) -> None:
+        """Work on NAME."""
+        seen.append((name, loud, batch))
+
+    @app.command()
+    def other() -> None:
+        """Another command (so that typer keeps the command names)."""
+
+    runner = CliRunner()
+    given = ["work", "a", "--run-dir", str(tmp_path), "--executor", "slurm", "--slurm-gpus", "2", "--no-wait", "--loud"]
+    assert runner.invoke(app, given).exit_code == 0
+    assert seen == [("a", True, BatchOptions(executor="slurm", run_dir=tmp_path, no_wait=True, slurm_gpus=2))]
+    shown = runner.invoke(app, ["work", "--help"], env={"COLUMNS": "200", "NO_COLOR": "1"}).output
+    assert "Work on NAME." in shown and shown.index("--loud") < shown.index("Executor") < shown.index("--executor")
+    for flag in EXECUTOR_FLAGS:
+        assert flag in shown[shown.index("Executor"):], flag
+
+
+EXECUTOR_FLAGS = ("--executor", "--jobs", "--run-dir", "--no-wait", "--slurm-partition", "--slurm-time", "--slurm-mem",
+                  "--slurm-gpus", "--slurm-array-parallelism")
+
+
+def test_the_seven_batch_commands_have_the_executor_options_in_their_executor_panel():
+    import typer.main
+
+    from midas_cli.commands.main import build_app
+
+    root = typer.main.get_command(build_app())
+    paths = [["align"], ["train", "gestures"], ["train", "ablation"], ["simulate", "dataset"],
+             ["ground-truth", "pedals"], ["extract", "handkp"], ["features", "image"]]
+    for path in paths:
+        command = root
+        for name in path:
+            command = command.commands[name]
+        panel = [p.opts[0] for p in command.params if getattr(p, "rich_help_panel", None) == "Executor"]
+        assert tuple(panel) == EXECUTOR_FLAGS, path
+
+
 @pytest.mark.parametrize(("bad", "named"), [
     ({"time": "soon"}, "--slurm-time"), ({"time": "10\n"}, "--slurm-time"), ({"time": "1:2:3:4"}, "--slurm-time"),
     ({"time": "\uff11\uff10"}, "--slurm-time"), ({"mem": "lots"}, "--slurm-mem"), ({"mem": "8GB"}, "--slurm-mem"),
@@ -175,26 +239,40 @@ def test_a_slurm_task_that_left_the_queue_without_a_marker_is_failed(tmp_path, m
     assert [s.state for s in statuses(run)] == ["running", "queued", "queued"]
 
 
-def test_every_units_module_is_registered_for_run_unit():
+def test_every_units_module_is_registered_once_under_its_own_task_name():
     import importlib
 
-    from midas_cli.commands.executor import task_function
+    from midas_cli.jobs.tasks import UNIT_MODULES, task_function
 
-    modules = ["analysis.align_units", "models.cv_units", "models.ablation_units", "simulate.dataset_units",
-               "analysis.pedal_video.units", "devices.rgbd.handkp_units", "models.image_features_units"]
-    tasks = set()
-    for name in modules:
-        module = importlib.import_module(f"midas_cli.{name}")
-        assert task_function(module.TASK) is module.run_unit, name
-        tasks.add(module.TASK)
-    assert len(tasks) == len(modules)
+    package = Path(__file__).resolve().parents[1] / "midas_cli"
+    found = {".".join(p.relative_to(package.parent).with_suffix("").parts) for p in package.rglob("*units.py")}
+    assert found == set(UNIT_MODULES.values())  # every units module in the tree, each once
+    assert len(found) == len(UNIT_MODULES) == 7
+    for task, name in UNIT_MODULES.items():
+        module = importlib.import_module(name)
+        assert module.TASK == task and task_function(task) is module.run_unit, name
+
+
+@pytest.mark.parametrize("hostile", ["nope", "", "midas_cli.analysis.align_units", "__class__", None, 3, ["align"]])
+def test_only_a_registered_task_name_from_a_run_folder_resolves(hostile):
+    from midas_cli.jobs.tasks import task_function
+
     with pytest.raises(ConfigError, match="unknown unit task"):
-        task_function("nope")
+        task_function(hostile)
+
+
+def test_run_unit_refuses_a_run_folder_of_an_unknown_task_in_one_line(tmp_path):
+    run = RunDir(tmp_path / "run")
+    run.write_plan(Plan("os.system", [Unit("a", {"x": 1}, "f")]))
+    result = midas("jobs", "run-unit", str(run.path), "--unit", "0")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().count("\n") == 0 and "unknown unit task 'os.system'" in result.stderr
+    assert not run.marker(0, "running").exists() and not run.marker(0, "failed").exists()
 
 
 def test_an_ablation_cell_trained_on_other_data_is_moved_aside_and_trained_again(tmp_path):
     from helpers.gesture_sessions import write_gesture_session
-    from midas_cli.commands.executor import task_function
+    from midas_cli.jobs.tasks import task_function
     from midas_cli.models.ablation import GridRow
     from midas_cli.models.ablation_units import TASK, plan_units
     from midas_cli.models.train import TrainConfig

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import typer
 from rich.table import Table
@@ -12,9 +12,7 @@ from midas_cli.analysis.align import METHODS, AlignOptions, parse_clock
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import err, error_line, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG, renamed_option, take_renamed
-
-if TYPE_CHECKING:
-    from midas_cli.jobs.batch import BatchOptions
+from midas_cli.jobs.options import BatchOptions
 
 
 @ex.batch_command
@@ -65,8 +63,7 @@ def align(
     downsample = take_renamed(downsample, rate, "--rate", "--downsample", error_line)
     options = AlignOptions(method=method, rate_hz=downsample, clock_hz=parse_clock(clock), model=model, times=times)
     outcome = ex.run_plan(TASK, plan_units(sessions, options, csv), choice, "aligning sessions")
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     results = [{**r, "session": str(given)} for given, r in zip(sessions, outcome.results) if r is not None]
     for r in results:

@@ -13,19 +13,22 @@ from __future__ import annotations
 
 import functools
 import inspect
-from contextlib import contextmanager
+from contextlib import nullcontext
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from midas_cli.commands.common import error_line
 from midas_cli.commands.progress import progress_display, progress_interval_s
+from midas_cli.jobs.options import BatchOptions, ExecutorChoice
 
 if TYPE_CHECKING:
-    from midas_cli.jobs.batch import Display, ExecutorChoice, Outcome
+    from midas_cli.jobs.batch import Display, Outcome
     from midas_cli.jobs.rundir import Unit
+
+Steps = Callable[["Display"], Callable[..., None]]  # open display -> a unit's progress callback
 
 PANEL = "Executor"
 
@@ -66,8 +69,6 @@ def batch_command(command: Callable[..., None]) -> Callable[..., None]:
 
     @functools.wraps(command)
     def run(**given: Any) -> None:
-        from midas_cli.jobs.batch import BatchOptions
-
         batch = BatchOptions(**{p.name: given.pop(p.name) for p in BATCH_PARAMETERS})
         command(**given, batch=batch)
 
@@ -78,14 +79,33 @@ def batch_command(command: Callable[..., None]) -> Callable[..., None]:
 
 
 def run_plan(task: str, units: Sequence[Unit], choice: ExecutorChoice, label: str,
-             extra: Optional[dict[str, Any]] = None, progress: Optional[Display] = None) -> Outcome:
-    """``jobs.batch.run_plan`` in this terminal: its lines on stderr, its bar on ``progress`` (the caller's
-    open display) or a display of its own; ``extra``: keyword arguments for units run in this process."""
+             steps: Optional[Steps] = None) -> Outcome:
+    """``jobs.batch.run_plan`` in this terminal: its lines on stderr, its bar (``label``) on a progress
+    display. ``steps``: the callback of a unit run in this process, made on the open display (a bar of
+    its frames or epochs). With --no-wait the run folder is printed on stdout (after the display is
+    gone) and the outcome has ``submitted`` set: the command returns without results."""
     from midas_cli.jobs.batch import Watch
     from midas_cli.jobs.batch import run_plan as run
 
     progress_interval_s()  # a bad MIDAS_PROGRESS_INTERVAL_S is a usage error before any work, shown or not
-    return run(task, units, choice, label, Watch(error_line, lambda: _display(progress)), extra)
+    if steps is None:  # a display only when the batch needs its bar (several units, or waiting for SLURM)
+        outcome = run(task, units, choice, label, Watch(error_line, unit_progress))
+    else:
+        with unit_progress() as display:
+            extra = {"progress": steps(display)} if choice.in_process else None
+            outcome = run(task, units, choice, label, Watch(error_line, lambda: nullcontext(display)), extra)
+    if outcome.submitted:
+        error_line(f"midas: SLURM job {outcome.submitted} submitted; not waiting (midas jobs status {outcome.run_dir})")
+        print(outcome.run_dir)  # on stdout: scripts take it
+    return outcome
+
+
+def counted(description: str) -> Steps:
+    """``steps`` for units that report ``progress(done, total)`` (a video's frames): one bar."""
+    def attach(display: Display) -> Callable[[int, int], None]:
+        bar = display.add_task(description, total=None, info="")
+        return lambda done, total: display.update(bar, completed=done, total=total or None)
+    return attach
 
 
 def unit_progress():
@@ -93,18 +113,3 @@ def unit_progress():
     ``info`` field."""
     return progress_display(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                             TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
-
-
-@contextmanager
-def _display(given: Any) -> Iterator[Any]:
-    if given is not None:
-        yield given
-        return
-    with unit_progress() as progress:
-        yield progress
-
-
-def submitted_line(outcome: Outcome) -> None:
-    """--no-wait: the run folder on stdout (scripts take it), the job on stderr."""
-    error_line(f"midas: SLURM job {outcome.submitted} submitted; not waiting (midas jobs status {outcome.run_dir})")
-    print(outcome.run_dir)

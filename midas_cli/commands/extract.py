@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import typer
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
 from midas_cli.commands.options import JSON_OPTION
-
-if TYPE_CHECKING:
-    from midas_cli.jobs.batch import BatchOptions
+from midas_cli.jobs.options import BatchOptions
 
 app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)
 
@@ -45,13 +43,8 @@ def handkp(
 
     choice = batch.choice()
     units = plan_units(sessions, detector, device, stream, force, mirrored)
-    with ex.unit_progress() as progress:
-        frames = progress.add_task("extracting hand keypoints", total=None, info="")
-        extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total)} \
-            if choice.in_process else None
-        outcome = ex.run_plan(TASK, units, choice, "sessions", extra, progress)
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    outcome = ex.run_plan(TASK, units, choice, "sessions", ex.counted("extracting hand keypoints"))
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     results = [r for r in outcome.results if r is not None]
     if as_json:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import typer
 
@@ -11,9 +11,7 @@ from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.errors import ConfigError
-
-if TYPE_CHECKING:
-    from midas_cli.jobs.batch import BatchOptions
+from midas_cli.jobs.options import BatchOptions
 
 app = typer.Typer(help="Extract learned features from recordings.", no_args_is_help=True)
 
@@ -52,13 +50,9 @@ def image(
         raise ConfigError("--out names one output file: give one input, or leave --out out")
     options = ExtractOptions(backbone=backbone, batch_size=batch_size, every=every, resize=max(256, crop),
                              crop=crop, device=device)
-    with ex.unit_progress() as progress:
-        frames = progress.add_task(f"{backbone} frames", total=None, info="")
-        extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total or None)} \
-            if choice.in_process else None
-        outcome = ex.run_plan(TASK, plan_units(inputs, weights, options, out_path), choice, "videos", extra, progress)
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    outcome = ex.run_plan(TASK, plan_units(inputs, weights, options, out_path), choice, "videos",
+                          ex.counted(f"{backbone} frames"))
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     results = [r for r in outcome.results if r is not None]
     if as_json:

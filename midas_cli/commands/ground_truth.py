@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Optional
+from typing import Any, Optional
 
 import typer
 from rich.table import Table
@@ -12,9 +12,7 @@ from midas_cli.commands import executor as ex
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.errors import ConfigError
-
-if TYPE_CHECKING:
-    from midas_cli.jobs.batch import BatchOptions
+from midas_cli.jobs.options import BatchOptions
 
 app = typer.Typer(help="Ground truth read from recordings (pedal states from the console video).",
                   no_args_is_help=True)
@@ -57,13 +55,8 @@ def pedals(
         raise ConfigError("--out names one output file: give one video, or leave --out out")
     requests = [GroundTruthRequest(p, layout, view, min_duration, out_path) for p in inputs]
     load_layout(layout)  # a bad layout is one usage error, not one failure per input
-    with ex.unit_progress() as progress:
-        frames = progress.add_task("frames", total=None, info="")
-        extra = {"progress": lambda done, total: progress.update(frames, completed=done, total=total or None)} \
-            if choice.in_process else None
-        outcome = ex.run_plan(TASK, plan_units(requests), choice, "videos", extra, progress)
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    outcome = ex.run_plan(TASK, plan_units(requests), choice, "videos", ex.counted("frames"))
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     results = [{**r, "input": str(given)} if r else
                {"ok": False, "input": str(given), "message": next(f.error for f in outcome.failed if f.name == given.name)}

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Optional
+from typing import Any, Optional
 
 import typer
 
@@ -12,9 +12,7 @@ from midas_cli.commands.common import err, non_negative, out, positive, print_js
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
-
-if TYPE_CHECKING:
-    from midas_cli.jobs.batch import BatchOptions
+from midas_cli.jobs.options import BatchOptions
 
 app = typer.Typer(help="Synthetic recordings with known ground truth (no hardware needed).", no_args_is_help=True)
 
@@ -57,8 +55,7 @@ def dataset(
     configs = trial_configs(platform, trials, seed, out_root, subjects, latency_ms, distortion_mm, max_seconds,
                            difficulty, emht_drift_ppm)
     outcome = ex.run_plan(TASK, plan_units(configs), choice, "simulating trials")
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     results: list[dict[str, Any]] = [r for r in outcome.results if r is not None]
     for result in results:

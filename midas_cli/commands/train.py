@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -14,10 +14,8 @@ from midas_cli.commands.common import error_line, out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSION_TREES_ARG, renamed_option, take_renamed
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
+from midas_cli.jobs.options import BatchOptions
 from midas_cli.session.reader import find_sessions
-
-if TYPE_CHECKING:
-    from midas_cli.jobs.batch import BatchOptions
 
 # midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast.
 
@@ -195,12 +193,9 @@ def _train_folds(paths: list[Path], data, config, out_dir: Path, baseline: Optio
     units = plan_units(paths, data, config, out_dir, baseline)
     if choice.run_dir is None:
         choice.run_dir = out_dir / "jobs"
-    with _progress() as progress:  # epochs of the fold training in this process (local, --jobs 1)
-        extra = {"progress": _epoch_progress(progress, f"{config.model} epochs")} \
-            if choice.in_process else None
-        outcome = ex.run_plan(TASK, units, choice, f"{config.model} folds", extra, progress)
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    outcome = ex.run_plan(TASK, units, choice, f"{config.model} folds",
+                          lambda display: _epoch_progress(display, f"{config.model} epochs"))
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     outcome.raise_failed("folds")
     _render_cv(cv.summarise(out_dir), out_dir, as_json)
@@ -274,12 +269,8 @@ def ablation(
     if choice.run_dir is None:
         choice.run_dir = out_dir / "jobs"
     units = plan_units(paths, rows, model_list, base, out_dir, cv=fold_index is None)
-    with _progress() as progress:
-        extra = {"progress": _epoch_progress(progress, "epochs")} \
-            if choice.in_process else None
-        outcome = ex.run_plan(TASK, units, choice, "ablation runs", extra, progress)
-    if outcome.submitted:
-        ex.submitted_line(outcome)
+    outcome = ex.run_plan(TASK, units, choice, "ablation runs", lambda display: _epoch_progress(display, "epochs"))
+    if outcome.submitted:  # --no-wait: the run folder is printed
         return
     outcome.raise_failed("ablation cells")
     report = finish_ablation(out_dir, outcome.results, base, fold_index is None)
