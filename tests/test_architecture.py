@@ -28,8 +28,9 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "midas_cli"
 # Lowest first. A "unit" is the first component under midas_cli: a subpackage (session, devices, ...) or
 # a top-level module (errors, rig, ...); "" is the package itself (midas_cli/__init__.py: __version__).
 #   foundations  errors, clock, geometry: no midas imports beyond each other
-#   jobs         batch runs of units (a session, a fold) here or as SLURM job arrays: run folders, markers,
-#                executors; it knows no task (the commands pass the function a unit runs)
+#   jobs         batch runs of units (a session, a fold) here or as SLURM job arrays: options, run folders,
+#                markers, executors; it names each task's units module as a string (jobs/tasks.py) and
+#                imports it only when a unit runs, never through an import statement
 #   session      the session folder format (reading, writing, schema, derived files)
 #   devices/synthetic  drivers and emulators, producing session streams (rig files are parsed here,
 #                devices/rigconfig.py, because devices/fps/rigfile.py edits them), and the synthetic

@@ -9,7 +9,11 @@ job array, resumable and observable through a run folder (``rundir.py``).
 * ``local.py``   the local executor (in this process, or ``--jobs N`` worker processes).
 * ``slurm.py``   the SLURM executor: an ``sbatch --array`` script per submission, squeue to observe it.
 * ``status.py``  each unit's state (pending, queued, running, done, stale, failed) and waiting for them.
+* ``options.py`` the executor options as given (``BatchOptions``) and checked (``ExecutorChoice``).
+* ``batch.py``   a plan run end to end: run folder, skip the done units, run here or submit, wait, collect.
+* ``tasks.py``   the registry of unit tasks: each task's name and its units module (imported on use).
 
-Nothing here knows what a unit does: a task's function (args dict -> result dict) is passed in by the
-command that plans the run (see ``midas_cli/commands/executor.py`` for the registry of tasks).
+Nothing here knows what a unit does: ``tasks.py`` names each task's module as a string (the packages
+with units sit above this one) and its ``run_unit`` (args dict -> result dict) is imported when a unit
+runs. Nothing here prints: ``batch.run_plan`` tells its caller's ``Watch``.
 """
