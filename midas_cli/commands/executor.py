@@ -6,7 +6,7 @@ A batch command is decorated with ``@batch_command`` (below ``@app.command()``) 
 ``batch: BatchOptions`` as its last parameter: the decorator adds the nine options of the "Executor"
 help panel to its signature and hands them over as that one object. The command checks them
 (``batch.choice()``), plans its units, calls ``run_plan`` here, renders the results and ends with
-``raise_failed`` (``jobs/batch.py``).
+``outcome.raise_failed(...)`` (the units that did not finish, in one error).
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ A command plans its units (``Unit``: args + input fingerprint) and its options s
 done with the same fingerprint, runs the rest here (``--jobs N``) or submits them as one SLURM array
 (one task per unit: ``python -m midas_cli jobs run-unit RUN_DIR --unit K``), waits (unless
 ``--no-wait``) and returns every unit's result. The caller renders the results, then lists the failed
-units (``raise_failed``). Nothing here prints: what the user is told goes through a ``Watch``.
+units (``Outcome.raise_failed``). Nothing here prints: what the user is told goes through a ``Watch``.
 """
 
 from __future__ import annotations
