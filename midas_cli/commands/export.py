@@ -8,11 +8,11 @@ import typer
 
 from midas_cli.commands.common import err, out, print_json
 from midas_cli.commands.options import JSON_OPTION, SESSIONS_ARG
+from midas_cli.interop.export import export_session, format_help, parse_formats  # light: writers load lazily
 
 
 def export(sessions: list[Path] = SESSIONS_ARG,
-           formats: list[str] = typer.Option(..., "--format", help="mcap, parquet, xdf and/or lerobot (repeat the option or "
-                                             "separate with commas)."),
+           formats: list[str] = typer.Option(..., "--format", help=format_help()),
            out_dir: Path = typer.Option(..., "--out", help="Folder that receives the files (created if missing)."),
            with_video: bool = typer.Option(False, "--with-video", help="MCAP: also the RGB-D frames as JPEG "
                                            "images and the console recording as H.264 video (every frame "
@@ -30,8 +30,6 @@ def export(sessions: list[Path] = SESSIONS_ARG,
 
     Example: midas export sessions/suturing_S1_T1_20240703T104640Z --format mcap,parquet,xdf --out exported
     """
-    from midas_cli.interop.export import export_session, parse_formats
-
     wanted = parse_formats(formats)
     results = []
     for path in sessions:

@@ -15,9 +15,11 @@ from midas_cli.commands.options import JSON_OPTION, SESSION_TREES_ARG, renamed_o
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
+from midas_cli.models.registry import model_help
 from midas_cli.session.reader import find_sessions
 
-# midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast.
+# midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast;
+# models/registry.py (the --model help) imports no torch.
 
 app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
                        "Models train on aligned, labelled sessions.",
@@ -113,9 +115,7 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 @ex.batch_command
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
-    model: str = typer.Option("mstcn", "--model", help="mstcn (MS-TCN++), transformer (MTRSAP-style with "
-                              "MS-TCN++ refinement stages), transformer-plain (without), baseline (per-frame "
-                              "logistic regression) or baseline-mlp."),
+    model: str = typer.Option("mstcn", "--model", help=model_help()),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
     split: str = SPLIT_OPT,

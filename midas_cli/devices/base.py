@@ -17,7 +17,6 @@ from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError
 from midas_cli.session.schema import StreamSpec
 
-KINDS = ("emht", "fps", "video", "handkp", "raven", "lsl")
 T = TypeVar("T")
 # Words that make a URL parameter or a rig key a secret (matched against the lower-cased key and its
 # parts split at '_', '-', '.'); the names of where a secret is kept are not secrets themselves.

@@ -18,7 +18,8 @@ from typing import Any
 from urllib.parse import quote
 
 from midas_cli.config import read_toml
-from midas_cli.devices.base import KINDS, WHERE_PASSWORDS_GO, DeviceUrl, is_secret_key
+from midas_cli.devices.base import WHERE_PASSWORDS_GO, DeviceUrl, is_secret_key
+from midas_cli.devices.registry import KINDS
 from midas_cli.errors import ConfigError
 from midas_cli.session.names import check_name
 

@@ -12,13 +12,15 @@
 Each trial becomes a session with streams ``video`` (frame clock: kinematic row k = frame k at 30 Hz;
 the sources have no host clock, so host time = a fixed epoch + k / 30 s), ``mtm`` and ``psm``
 (``kinematics_spec``, mm, quaternion xyzw, mm/s, degrees; clutch not recorded -> empty) and frame labels.
+Each source is one entry of ``SOURCES`` (file pattern, line shape, readers, transcription folders).
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
@@ -34,39 +36,56 @@ from midas_cli.simulate.gestures import read_transcription
 
 RATE_HZ = 30.0
 EPOCH_NS = 1_262_304_000_000_000_000  # 2010-01-01T00:00:00Z: stands in for the missing host clock
-FORMATS = ("jigsaws", "compass")
-LABEL_DIRS = {"jigsaws": ("transcriptions",), "compass": ("gestures", "transcriptions")}
 _STEM = re.compile(r"^(?P<task>[A-Za-z-]+(?:_[A-Za-z-]+)*?)_(?:S(?P<s>\d+)_T(?P<t>\d+)|(?P<letter>[A-Z])(?P<n>\d{3}))$")
 ARMS = (("mtm", "left"), ("mtm", "right"), ("psm", "left"), ("psm", "right"))
+Arm = dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class SourceFormat:
+    """One source of kinematics and transcriptions: its ``name`` (``import://NAME/...`` in the session,
+    the taxonomy's prefix), ``title``, the kinematics file ``pattern`` (under a ``kinematics`` folder),
+    ``width`` values per data line (one block of ``width / 4`` per arm, in ``ARMS`` order), whether line 1
+    is a ``header``, the value ``separator`` (None: white space), the folders that hold transcriptions
+    (first found wins), ``read`` (file -> table (N, width)) and ``arm`` (one arm's block -> position (N, 3)
+    mm, quaternion (N, 4), velocity (N, 3) mm/s, grasper (N,) deg)."""
+
+    name: str
+    title: str
+    pattern: str
+    width: int
+    header: bool
+    separator: str | None
+    label_dirs: tuple[str, ...]
+    read: Callable[[Path], np.ndarray]
+    arm: Callable[[np.ndarray], Arm]
 
 
 def kinematics_files(folder: Path, fmt: str) -> list[Path]:
-    pattern = "*.txt" if fmt == "jigsaws" else "*.csv"
+    pattern = SOURCES[fmt].pattern
     files = sorted(p for p in folder.rglob(pattern) if "kinematics" in p.parts)
     if not files:
         raise SessionError(f"{folder} holds no {fmt} kinematics files (looked for kinematics/**/{pattern})")
     return files
 
 
-WIDTHS = {"jigsaws": 76, "compass": 32}
-
-
 def shape_discontinuities(path: Path, fmt: str) -> list[dict[str, Any]]:
     """Every data line whose value count is not the format's (a partial line, another column block):
     {file, line, what}. The sources have no host clock, so row shape is the only order check."""
+    source = SOURCES[fmt]
     found = []
     with open(path, encoding="utf-8") as fh:
         for number, line in enumerate(fh, start=1):
-            if not line.strip() or (fmt == "compass" and number == 1):
+            if not line.strip() or (source.header and number == 1):
                 continue
-            values = len(line.split()) if fmt == "jigsaws" else len(line.rstrip("\r\n").split(","))
-            if values != WIDTHS[fmt]:
+            values = len(line.split(source.separator))
+            if values != source.width:
                 found.append({"file": path.name, "line": number,
-                              "what": f"{values} values where {fmt} kinematics have {WIDTHS[fmt]} (partial line?)"})
+                              "what": f"{values} values where {fmt} kinematics have {source.width} (partial line?)"})
     return found
 
 
-def read_arms(path: Path, fmt: str) -> dict[tuple[str, str], dict[str, np.ndarray]]:
+def read_arms(path: Path, fmt: str) -> dict[tuple[str, str], Arm]:
     """Per (robot, side): position (N, 3) mm, quaternion (N, 4), velocity (N, 3) mm/s, grasper (N,) deg.
     A file with a line of the wrong shape is refused, naming every such line."""
     found = shape_discontinuities(path, fmt)
@@ -75,32 +94,44 @@ def read_arms(path: Path, fmt: str) -> dict[tuple[str, str], dict[str, np.ndarra
         more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
         raise SessionError(f"{path}: rows of the wrong shape, {shown}{more}: fix or remove those lines, "
                            "the rows around them would otherwise be shifted in time")
-    if fmt == "jigsaws":
-        table = pd.read_csv(path, sep=r"\s+", header=None, engine="python").to_numpy(float)
-        if table.shape[1] != 76:
-            raise SessionError(f"{path}: {table.shape[1]} columns per line, JIGSAWS kinematics have 76")
-        return {arm: _jigsaws_arm(table[:, 19 * i:19 * (i + 1)]) for i, arm in enumerate(ARMS)}
-    table = pd.read_csv(path).to_numpy(float)
-    if table.shape[1] != 32:
-        raise SessionError(f"{path}: {table.shape[1]} columns, COMPASS kinematics have 32")
-    return {arm: _compass_arm(table[:, 8 * i:8 * (i + 1)]) for i, arm in enumerate(ARMS)}
+    source = SOURCES[fmt]
+    table = source.read(path)
+    if table.shape[1] != source.width:
+        raise SessionError(f"{path}: {table.shape[1]} columns per line, {source.title} kinematics have {source.width}")
+    block = source.width // len(ARMS)
+    return {arm: source.arm(table[:, block * i:block * (i + 1)]) for i, arm in enumerate(ARMS)}
 
 
-def _jigsaws_arm(block: np.ndarray) -> dict[str, np.ndarray]:
+def _read_jigsaws(path: Path) -> np.ndarray:
+    return pd.read_csv(path, sep=r"\s+", header=None, engine="python").to_numpy(float)
+
+
+def _jigsaws_arm(block: np.ndarray) -> Arm:
     rotation = block[:, 3:12].reshape(-1, 3, 3)
     return {"position": block[:, :3] * 1000.0, "quaternion": quaternions_from_matrices(rotation),
             "velocity": block[:, 12:15] * 1000.0, "grasper": np.degrees(block[:, 18])}
 
 
-def _compass_arm(block: np.ndarray) -> dict[str, np.ndarray]:
+def _read_compass(path: Path) -> np.ndarray:
+    return pd.read_csv(path).to_numpy(float)
+
+
+def _compass_arm(block: np.ndarray) -> Arm:
     position = block[:, :3] * 1000.0
     quaternion = block[:, 3:7] / np.linalg.norm(block[:, 3:7], axis=1, keepdims=True)
     velocity = np.gradient(position, 1.0 / RATE_HZ, axis=0) if len(position) > 1 else np.zeros_like(position)
     return {"position": position, "quaternion": quaternion, "velocity": velocity, "grasper": np.degrees(block[:, 7])}
 
 
+SOURCES = {source.name: source for source in (
+    SourceFormat("jigsaws", "JIGSAWS", "*.txt", 76, False, None, ("transcriptions",), _read_jigsaws, _jigsaws_arm),
+    SourceFormat("compass", "COMPASS", "*.csv", 32, True, ",", ("gestures", "transcriptions"), _read_compass,
+                 _compass_arm),
+)}
+
+
 def transcription_for(kinematics: Path, root: Path, fmt: str) -> Path | None:
-    for folder in LABEL_DIRS[fmt]:
+    for folder in SOURCES[fmt].label_dirs:
         for candidate in root.rglob(f"{folder}/{kinematics.stem}.txt"):
             return candidate
     return None
@@ -152,8 +183,8 @@ def import_trial(path: Path, root: Path, fmt: str, out_root: Path) -> tuple[Path
 
 def import_surgical(folder: Path | str, out_root: Path | str, fmt: str) -> list[tuple[Path, dict[str, Any]]]:
     """Import every kinematics file under ``folder``; returns (session path, report) per trial."""
-    if fmt not in FORMATS:
-        raise ConfigError(f"format {fmt!r} unknown (expected {' or '.join(FORMATS)})")
+    if fmt not in SOURCES:
+        raise ConfigError(f"format {fmt!r} unknown (expected {' or '.join(SOURCES)})")
     root = Path(folder)
     if not root.is_dir():
         raise SessionError(f"{root} is not a folder")

@@ -31,13 +31,12 @@ from typing import Callable, Sequence
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.models.data import DatasetConfig
 from midas_cli.models.splits import GROUP_SPLITS
-from midas_cli.models.train import MODELS, TrainConfig, train_run
+from midas_cli.models.registry import MODELS
+from midas_cli.models.train import TrainConfig, train_run
 from midas_cli.session.outputs import out_target, write_text
 
 log = logging.getLogger(__name__)
 
-MODEL_TITLES = {"transformer": "MTRSAP", "mstcn": "MS-TCN++", "transformer-plain": "MTRSAP (plain)",
-                "baseline": "Baseline (LR)", "baseline-mlp": "Baseline (MLP)"}
 MODALITY_TITLES = {"emht": "EmHT", "handkp": "HandKP", "mtm": "MTM", "psm": "PSM", "image": "Image"}
 FEATURE_TITLES = {"pos": "pos.", "ori": "ori.", "vel": "vel.", "grasper": "grasp.", "clutch": "clutch"}
 PAPER_GRID = (
@@ -107,7 +106,7 @@ def run_cell(sessions: Sequence[Path], model: str, row: GridRow, base: TrainConf
     except MidasError as exc:
         log.warning("ablation row %s / %s skipped: %s", model, row.slug(), exc)
         return {"skipped": {"model": model, "row": row.slug(), "reason": str(exc), "exit_code": exc.exit_code}}
-    return {"dataset": title, "model": MODEL_TITLES[model], "modality": row.modality_title(),
+    return {"dataset": title, "model": MODELS[model].title, "modality": row.modality_title(),
             "features": row.feature_title(), **summary}
 
 

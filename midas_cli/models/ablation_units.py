@@ -21,8 +21,9 @@ from midas_cli import __version__
 from midas_cli.errors import MidasError
 from midas_cli.jobs.rundir import Unit, file_digest, fingerprint
 from midas_cli.jobs.tasks import task_name
-from midas_cli.models.ablation import MODEL_TITLES, GridRow, run_cell
+from midas_cli.models.ablation import GridRow, run_cell
 from midas_cli.models.data import DatasetConfig, build_dataset
+from midas_cli.models.registry import MODELS
 from midas_cli.models.train import TrainConfig
 
 TASK = task_name(__name__)  # registered in jobs/tasks.py
@@ -48,7 +49,7 @@ def plan_units(sessions: Sequence[Path], rows: Sequence[GridRow], models: Sequen
             args = {"sessions": [str(Path(s).resolve()) for s in sessions], "model": model,
                     "row": [list(row.modalities), list(row.features), row.exclude_clutch],
                     "train_config": asdict(base), "out_dir": str(Path(out_dir).resolve()), "cv": cv}
-            units.append(Unit(f"{MODEL_TITLES[model]} {row.slug()}", args, fingerprint(TASK, args, data, __version__)))
+            units.append(Unit(f"{MODELS[model].title} {row.slug()}", args, fingerprint(TASK, args, data, __version__)))
     return units
 
 

@@ -11,7 +11,7 @@ different lengths give the same result as one sequence at a time.
 
 Audited against the official code (sj-li/MS-TCN2 ``model.py``, ``main.py``, ``train.sh``): layer counts,
 dilations, dropout (``nn.Dropout()`` = 0.5), the 1x1 fusion, the softmax between stages and the loss
-are the same. The training recipe that goes with it (``train.py`` ``RECIPES["mstcn"]``): Adam lr 5e-4,
+are the same. The training recipe that goes with it (``registry.py``, entry "mstcn"): Adam lr 5e-4,
 batch size 1, 100 epochs, the last epoch's weights. Two deliberate differences, both neutral at batch
 size 1: the official model masks nothing (its batches of one have no padding) and its smoothing term
 is a mean over every position of the padded batch, padding included; here padding is masked and the

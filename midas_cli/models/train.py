@@ -11,7 +11,7 @@
   ``plots/confusion.png``, ``plots/<trial>.png``  (truth / prediction ribbons)
 
 The loop: build arrays (models/data.py) -> split (models/splits.py) -> normalise (default: fitted on
-the training units) -> train with the model's recipe (``RECIPES``: epochs, batch size, lr, and which
+the training units) -> train with the model's recipe (models/registry.py: epochs, batch size, lr, and which
 epoch's weights are kept: the last, or with "best-val" the best validation frame accuracy's; the
 resolved recipe is in ``run.json`` ``recipe``) -> predict the test units -> metrics.
 Deterministic on CPU for a given ``seed`` (weights, batch order and dropout come from seeded
@@ -34,35 +34,18 @@ import torch
 from midas_cli import __version__
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
-from midas_cli.models.baseline import BaselineConfig, FrameBaseline
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
-from midas_cli.models.mstcn import MSTCN, MSTCNConfig
 from midas_cli.models.plots import write_confusion_png, write_timeline_png
+from midas_cli.models.registry import MODELS, model_entry
 from midas_cli.models.splits import PARTS, Split, instances, make_split
 from midas_cli.models.torch_io import load_weights_only
-from midas_cli.models.transformer import GestureTransformer, TransformerConfig
 from midas_cli.session.outputs import out_child, out_folder, out_target, replacing, write_text
 
 log = logging.getLogger(__name__)
 
-MODELS = ("mstcn", "transformer", "transformer-plain", "baseline", "baseline-mlp")
 CHECKPOINT_FORMAT = "midas-gesture-run/1"
 SELECTIONS = ("last", "best-val")
-# Training recipe per model, used where TrainConfig leaves a field None. MS-TCN++ as in the official
-# code (sj-li/MS-TCN2 main.py, train.sh): Adam lr 5e-4, batch size 1, 100 epochs, the last epoch's
-# weights (no model selection). The transformers keep midas's earlier recipe: lr 1e-3, batches of 4,
-# 50 epochs, the weights of the best validation epoch; so do the per-frame baselines (lr 1e-2 for the
-# logistic regression, 1e-3 for the MLP). Without a validation set (the default of the group splits)
-# "best-val" falls back to the last epoch.
-RECIPES = {
-    "mstcn": {"epochs": 100, "batch_size": 1, "lr": 5e-4, "selection": "last"},
-    "transformer": {"epochs": 50, "batch_size": 4, "lr": 1e-3, "selection": "best-val"},
-    "transformer-plain": {"epochs": 50, "batch_size": 4, "lr": 1e-3, "selection": "best-val"},
-    "baseline": {"epochs": 50, "batch_size": 4, "lr": 1e-2, "selection": "best-val"},
-    "baseline-mlp": {"epochs": 50, "batch_size": 4, "lr": 1e-3, "selection": "best-val"},
-}
-DEFAULT_LR = {name: recipe["lr"] for name, recipe in RECIPES.items()}
-PLAIN_TRANSFORMER = {"refinement_stages": 0, "smoothing_weight": 0.0}
+RECIPES = {name: asdict(entry.recipe) for name, entry in MODELS.items()}  # each model's recipe, as run.json has it
 
 
 @dataclass
@@ -71,7 +54,7 @@ class TrainConfig:
     split: str = "gesture"
     fold: int = 0
     validation: str = "none"  # group splits: none (fixed epochs, last epoch) or inner (models/splits.py)
-    epochs: int | None = None  # None (here and below) = the model's recipe (RECIPES)
+    epochs: int | None = None  # None (here and below) = the model's recipe (models/registry.py)
     batch_size: int | None = None
     lr: float | None = None
     selection: str | None = None  # "last" epoch's weights or the "best-val" epoch's
@@ -82,8 +65,7 @@ class TrainConfig:
     model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
 
     def __post_init__(self) -> None:
-        if self.model not in MODELS:
-            raise ConfigError(f"--model {self.model!r} is unknown (expected one of {', '.join(MODELS)})")
+        model_entry(self.model)  # ConfigError for an unknown model
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -172,16 +154,7 @@ def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pat
 
 def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict) -> tuple[torch.nn.Module, dict]:
     """The network and its config as a plain dict; ``options`` override config fields."""
-    if name == "mstcn":
-        cfg = MSTCNConfig(in_features=sum(modality_dims.values()), n_classes=n_classes)
-        model_cls = MSTCN
-    elif name in ("baseline", "baseline-mlp"):
-        cfg = BaselineConfig(sum(modality_dims.values()), n_classes, hidden=64 if name == "baseline-mlp" else 0)
-        model_cls = FrameBaseline
-    else:
-        cfg = TransformerConfig(modality_dims=dict(modality_dims), n_classes=n_classes,
-                                **(PLAIN_TRANSFORMER if name == "transformer-plain" else {}))
-        model_cls = GestureTransformer
+    model_cls, cfg = model_entry(name).build(modality_dims, n_classes)
     unknown = set(options) - set(asdict(cfg))
     if unknown:
         raise ConfigError(f"model options {', '.join(sorted(unknown))} do not exist for {name} "

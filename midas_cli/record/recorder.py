@@ -63,15 +63,14 @@ class Recorder:
             raise ConfigError("nothing to record: no devices configured")
         self.plan = plan
         self.clock = HostClock.anchored_now()
-        self._ctx = worker_context()
+        self.devices: dict[str, DeviceRecord] = {}
+        self.streams: dict[str, StreamStats] = {}
+        self._ctx = worker_context(self._describe_devices())
         self._inbox = Inbox()
         self._stop_workers = StopLine(self._ctx)
         self._lock = threading.Lock()
         self._bookkeeping_done = threading.Event()
         self._processes: dict[str, Any] = {}
-        self.devices: dict[str, DeviceRecord] = {}
-        self.streams: dict[str, StreamStats] = {}
-        self._describe_devices()
         self.writer: SessionWriter | None = None
         self._started_mono = 0.0
         self._rate_probe = (0.0, 0)
@@ -80,11 +79,14 @@ class Recorder:
         self.fatal_error: str | None = None
         self.live: FoxgloveLive | None = None
 
-    def _describe_devices(self) -> None:
-        """Validate every URL and learn the stream layouts before anything is created on disk."""
+    def _describe_devices(self) -> list[str]:
+        """Validate every URL and learn the stream layouts before anything is created on disk; the
+        modules of the devices' backends (for the workers' fork server to preload)."""
+        modules = []
         for name, url in self.plan.devices.items():
             check_device_name(name)
             device = describe_device(name, url, self.plan.seed)
+            modules.append(type(device).__module__)
             streams = device.streams
             self.devices[name] = DeviceRecord(name, device.kind, DeviceUrl.parse(url).redacted(),
                                               device.settings(), [s.name for s in streams],
@@ -93,6 +95,7 @@ class Recorder:
                 if spec.name in self.streams:
                     raise ConfigError(f"two devices produce a stream named {spec.name!r}")
                 self.streams[spec.name] = StreamStats(spec)
+        return modules
 
     @property
     def started_monotonic_s(self) -> float:

@@ -10,7 +10,7 @@ import logging
 import multiprocessing as mp
 import signal
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from multiprocessing import forkserver, resource_tracker
 from typing import Any
 
@@ -22,15 +22,16 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 WORKER_MODULE = "midas_cli.record.worker"
 
 
-def worker_context():
-    """Workers are forked by multiprocessing's fork server, which imports the worker module (and
-    through it every device backend) once: each worker then starts in milliseconds instead of
-    importing numpy and the backends again, as a spawned one would (~0.5 s of CPU each). The server
-    is itself a fresh, single-threaded process (forking the recorder, which may hold threads of
-    pylsl or BLAS, would not be safe). ``start_worker_server`` starts it; it keeps the stop signals
-    blocked for life, and every worker it forks inherits the block."""
+def worker_context(backend_modules: Iterable[str] = ()):
+    """Workers are forked by multiprocessing's fork server, which imports the worker module and the
+    ``backend_modules`` (those of the devices to record; a backend is imported only when needed,
+    devices/registry.py) once: each worker then starts in milliseconds instead of importing numpy and
+    its backend again, as a spawned one would (~0.5 s of CPU each). The server is itself a fresh,
+    single-threaded process (forking the recorder, which may hold threads of pylsl or BLAS, would not
+    be safe). ``start_worker_server`` starts it; it keeps the stop signals blocked for life, and every
+    worker it forks inherits the block."""
     context = mp.get_context("forkserver")
-    context.set_forkserver_preload([WORKER_MODULE])
+    context.set_forkserver_preload([WORKER_MODULE, *sorted(set(backend_modules))])
     return context
 
 

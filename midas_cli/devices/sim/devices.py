@@ -208,8 +208,3 @@ class SimHandKP(PacedSimulator):
                 values.append(int(detected))
             rows.append(tuple(values))
         return rows
-
-
-SIMULATORS: dict[str, type[PacedSimulator]] = {
-    cls.kind: cls for cls in (SimEmHT, SimFPS, SimVideoClock, SimHandKP)
-}

@@ -1,0 +1,100 @@
+"""The gesture models, one entry each: everything midas knows about a model is here.
+
+An entry holds the model's name (``--model``), its title in the ablation tables, its line in the
+``--model`` help, its training recipe and how to build its config and network. Adding a model is one
+entry below plus its module (a network and its ``@dataclass`` config). The builders import their
+module only when called, so reading this table (``midas train --help``) never imports torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from midas_cli.errors import ConfigError
+
+# A builder: (modality dims, class count) -> (network class, its default config for those inputs).
+Builder = Callable[[dict[str, int], int], tuple[Callable[[Any], Any], Any]]
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """How a model is trained where TrainConfig leaves a field None: epochs, batch size, Adam learning
+    rate, and which epoch's weights are kept (``last``, or ``best-val``: the best validation frame
+    accuracy's; without a validation set "best-val" falls back to the last epoch)."""
+
+    epochs: int
+    batch_size: int
+    lr: float
+    selection: str
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """One gesture model: ``name`` (``--model``), ``title`` (ablation tables), ``summary`` (its words in
+    the ``--model`` help, empty for none), ``recipe`` and ``build`` (see :data:`Builder`)."""
+
+    name: str
+    title: str
+    summary: str
+    recipe: Recipe
+    build: Builder
+
+
+def _mstcn(dims: dict[str, int], n_classes: int) -> tuple[Callable[[Any], Any], Any]:
+    from midas_cli.models.mstcn import MSTCN, MSTCNConfig
+
+    return MSTCN, MSTCNConfig(in_features=sum(dims.values()), n_classes=n_classes)
+
+
+def _transformer(refined: bool) -> Builder:
+    """The MTRSAP-style transformer, with MS-TCN++ refinement stages or (``refined`` False) without."""
+
+    def build(dims: dict[str, int], n_classes: int) -> tuple[Callable[[Any], Any], Any]:
+        from midas_cli.models.transformer import GestureTransformer, TransformerConfig
+
+        plain = {} if refined else {"refinement_stages": 0, "smoothing_weight": 0.0}
+        return GestureTransformer, TransformerConfig(modality_dims=dict(dims), n_classes=n_classes, **plain)
+
+    return build
+
+
+def _baseline(hidden: int) -> Builder:
+    """The per-frame baseline: logistic regression (``hidden`` 0) or an MLP with one hidden layer."""
+
+    def build(dims: dict[str, int], n_classes: int) -> tuple[Callable[[Any], Any], Any]:
+        from midas_cli.models.baseline import BaselineConfig, FrameBaseline
+
+        return FrameBaseline, BaselineConfig(sum(dims.values()), n_classes, hidden=hidden)
+
+    return build
+
+
+# MS-TCN++ trains as in the official code (sj-li/MS-TCN2 main.py, train.sh): Adam lr 5e-4, batch size 1,
+# 100 epochs, the last epoch's weights (no model selection). The transformers keep midas's earlier
+# recipe: lr 1e-3, batches of 4, 50 epochs, the weights of the best validation epoch; so do the per-frame
+# baselines (lr 1e-2 for the logistic regression, 1e-3 for the MLP). The order is the help's.
+ENTRIES = (
+    ModelEntry("mstcn", "MS-TCN++", "MS-TCN++", Recipe(100, 1, 5e-4, "last"), _mstcn),
+    ModelEntry("transformer", "MTRSAP", "MTRSAP-style with MS-TCN++ refinement stages",
+               Recipe(50, 4, 1e-3, "best-val"), _transformer(refined=True)),
+    ModelEntry("transformer-plain", "MTRSAP (plain)", "without", Recipe(50, 4, 1e-3, "best-val"),
+               _transformer(refined=False)),
+    ModelEntry("baseline", "Baseline (LR)", "per-frame logistic regression", Recipe(50, 4, 1e-2, "best-val"),
+               _baseline(hidden=0)),
+    ModelEntry("baseline-mlp", "Baseline (MLP)", "", Recipe(50, 4, 1e-3, "best-val"), _baseline(hidden=64)),
+)
+MODELS: dict[str, ModelEntry] = {entry.name: entry for entry in ENTRIES}
+
+
+def model_entry(name: str) -> ModelEntry:
+    """The entry of model ``name``; ConfigError naming the known models for another."""
+    if name not in MODELS:
+        raise ConfigError(f"--model {name!r} is unknown (expected one of {', '.join(MODELS)})")
+    return MODELS[name]
+
+
+def model_help() -> str:
+    """The ``--model`` help: every model with its summary, in table order."""
+    names = [f"{e.name} ({e.summary})" if e.summary else e.name for e in ENTRIES]
+    return f"{', '.join(names[:-1])} or {names[-1]}." if len(names) > 1 else f"{names[0]}."
