@@ -183,6 +183,8 @@ class FpsDevice(Device):
     def _receive(self) -> list[Message]:
         try:
             data = self._serial.read(max(1, self._serial.in_waiting))
+            if data and self._serial.in_waiting:  # woken by a line's first byte: take the rest in this pass
+                data += self._serial.read(self._serial.in_waiting)
         except (serial.SerialException, OSError) as exc:
             raise DeviceError(f"{self.name}: lost {self.port}: {exc}") from exc
         messages = self.decoder.feed(data) if data else []
