@@ -71,17 +71,18 @@ READING = [
     "**Reading.** Neither goal is met on this machine. Its 2 cores were 100 % busy with other users' test "
     "suites and training during every run (load average 5-13, `/proc/stat` idle ~0): *no added load* means "
     "none of ours, not an idle host. Three full runs on 2026-11-26 (11:46, 11:53 and 11:58 UTC, the last one "
-    "above) differed by up to an order of magnitude at similar load averages: raw p99 16-550 ms for the "
-    "EmHT and 30-990 ms for the pedal board at nice 0.", "",
+    "above; the first before the pedal-driver fixes below) differed by up to an order of magnitude at "
+    "similar load averages: at nice 0, raw p99 14-550 ms for the EmHT and 150-990 ms for the pedal board; "
+    "with the recorder at nice -10, 16-22 ms and 32-86 ms.", "",
     "* **Where the error comes from.** The bare reader on the same pty at the same moment already sees p99 "
     "20-100 ms: on a saturated host most of the tail is the wait for a CPU (the tty layer's worker thread "
-    "and then the reader). midas's pedal worker at nice 0 does much worse (mean 50-170 ms): at 850 Hz it "
+    "and then the reader). midas's pedal worker at nice 0 does much worse (mean 17-170 ms): at 850 Hz it "
     "needs ~85 µs of CPU per row in the driver alone (read, decode, thresholds), then formats and writes "
     "the rows; when its share of the CPU falls short it falls behind and every line waits in the pty (in "
     "a diagnostic run the manifest's read -> write latency had p95 ~130 ms, while a plain append on the "
     "same disk under the recorder's fsync pattern took 0.07 ms p99: the write does not block, the worker "
-    "waits to run). With the recorder at nice -10 it keeps up and its error falls to or below the bare "
-    "reader's (p99 32-41 ms, pedal board): the error here is CPU scheduling, and the remedy on a busy host "
+    "waits to run). With the recorder at nice -10 it keeps up: its mean error (4-7 ms) falls below the bare "
+    "reader's at nice 0, its p99 near it: the error here is CPU scheduling, and the remedy on a busy host "
     "is priority (or an idle host). midas does not raise its workers' priority yet: left open.",
     "* **Fixed on the way** (272aa79, 797f913): the pedal driver stamped each row after decoding its whole "
     "read, so a batch read after a stall was stamped later by its own decoding; it now stamps when the read "
@@ -89,11 +90,11 @@ READING = [
     "pass (0.97 -> 0.67 reads per row at 850 Hz), and the line's hex check runs in C (parse 25 -> 15 µs). "
     "The FOB stream's clock fit found nothing to fit (its `t_device_s` is empty): analysis/clockfit.py now "
     "falls back to `seq` at the nominal rate (3c2e20e).",
-    "* **After the fit.** About the device clock, the EmHT's fitted times are within 0.2-0.6 ms (p99) of "
-    "its cycle clock in most runs (the goal's 0.5 ms). The pedal board's are not when its worker fell "
-    "behind for seconds: the stamps then wander slowly and no line follows them (tens of ms); at nice -10, "
-    "0.16-3.1 ms. *Fitted − sent* stays large for both because the emulators, though at nice -10, were "
-    "themselves late by 5-20 ms (p50) on this host.",
+    "* **After the fit.** About the device clock, the EmHT's fitted times are within 0.17-3.5 ms (p99) of "
+    "its cycle clock, 0.5 ms or better in 4 of the 9 conditions of the three runs. The pedal board's are "
+    "not when its worker fell behind for seconds: the stamps then wander slowly and no line follows them "
+    "(6-100 ms); at nice -10, 0.16-3.4 ms. *Fitted − sent* stays large for both because the emulators, "
+    "though at nice -10, were themselves late by 5-23 ms (p50) on this host.",
     "* **Against the paper.** Its means (EmHT 43.3 ms, pedal board 12.97 ms, source to disk, on an "
-    "i7-12700H laptop) are of the same order as the pedal board's raw mean here at nice -10 (2-7 ms) plus "
+    "i7-12700H laptop) are of the same order as the pedal board's raw mean here at nice -10 (4-7 ms) plus "
     "the stamp -> disk latency of section 1; they state no spread and no timestamp error.", ""]
