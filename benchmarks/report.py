@@ -14,6 +14,7 @@ from report_reference import reference_section  # noqa: E402
 from report_batch import batch_section, export_section, foxglove_live_section  # noqa: E402
 from report_executor import executor_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
+from report_timestamp import timestamp_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TARGET_P99_MS = 5.0
@@ -49,6 +50,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_export.py     # export to MCAP / Parquet / XDF, 10 and 60 min",
             ".venv/bin/python benchmarks/bench_executor.py   # align through --jobs 1, 2 and a one-node SLURM",
             ".venv/bin/python benchmarks/bench_foxglove_live.py   # recording CPU with record --foxglove on/off",
+            ".venv/bin/python benchmarks/bench_timestamp_error.py   # t_host_ns against the emulators' send times",
             ".venv/bin/python benchmarks/report.py           # this file", "```", ""]
 
 
@@ -332,6 +334,8 @@ def main() -> None:
     lines += export_section(export) if export else ["## export: no results yet (run its script)", ""]
     live = load("foxglove_live")
     lines += foxglove_live_section(live) if live else ["## foxglove_live: no results yet (run its script)", ""]
+    stamps = load("timestamp_error")
+    lines += timestamp_section(stamps) if stamps else ["## timestamp_error: no results yet (run its script)", ""]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
 

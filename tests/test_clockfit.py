@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from midas_cli.analysis.clockfit import WRAP_US, ClockSource, clock_source, device_seconds, fit_clock
+from midas_cli.analysis.clockfit import WRAP_US, ClockSource, clock_source, device_seconds, fit_clock, fit_stream
 from midas_cli.session.schema import SEQ, T_HOST, Column
 from helpers.cli import midas
 
@@ -69,6 +69,20 @@ def test_the_clock_source_is_the_device_column_else_seq_at_the_nominal_rate() ->
     assert clock_source(with_clock, 240.0) == ClockSource("t_device_s", 1.0)
     assert clock_source([SEQ, T_HOST, Column("x_mm", "float", "mm")], 30.0) == ClockSource(None, 1 / 30.0)
     assert clock_source([SEQ, T_HOST, Column("text", "text")], None) is None  # markers: no clock to fit
+
+
+def test_an_empty_device_clock_column_gives_way_to_seq_at_the_nominal_rate() -> None:
+    """fob:// declares t_device_s but its records carry no time: the fit uses seq at the nominal rate."""
+    host_ns, _, true_host_s = _stamps(20, drift_ppm=0, jitter_ms=0.3)
+    table = np.zeros(len(host_ns), dtype=[("seq", "i8"), ("t_host_ns", "i8"), ("t_device_s", "f8")])
+    table["seq"], table["t_host_ns"], table["t_device_s"] = np.arange(len(host_ns)) + 40, host_ns, np.nan
+    columns = [SEQ, T_HOST, Column("t_device_s", "float", "s", 6, clock="device")]
+    fit = fit_stream(table, columns, RATE)
+    assert fit is not None and fit.clock == f"seq at {RATE:g} Hz (no device clock)"
+    assert fit.fitted_samples == len(host_ns) and fit.drift_ppm == pytest.approx(0, abs=5)
+    assert np.std(fit.fitted_ns / 1e9 - true_host_s) < 0.3e-3 / 10
+    table["t_device_s"][5] = 1.0  # one filled value: the column is the clock (and too sparse to fit)
+    assert fit_stream(table, columns, RATE).fitted_samples == 0
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,8 @@ midas stamps a sample with the host clock when its bytes are read (``t_host_ns``
 the transport's delay and its jitter (a USB-serial adapter holds bytes up to its latency timer, a busy
 host reads late). Most devices also send a clock of their own, steady but on another time base: the
 pedal board's ``micros()`` (wrapping at 2^32), the trakSTAR's record time, the camera's timestamp, the
-sender's LSL clock; a device without one (the FOB, a video frame clock) counts samples at a nominal
-rate. Over a session the two are related by a line, ``host = offset + (1 + drift) * device``, broken
+sender's LSL clock; a device without one (the FOB, whose ``t_device_s`` stays empty, a video frame
+clock) counts samples at a nominal rate. Over a session the two are related by a line, ``host = offset + (1 + drift) * device``, broken
 where the device restarted (a reconnect, a wrap the counter cannot explain). Fitting that line per
 segment, robustly (the pyxdf jitter-removal idea, with outliers dropped: a sample read a second late
 must not tilt the line), gives
@@ -176,9 +176,15 @@ def _summary(source: ClockSource, samples: int, segments: int, fitted: np.ndarra
 
 
 def fit_stream(table: np.ndarray, columns: Sequence[Any], nominal_rate_hz: float | None) -> ClockFit | None:
-    """The fit of one stream as ``Session.read_columns`` gives it (None: an event stream with no clock)."""
+    """The fit of one stream as ``Session.read_columns`` gives it (None: an event stream with no clock).
+    A device-clock column that no row filled (the FOB's ``t_device_s``: its records carry no time)
+    gives way to ``seq`` at the nominal rate."""
     source = clock_source(columns, nominal_rate_hz)
     if source is None or len(table) == 0:
         return None
+    device_s = device_seconds(table, source)
+    if source.column is not None and nominal_rate_hz and not np.isfinite(device_s).any():
+        source = ClockSource(None, 1.0 / nominal_rate_hz)
+        device_s = device_seconds(table, source)
     period = 1.0 / nominal_rate_hz if nominal_rate_hz else None
-    return fit_clock(np.asarray(table["t_host_ns"], np.int64), device_seconds(table, source), source, period)
+    return fit_clock(np.asarray(table["t_host_ns"], np.int64), device_s, source, period)

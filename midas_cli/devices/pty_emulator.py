@@ -15,6 +15,10 @@ caller's thread (``serve``), applies the faults (plus manual :meth:`~PtyEmulator
 :meth:`~PtyEmulator.summary`. An exception in the serving thread is logged, stored and re-raised (as a
 DeviceError) by the next ``serve_for``, ``join`` or ``stop``: never swallowed. Subclasses implement
 ``_step`` (one turn of the device's loop while plugged) and may hook plugging and the summary.
+
+With a ``send_log`` path an emulator logs when each record's last byte went out
+(:mod:`~midas_cli.devices.send_log`): :meth:`~PtyEmulator._write` then notes ``last_write_ns``, the
+monotonic time its ``os.write`` returned, and the device logs its records with it.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from midas_cli.devices.send_log import SendLog
 from midas_cli.errors import ConfigError, DeviceError
 
 log = logging.getLogger(__name__)
@@ -118,8 +123,10 @@ class PtyEmulator:
     """Base of the pty emulators: plugging, faults, the serving thread, the summary."""
 
     label = "pty"
+    send_log_identity: tuple[str, ...] = ("record",)  # the columns naming a record in the send log
 
-    def __init__(self, faults: Faults, link: str | Path | None, seed: int) -> None:
+    def __init__(self, faults: Faults, link: str | Path | None, seed: int,
+                 send_log: str | Path | None = None) -> None:
         if faults.unplug_at >= 0 and not link:
             raise ConfigError("an unplug changes the pty's path: give a link path that follows it")
         self.faults = faults
@@ -137,6 +144,8 @@ class PtyEmulator:
         self.bytes_corrupted = 0
         self.bytes_dropped = 0
         self.unplugs: list[dict[str, Any]] = []
+        self.send_log = SendLog(send_log, self.send_log_identity) if send_log else None
+        self.last_write_ns = 0  # monotonic ns when the last os.write returned (kept only with a send log)
 
     # -- public API ---------------------------------------------------------------------------------
     @property
@@ -178,6 +187,8 @@ class PtyEmulator:
         if self._final_summary is None:
             self._final_summary = self.summary()
         self.port.close()
+        if self.send_log is not None:
+            self.send_log.close()
         self._raise_error()
         return self._final_summary
 
@@ -279,13 +290,17 @@ class PtyEmulator:
         self._on_unplug()
 
     def _write(self, data: bytes) -> int:
-        """Write what the pty takes now; returns the bytes written (-1: the pty is gone)."""
+        """Write what the pty takes now; returns the bytes written (-1: the pty is gone). With a send
+        log, ``last_write_ns`` is when the write returned."""
         try:
-            return os.write(self.port.master, data)
+            written = os.write(self.port.master, data)
         except (BlockingIOError, InterruptedError):
             return 0
         except OSError:
             return -1
+        if self.send_log is not None:
+            self.last_write_ns = time.monotonic_ns()
+        return written
 
     def _read(self, size: int = 4096) -> bytes:
         """What the host sent ('' when nothing or nobody has the pty open, EIO)."""

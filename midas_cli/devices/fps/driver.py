@@ -3,8 +3,9 @@
 PORT is anything pyserial's ``serial_for_url`` opens: ``/dev/ttyACM0``, a pty such as ``/dev/pts/5``
 (the emulator), or a symlink to one. Handshake: ``ID`` (answered by the banner), ``RATE``, ``START``;
 on close ``STOP``. Every sample row is ``seq, t_host_ns, t_device_us, ch1_adc.., ch1_pressed..`` (the
-same layout as ``sim://fps``): ``seq`` is the board's counter, ``t_host_ns`` the host clock when the line
-was read, ``t_device_us`` the board's micros() (wraps at 2^32), pressed states from the thresholds with
+same layout as ``sim://fps``): ``seq`` is the board's counter, ``t_host_ns`` the host clock when the read
+that completed the line returned (taken before the bytes are decoded, so a batch that arrived together
+is not stamped later by its own decoding), ``t_device_us`` the board's micros() (wraps at 2^32), pressed states from the thresholds with
 hysteresis (``press_v``/``release_v``: one value for every channel or a comma list, one per channel).
 
 The board restarts its counter when it reboots (an Uno resets whenever its port is opened). So that a
@@ -95,6 +96,7 @@ class FpsDevice(Device):
         self.tracker = PedalStateTracker(self.thresholds)
         self.decoder = LineDecoder()
         self._serial: serial.SerialBase | None = None
+        self._read_ns = 0  # host time when the last read returned
         self.counters.extra["seq_rebased"] = 0
 
     def _validate(self) -> None:
@@ -183,6 +185,9 @@ class FpsDevice(Device):
     def _receive(self) -> list[Message]:
         try:
             data = self._serial.read(max(1, self._serial.in_waiting))
+            if data and self._serial.in_waiting:  # woken by a line's first byte: take the rest in this pass
+                data += self._serial.read(self._serial.in_waiting)
+            self._read_ns = self.clock.now_ns()
         except (serial.SerialException, OSError) as exc:
             raise DeviceError(f"{self.name}: lost {self.port}: {exc}") from exc
         messages = self.decoder.feed(data) if data else []
@@ -219,7 +224,7 @@ class FpsDevice(Device):
         return {self.name: rows} if rows else {}
 
     def _row(self, sample: Sample) -> tuple:
-        t_host = max(self.clock.now_ns(), self.state.last_t_host_ns + 1)
+        t_host = max(self._read_ns, self.state.last_t_host_ns + 1)
         seq = self._session_seq(sample.seq, t_host)
         n = self.params["channels"]
         counts = sample.adc[:n]

@@ -3,8 +3,10 @@
 The emulator owns a pty (``os.openpty``); the driver opens its slave path like any serial port. It
 answers ``ID``/``RATE``/``START``/``STOP`` as firmware/fps/main.c does, and while started writes one
 sample line at each tick of the sample clock (host monotonic time, catching up if it fell behind),
-whole lines only. Values come from the simulated surgeon's feet (:meth:`SurgeonMotion.pedal_adc`,
-``pedals="model"``) or a resting foot (``pedals="idle"``); :meth:`force` presses or releases a channel.
+whole lines only (with ``send_log``, each sample is logged as ``boot,seq`` when the write of its
+line's last byte returned: :mod:`~midas_cli.devices.send_log`). Values come from the simulated
+surgeon's feet (:meth:`SurgeonMotion.pedal_adc`, ``pedals="model"``) or a resting foot
+(``pedals="idle"``); :meth:`force` presses or releases a channel.
 
 Faults are the :class:`~midas_cli.devices.pty_emulator.Faults` of every pty emulator: per-byte
 corruption and drop on everything the board sends; a stall (the board neither reads nor writes,
@@ -20,6 +22,7 @@ from __future__ import annotations
 import select
 import time
 from array import array
+from collections import deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +58,7 @@ class FpsEmulatorConfig:
     faults: Faults = Faults()
     link: Path | None = None
     keep_samples: bool = True
+    send_log: str | None = None  # log each sample's send time here (devices/send_log.py)
 
     def __post_init__(self) -> None:
         if not 1 <= self.channels <= 9:
@@ -119,9 +123,10 @@ class FpsEmulator(PtyEmulator):
     """Run with :meth:`start` (a background thread) and :meth:`stop`; ``path`` is what the driver opens."""
 
     label = "FPS"
+    send_log_identity = ("boot", "seq")
 
     def __init__(self, config: FpsEmulatorConfig = FpsEmulatorConfig()) -> None:
-        super().__init__(config.faults, config.link, config.seed)
+        super().__init__(config.faults, config.link, config.seed, config.send_log)
         self.config = config
         self.clock = HostClock.anchored_now()
         self.motion = SurgeonMotion(MotionConfig(seed=config.seed))
@@ -129,6 +134,8 @@ class FpsEmulator(PtyEmulator):
         self._forced: list[bool | None] = [None] * config.channels
         self._tally = _Tally()
         self._out = bytearray()
+        self._bytes_out = 0  # written since the (re)plug
+        self._unlogged: deque[tuple[int, tuple[int, int], float]] = deque()  # (end offset, boot/seq, due)
         self._boundary_ok = True
         self._commands = CommandBuffer()
         self._boot: _Boot | None = None
@@ -168,6 +175,8 @@ class FpsEmulator(PtyEmulator):
 
     def _on_plug(self, now: float) -> None:
         self._out.clear()
+        self._bytes_out = 0
+        self._unlogged.clear()  # lines queued before the unplug never went out
         self._boundary_ok = True
         self._commands = CommandBuffer()
         index = len(self._tally.boots)
@@ -262,7 +271,7 @@ class FpsEmulator(PtyEmulator):
         adc = self._values(due - self._t0)
         for i in range(count):
             t_us = int(round((due[i] - boot.mono) * 1e6 * (1 + CLOCK_DRIFT))) % (1 << 32)
-            self._emit_sample(boot.seq, t_us, adc[i])
+            self._emit_sample(boot.seq, t_us, adc[i], float(due[i]))
             boot.seq += 1
         boot.ticks += count
 
@@ -279,28 +288,31 @@ class FpsEmulator(PtyEmulator):
                 adc[:, c] = level + np.rint(self._rng.normal(0.0, 1.5, len(t))).astype(int)
         return np.clip(adc, 0, 1023)
 
-    def _emit_sample(self, seq: int, t_us: int, adc: np.ndarray) -> None:
+    def _emit_sample(self, seq: int, t_us: int, adc: np.ndarray, due: float) -> None:
         if len(self._out) > TX_BUFFER_BYTES:
             self._boot.skipped += 1
             with self._lock:
                 self._tally.skipped_tx_full += 1
             return
         values = [int(a) for a in adc]
-        intact = self._send(encode_sample(seq % (1 << 32), t_us, values))
+        intact = self._send(encode_sample(seq % (1 << 32), t_us, values), ((self._boot.index, seq), due))
         with self._lock:
             self._tally.sent += 1
             self._tally.intact += intact
             if self.config.keep_samples:
                 self._tally.samples.append(self._boot.index, seq, t_us, values, intact)
 
-    def _send(self, line: bytes) -> bool:
+    def _send(self, line: bytes, sample: tuple[tuple[int, int], float] | None = None) -> bool:
         """Queue a line through the fault injector; True if a correct host must decode it: it goes out
-        unaltered and the line before it still ends in an LF (else the two merge into one bad line)."""
+        unaltered and the line before it still ends in an LF (else the two merge into one bad line).
+        ``sample``: the line's (boot, seq) and due time, for the send log."""
         with self._lock:
             data = self._damage(line)
         decodable = data == line and self._boundary_ok
         self._boundary_ok = data.endswith(b"\n")
         self._out += data
+        if sample is not None and self.send_log is not None:
+            self._unlogged.append((self._bytes_out + len(self._out), *sample))
         self._flush()
         return decodable
 
@@ -310,3 +322,13 @@ class FpsEmulator(PtyEmulator):
         written = self._write(bytes(self._out))
         if written > 0:
             del self._out[:written]
+            self._bytes_out += written
+            self._log_sent()
+
+    def _log_sent(self) -> None:
+        """Log the samples whose last byte the write that just returned carried."""
+        if self.send_log is None:
+            return
+        while self._unlogged and self._unlogged[0][0] <= self._bytes_out:
+            _, identity, due = self._unlogged.popleft()
+            self.send_log.record(identity, due, self.last_write_ns)

@@ -14,6 +14,8 @@ thread and the fault schedule are :class:`~midas_cli.devices.pty_emulator.PtyEmu
 ``summary()`` reports exactly what was sent: the counters (and model times) of every cycle sent in
 stream mode, per-sensor record counts, damaged records (counter, sensor), bytes corrupted/dropped,
 the host's sensor count and unplug times (Unix ns), so a test can prove zero loss or find every corrupted record.
+With ``send_log`` each cycle sent in stream mode is logged (``cycle``: its counter, as in
+``stream_counters``; :mod:`~midas_cli.devices.send_log`) when the write of its group returned.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ class EmulatorConfig:
     faults: Faults = Faults()
     link: str | None = None
     point_delay_s: float = 0.0  # answer POINT this late (a USB-serial adapter's latency timer, a busy host)
+    send_log: str | None = None  # log each streamed cycle's send time here (devices/send_log.py)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.point_delay_s <= 5.0:
@@ -86,9 +89,10 @@ class TrakstarEmulator(PtyEmulator):
     """Serve the FOB protocol on a pty from a thread (``start``/``stop``) or the caller's thread (``serve``)."""
 
     label = "trakSTAR"
+    send_log_identity = ("cycle",)
 
     def __init__(self, config: EmulatorConfig) -> None:
-        super().__init__(config.faults, config.link, config.seed)
+        super().__init__(config.faults, config.link, config.seed, config.send_log)
         self.config = config
         self.motion = SurgeonMotion(MotionConfig(seed=config.seed))
         self._state = _State(config.sensors)
@@ -257,6 +261,8 @@ class TrakstarEmulator(PtyEmulator):
             (tally.point_counters if point else tally.stream_counters).append(k)
             if not point:
                 tally.stream_t_model_s.append(t_model)
+                if self.send_log is not None:
+                    self.send_log.record((k,), self._t0 + t_model, self.last_write_ns)
             for s in sensors:
                 tally.records_per_sensor[s - 1] += 1
             tally.damaged += [(k, list(sensors)[i]) for i in damaged]
