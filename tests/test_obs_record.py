@@ -11,13 +11,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from helpers.cli import midas
+from helpers.cli import midas, record_until
 from midas_cli.analysis.video_marker import marker_offsets_ms, marker_onsets, region_brightness
 from helpers.obs_fixture import FPS, MARKER, MARKER_ROI, ObsServer, running_obs
 
 pytestmark = pytest.mark.slow
 PASSWORD = "obs-test-Pa55word-7d1f"
-DURATION_S = 6.0
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +25,8 @@ def obs(tmp_path_factory) -> ObsServer:
         yield server
 
 
-def _record(obs: ObsServer, out: Path, query: str = "", duration: float = DURATION_S):
-    return midas("record", "--device", f"video=obs://127.0.0.1:{obs.port}{query}", "--duration", str(duration),
+def _record(obs: ObsServer, out: Path, duration: float):
+    return midas("record", "--device", f"video=obs://127.0.0.1:{obs.port}", "--duration", str(duration),
                  "--out", str(out), "--subject", "1", "--task", "obs", "--trial", "1", "--no-tui", timeout=240)
 
 
@@ -48,7 +47,10 @@ def recorded(obs: ObsServer, state_home: Path, tmp_path_factory) -> tuple[Path, 
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("MIDAS_OBS_PASSWORD", PASSWORD)
         patch.setenv("XDG_STATE_HOME", str(state_home))
-        result = _record(obs, out, f"?fps={FPS}&marker={MARKER}&marker_at=1&marker_every=2")
+        # stopped (Ctrl-C) once three toggles of the marker are on disk: a busy host may start OBS late
+        args = ["--device", f"video=obs://127.0.0.1:{obs.port}?fps={FPS}&marker={MARKER}&marker_at=1&marker_every=2",
+                "--subject", "1", "--task", "obs", "--trial", "1", "--no-tui"]
+        result = record_until(out, args, rows={"video": 1, "video_marker": 3}, timeout=240)
     assert result.returncode == 0, result.stderr
     return Path(result.stdout.strip().splitlines()[-1]), result
 
@@ -106,7 +108,7 @@ def test_manifest_reports_the_start_event_and_the_stop_check(recorded) -> None:
 def test_sync_marker_is_found_in_the_pixels_near_its_host_time(recorded) -> None:
     session, _ = recorded
     toggles = pd.read_csv(session / "streams" / "video_marker.csv")
-    enabled = toggles["enabled"].tolist()  # shown, hidden, shown, ... (how many depends on when OBS started)
+    enabled = toggles["enabled"].tolist()  # shown, hidden, shown, ... (the recording ran until three were on disk)
     assert len(enabled) >= 3 and enabled == [1 - i % 2 for i in range(len(enabled))]
     assert (toggles["t_ack_ns"] >= toggles["t_host_ns"]).all()
     video = next((session / "video").glob("*.mkv"))
@@ -173,12 +175,14 @@ def test_a_mixed_session_with_obs_emulators_and_lsl_verifies(obs: ObsServer, tmp
             RavenEmulator(RavenEmulatorConfig("127.0.0.1", port, rate_hz=200)), \
             CounterOutlet("midas-test-obs-mixed", rate=50.0):
         patch.setenv("MIDAS_OBS_PASSWORD", PASSWORD)
-        result = midas("record", "--device", "emht=sim://emht", "--device", f"fps=fps://{board.path}?rate=200",
-                       "--device", f"video=obs://127.0.0.1:{obs.port}?fps={FPS}",
-                       "--device", f"raven=raven://127.0.0.1:{port}?rate=200",
-                       "--device", "hr=lsl://?name=midas-test-obs-mixed", "--duration", "6", "--subject", "1",
-                       "--task", "mixed", "--trial", "1", "--out", str(tmp_path / "sessions"), "--no-tui",
-                       timeout=240)
+        # stopped (Ctrl-C) once every device has rows on disk: how fast each opens depends on the host's load
+        args = ["--device", "emht=sim://emht", "--device", f"fps=fps://{board.path}?rate=200",
+                "--device", f"video=obs://127.0.0.1:{obs.port}?fps={FPS}",
+                "--device", f"raven=raven://127.0.0.1:{port}?rate=200",
+                "--device", "hr=lsl://?name=midas-test-obs-mixed", "--subject", "1",
+                "--task", "mixed", "--trial", "1", "--no-tui"]
+        result = record_until(tmp_path / "sessions", args, rows=dict.fromkeys(("emht", "fps", "video", "raven", "hr"), 5),
+                              timeout=240)
     assert result.returncode == 0, result.stderr
     path = Path(result.stdout.strip().splitlines()[-1])
     verify = midas("session", "verify", str(path))
