@@ -81,7 +81,7 @@ def test_corrupted_bytes_are_counted_and_never_recorded(seed: int) -> None:
         # a noisy line can damage the ~85-byte handshake reply several times: give it time to resend
         device = _device(f"fps://{emulator.path}?rate=400&timeout=15")
         device.open()
-        rows = _read_for(device, 1.5)
+        rows = _read_until(device, 600, timeout_s=120)  # ~360 damaged bytes expected in 600 lines
         device.close()
     report = emulator.summary()
     sent = {s["seq"]: s for s in report["samples"]}

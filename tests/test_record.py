@@ -95,8 +95,12 @@ def test_manifest_describes_streams_and_latency(ten_second_session) -> None:
     manifest = Session.open(ten_second_session[0]).manifest
     emht = manifest["streams"]["emht"]
     assert emht["nominal_rate_hz"] == 240
-    # t_host_ns is the read time: a read delayed on a busy machine shortens the span a little
-    assert abs(emht["measured_rate_hz"] - 240) < 0.03 * 240
+    # t_host_ns is the read time, so the measured rate is the rows over their stamps' span (a read delayed
+    # on a busy machine moves it: only a loose bound on the nominal rate is the device's promise)
+    rows = Session.open(ten_second_session[0]).read_stream("emht")
+    span_s = (int(rows["t_host_ns"].iloc[-1]) - int(rows["t_host_ns"].iloc[0])) / 1e9
+    assert emht["measured_rate_hz"] == pytest.approx((len(rows) - 1) / span_s, abs=1e-3)
+    assert abs(emht["measured_rate_hz"] - 240) < 0.25 * 240
     assert emht["latency_ms"]["p99"] is not None and emht["latency_ms"]["n"] == emht["samples"]
     units = {c["name"]: c.get("unit") for c in emht["columns"]}
     assert units["s1_x_mm"] == "mm" and units["t_host_ns"] == "ns"
