@@ -1,5 +1,5 @@
 # `make lerobot-env`: a separate virtual environment with huggingface's `lerobot` 0.4.4, for the test that
-# loads `midas export --format lerobot` with LeRobot's own LeRobotDataset (tests/test_lerobot.py; it skips
+# loads `midas export --format lerobot` with LeRobot's own LeRobotDataset (tests/interop/test_lerobot.py; it skips
 # without this environment unless MIDAS_REQUIRE_LEROBOT=1). Included from the Makefile; opt-in, not part of
 # `make test`: lerobot pins torch < 2.11, opencv < 4.13 and packaging < 26, which clash with midas's pins,
 # and its dataset module imports torchvision, whose PyPI wheels load only beside a CUDA build of torch, so

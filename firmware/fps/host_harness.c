@@ -1,5 +1,5 @@
 /*
- * Host-side driver of fps_protocol.c for the test suite (tests/test_fps_firmware.py): reads one
+ * Host-side driver of fps_protocol.c for the test suite (tests/devices/test_fps_firmware.py): reads one
  * request per stdin line and writes the protocol's output, so every formatter and the command parser
  * can be compared byte for byte with midas_cli/devices/fps/protocol.py.
  *

@@ -3,7 +3,7 @@
 `midas --version` and `midas --help` (or plain `midas`) used to build the whole CLI, importing every
 command's module (scipy, pandas, torch...): seconds for one line. Here they cost the interpreter's own
 start-up. The root help is drawn to look like typer's (same panels, wrapping and colours), from
-``COMMAND_SUMMARIES``; tests/test_startup.py holds that table and ``ROOT_HELP`` to the real commands'
+``COMMAND_SUMMARIES``; tests/commands/test_startup.py holds that table and ``ROOT_HELP`` to the real commands'
 help and the drawing to typer's own. Only stdlib imports here: this module is on the fast path.
 """
 
@@ -41,7 +41,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
 }
 
 # Each command's one-line summary (the first paragraph of its help), as `midas --help` lists them:
-# commands first, then groups, each in COMMANDS order. Kept in sync by tests/test_startup.py.
+# commands first, then groups, each in COMMANDS order. Kept in sync by tests/commands/test_startup.py.
 COMMAND_SUMMARIES: dict[str, str] = {
     "record": "Record a session from the rig's devices into a new session folder.",
     "mark": "Add a marker to the running recording's events stream.",

@@ -26,9 +26,9 @@ softmax of the transformer's frame logits, and every stage is trained with cross
 ``smoothing_weight`` x the truncated MSE smoothing loss (tau = 4). The prediction is the last stage's.
 One stage by default, not MS-TCN++'s three: the stages train from scratch together with the
 transformer, and deeper stacks converged much later. On the simulated Raven-II EmHT gesture split
-(tests/test_train_simulated.py data, seed 0, 10 epochs) test accuracy was 0.98 with one stage, 0.88
+(tests/models/test_train_simulated.py data, seed 0, 10 epochs) test accuracy was 0.98 with one stage, 0.88
 with two and 0.78 with three (three stages still at 0.78 after 16 epochs); one stage already removes
-much of the flicker on a noisy toy task (tests/test_models_recipe.py).
+much of the flicker on a noisy toy task (tests/models/test_models_recipe.py).
 The plain variant (``refinement_stages=0, smoothing_weight=0``) is the model above alone, trained with
 cross-entropy only, kept for the ablation.
 """

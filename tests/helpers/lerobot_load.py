@@ -1,4 +1,4 @@
-"""Run by tests/test_lerobot.py with the LeRobot environment's Python (not midas's): load an exported
+"""Run by tests/interop/test_lerobot.py with the LeRobot environment's Python (not midas's): load an exported
 dataset with huggingface lerobot's own ``LeRobotDataset`` and print what it gives as one JSON document.
 
     python lerobot_load.py ROOT [--video]

@@ -1,4 +1,4 @@
-/* A stand-in for the vendor ATC3DG library, compiled by tests/test_trakstar_atc3dg.py with gcc.
+/* A stand-in for the vendor ATC3DG library, compiled by tests/devices/test_trakstar_atc3dg.py with gcc.
  *
  * Same function signatures, struct layouts and enum values as ATC3DG.h (36.0.19.7). Four sensors;
  * cycle n of sensor s (0-based) reports x = 100 + 10 s + 0.5 n, y = -20 - s, z = 150 + 0.25 n (in the

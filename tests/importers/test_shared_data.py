@@ -16,7 +16,7 @@ def _run(require: bool) -> subprocess.CompletedProcess:
     if require:
         env["MIDAS_REQUIRE_SHARED_DATA"] = "1"
     return subprocess.run([sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider",
-                           "tests/test_import.py::test_real_midas_folder_imports_and_verifies"],
+                           "tests/importers/test_import.py::test_real_midas_folder_imports_and_verifies"],
                           cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
 
 

@@ -1,6 +1,6 @@
 """Batch runs without SLURM (issue 16): run folders, done markers and fingerprints, stale and failed units,
 `midas jobs status`, the sbatch script a SLURM submission would use, and the executor options' checks.
-The same runs on a real SLURM are tests/test_slurm.py."""
+The same runs on a real SLURM are tests/jobs/test_slurm.py."""
 
 from __future__ import annotations
 
@@ -244,7 +244,7 @@ def test_every_units_module_is_registered_once_under_its_own_task_name():
 
     from midas_cli.jobs.tasks import UNIT_MODULES, task_function
 
-    package = Path(__file__).resolve().parents[1] / "midas_cli"
+    package = Path(__file__).resolve().parents[2] / "midas_cli"
     found = {".".join(p.relative_to(package.parent).with_suffix("").parts) for p in package.rglob("*units.py")}
     assert found == set(UNIT_MODULES.values())  # every units module in the tree, each once
     assert len(found) == len(UNIT_MODULES) == 7

@@ -2,7 +2,7 @@
 passed with the wrong exit code are one `midas: error:` line with the documented exit code: a header-only
 stream to calibrate, a session whose derived/ is a file or whose data no ablation cell can use, a run
 folder with wrong types in its plan or markers, and rig files that are devices, FIFOs, deeply nested or not
-UTF-8 (config files of every such kind: tests/test_property_config.py)."""
+UTF-8 (config files of every such kind: tests/commands/test_property_config.py)."""
 
 from __future__ import annotations
 
