@@ -181,7 +181,7 @@ def test_every_units_module_is_registered_for_run_unit():
     from midas_cli.commands.executor import task_function
 
     modules = ["analysis.align_units", "models.cv_units", "models.ablation_units", "simulate.dataset_units",
-               "analysis.pedal_video.units", "devices.rgbd.handkp_units", "models.image_features_units"]
+               "analysis.pedal_video.units", "analysis.handkp_units", "models.image_features_units"]
     tasks = set()
     for name in modules:
         module = importlib.import_module(f"midas_cli.{name}")

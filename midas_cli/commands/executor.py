@@ -92,7 +92,7 @@ def task_function(task: str) -> Callable[..., dict[str, Any]]:
         from midas_cli.models.image_features_units import run_unit
         return run_unit
     if task == "extract-handkp":
-        from midas_cli.devices.rgbd.handkp_units import run_unit
+        from midas_cli.analysis.handkp_units import run_unit
         return run_unit
     if task == "ablation-cell":
         from midas_cli.models.ablation_units import run_unit

@@ -44,7 +44,7 @@ def handkp(
 
     Example (one SLURM array task per session): midas extract handkp data/*/ --executor slurm --slurm-time 01:00:00 --run-dir runs/handkp
     """
-    from midas_cli.devices.rgbd.handkp_units import TASK, plan_units
+    from midas_cli.analysis.handkp_units import TASK, plan_units
 
     choice = ex.executor_choice(executor, jobs, run_dir, no_wait, slurm_partition, slurm_time, slurm_mem, slurm_gpus,
                                 slurm_array_parallelism)
