@@ -1,4 +1,8 @@
-"""`midas extract ...`: offline steps that derive streams from what a session recorded."""
+"""`midas extract ...`: offline steps that derive data from what a session recorded.
+
+`extract handkp` lives here; `extract pedals` (commands/ground_truth.py) and `extract image-features`
+(commands/features.py) are registered from their modules, which also serve their old spellings
+(`ground-truth pedals`, `features image`) for a release."""
 
 from __future__ import annotations
 
@@ -9,9 +13,12 @@ import typer
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
+from midas_cli.commands.features import image as image_features
+from midas_cli.commands.ground_truth import pedals
 from midas_cli.commands.options import JSON_OPTION
 
-app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)
+app = typer.Typer(help="Derive data from recordings offline: hand keypoints, pedal states, image features.",
+                  no_args_is_help=True)
 
 
 @app.command()
@@ -66,3 +73,7 @@ def handkp(
                       f"{result['detected']['left']} right {result['detected']['right']}, "
                       f"{result['keypoints_with_depth']} fingertips with depth", markup=False, highlight=False)
     ex.raise_failed(outcome, "sessions")
+
+
+app.command("pedals")(pedals)
+app.command("image-features")(image_features)
