@@ -17,6 +17,8 @@ Names and what they always mean:
   image-features``); ``--device`` there is its old name, kept for a release.
 * ``fps`` is the foot-pedal board (the device kind, ``fps://``); a video's frame rate is
   ``--frame-rate`` (``labels stats``, ``simulate console-video``; ``--fps`` there is its old name).
+* ``--split``: how ``train`` splits sessions into train/test; ``import midas-dcs`` cutting a folder into
+  one session per recording is ``--split-recordings`` (``--split`` there is its old name).
 """
 
 from __future__ import annotations

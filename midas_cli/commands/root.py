@@ -62,7 +62,7 @@ REGISTRY: tuple[Command, ...] = (
     Command("simulate", "simulate", "app", "group",
             "Synthetic recordings with known ground truth (no hardware needed)."),
     Command("emulate", "emulate", "app", "group", "Serve emulated serial devices on pseudo-terminals."),
-    Command("rig", "rig", "app", "group", "Check a rig's devices before recording."),
+    Command("rig", "rig", "app", "group", "Check or list a rig's devices before recording."),
     Command("doctor", "doctor", "doctor", "command", "Report versions, serial ports, OBS reachability, GPU and free disk."),
     Command("config", "config_cmd", "config", "command",
             "Show the defaults in use (rig, sessions, SLURM) and where each comes from."),
