@@ -79,7 +79,7 @@ def test_cli_extracts_resnet_features_from_user_weights(tmp_path):
                   "--out", str(tmp_path / "again.npz"), "--crop", "64", "--device", "cpu", check=True)  # the old name
     assert "midas: warning: --device is now --accelerator" in again.stderr
     with np.load(out) as first, np.load(tmp_path / "again.npz") as second:
-        assert np.array_equal(first["features"], second["features"])
+        assert np.allclose(first["features"], second["features"], rtol=1e-4, atol=1e-6)  # same weights, frames
 
 
 def test_dinov2_extraction_every_other_frame(tmp_path):

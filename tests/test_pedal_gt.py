@@ -296,9 +296,9 @@ def test_simulate_console_video_command_writes_video_and_schedule(tmp_path: Path
     schedule = pd.read_csv(paths["schedule"])
     assert len(schedule) == 60 and list(schedule.columns) == ["frame", *load_layout("davinci-xi").pedal_names]
     assert json.loads(Path(paths["schedule"]).with_suffix(".json").read_text())["seed"] == 5
-    old = midas("simulate", "console-video", "--out", str(tmp_path / "old.mp4"), "--duration", "1", "--size", "320x180",
-                "--fps", "10", "--json", check=True)  # the old name of --frame-rate
-    assert len(pd.read_csv(json.loads(old.stdout)["schedule"])) == 10
+    old = midas("simulate", "console-video", "--out", str(tmp_path / "old.mp4"), "--duration", "5", "--size", "320x180",
+                "--fps", "15", "--json", check=True)  # the old name of --frame-rate
+    assert len(pd.read_csv(json.loads(old.stdout)["schedule"])) == 75
     assert "midas: warning: --fps is now --frame-rate" in old.stderr
 
 
