@@ -16,7 +16,8 @@ GESTURES_DIR ?= $(TABLES_DIR)/gestures/$(notdir $(GESTURES_DATA))
 GESTURES_MODELS ?= transformer,mstcn
 GESTURES_EPOCHS ?= 50
 GESTURES_SPLIT ?= gesture
-GESTURES_DEVICE ?= cpu
+# where torch trains: cpu or cuda (GESTURES_DEVICE, its old name, still works)
+GESTURES_ACCELERATOR ?= $(or $(GESTURES_DEVICE),cpu)
 GESTURES_GRID ?=
 EXECUTOR ?= local
 SLURM_ARGS ?=
@@ -35,6 +36,6 @@ gestures-table: install
 	done; \
 	if [ -n "$$todo" ]; then $(MIDAS_BIN) align $$todo $(_GESTURES_EXECUTOR) > /dev/null || exit 1; fi
 	$(MIDAS_BIN) train ablation $(GESTURES_DATA) --models $(GESTURES_MODELS) --epochs $(GESTURES_EPOCHS) \
-		--split $(GESTURES_SPLIT) --device $(GESTURES_DEVICE) $(if $(GESTURES_GRID),--grid "$(GESTURES_GRID)",) \
+		--split $(GESTURES_SPLIT) --accelerator $(GESTURES_ACCELERATOR) $(if $(GESTURES_GRID),--grid "$(GESTURES_GRID)",) \
 		$(_GESTURES_EXECUTOR) --out $(GESTURES_DIR) > /dev/null
 	@echo "gesture table: $(GESTURES_DIR)/table.md (.tex, .csv)"

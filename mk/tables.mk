@@ -5,7 +5,7 @@
 #                                          unfinished sessions are skipped)
 #   make tables TABLES_MAX_SECONDS=60      short simulated trials (demos, CI)
 # It ends with the gesture-recognition table (mk/gestures.mk: training on CPU takes a while; see
-# GESTURES_EPOCHS / GESTURES_GRID / GESTURES_DEVICE=cuda there).
+# GESTURES_EPOCHS / GESTURES_GRID / GESTURES_ACCELERATOR=cuda there).
 # Per-session steps (align) are separate targets, so `make -j N` runs N sessions at once.
 #   make tables EXECUTOR=slurm SLURM_ARGS="--slurm-time 00:20:00"
 #                                          simulation and align as SLURM job arrays (one task per trial /

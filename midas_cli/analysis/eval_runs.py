@@ -186,7 +186,7 @@ def run_pedals(paths: list[Path], out: Path | None, plots: bool, use_optimized: 
         truth = ev.pedal_truth(table, read_pedals_ground_truth(path))
         if not truth:
             raise SessionError(f"{path} has no pedal ground truth: neither derived/pedals_gt.csv nor an mtm "
-                               f"clutch column (run `midas ground-truth pedals` or align a Raven-II session)")
+                               f"clutch column (run `midas extract pedals` or align a Raven-II session)")
         rules_file = find_calibration(path, FPS_RULES_FILE) if use_optimized else None
         session_rows = ev.pedal_rows(table, table.meta.get("session_id", Path(path).name), truth,
                                      load_rules(rules_file) if rules_file else None)

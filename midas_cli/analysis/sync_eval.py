@@ -10,7 +10,7 @@ modalities can only be measured from events both observe:
   offset. It is estimated over the whole session and in ``windows`` equal stretches: their spread is the
   offset's uncertainty and their slope against time the drift between the two (ppm).
 * ``pedals_gt~fps``: pedal presses. The pressed states read from the console video
-  (``derived/pedals_gt.csv``, `midas ground-truth pedals`) and the pedal board's own pressed states;
+  (``derived/pedals_gt.csv``, `midas extract pedals`) and the pedal board's own pressed states;
   each press onset seen by both (the nearest board onset of the same pedal within ``MATCH_S``) gives
   one offset; their median, spread and slope are reported.
 

@@ -47,7 +47,7 @@ def doctor(
         out.print(_saved_settings_line(saved), markup=False, soft_wrap=True)
     gpu = facts["gpu"]
     if not gpu.get("torch"):
-        out.print("PyTorch: not installed (recording needs none; train, features image and the calibration MLP "
+        out.print("PyTorch: not installed (recording needs none; train, extract image-features and the calibration MLP "
                   "do: pip install 'midas-cli[train]')", markup=False)
     out.print(f"GPU: {', '.join(gpu['devices']) if gpu.get('cuda') else 'none (CPU only)'}", markup=False)
     out.print(f"disk free here: {human_bytes(facts['disk_free_bytes'])}", markup=False)

@@ -1,4 +1,8 @@
-"""`midas extract ...`: offline steps that derive streams from what a session recorded."""
+"""`midas extract ...`: offline steps that derive data from what a session recorded.
+
+`extract handkp` lives here; `extract pedals` (commands/ground_truth.py) and `extract image-features`
+(commands/features.py) are registered from their modules, which also serve their old spellings
+(`ground-truth pedals`, `features image`) for a release."""
 
 from __future__ import annotations
 
@@ -9,10 +13,13 @@ import typer
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
+from midas_cli.commands.features import image as image_features
+from midas_cli.commands.ground_truth import pedals
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.jobs.options import BatchOptions
 
-app = typer.Typer(help="Derive streams from recorded data (offline).", no_args_is_help=True)
+app = typer.Typer(help="Derive data from recordings offline: hand keypoints, pedal states, image features.",
+                  no_args_is_help=True)
 
 
 @app.command()
@@ -39,7 +46,7 @@ def handkp(
 
     Example (one SLURM array task per session): midas extract handkp data/*/ --executor slurm --slurm-time 01:00:00 --run-dir runs/handkp
     """
-    from midas_cli.devices.rgbd.handkp_units import TASK, plan_units
+    from midas_cli.analysis.handkp_units import TASK, plan_units
 
     choice = batch.choice()
     units = plan_units(sessions, detector, device, stream, force, mirrored)
@@ -55,3 +62,7 @@ def handkp(
                       f"{result['detected']['left']} right {result['detected']['right']}, "
                       f"{result['keypoints_with_depth']} fingertips with depth", markup=False, highlight=False)
     outcome.raise_failed("sessions")
+
+
+app.command("pedals")(pedals)
+app.command("image-features")(image_features)

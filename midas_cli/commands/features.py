@@ -1,4 +1,7 @@
-"""`midas features image`: per-frame image features from a video with a user-supplied backbone."""
+"""`midas extract image-features`: per-frame image features from a video with a user-supplied backbone.
+
+The `extract` group (commands/extract.py) registers ``image``; ``app`` here is its old spelling,
+`midas features image`, kept for a release (hidden; commands/root.py's registry warns on use)."""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ import typer
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out, print_json
-from midas_cli.commands.options import JSON_OPTION
+from midas_cli.commands.options import ACCELERATOR_OPTION, JSON_OPTION, OLD_ACCELERATOR_OPTION, accelerator
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
 
@@ -29,7 +32,8 @@ def image(
     batch_size: int = typer.Option(32, "--batch-size", min=1, help="Frames per forward pass."),
     every: int = typer.Option(1, "--every", min=1, help="Keep every k-th frame."),
     crop: int = typer.Option(224, "--crop", help="Centre-crop size in pixels (DINOv2: a multiple of 14)."),
-    device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
+    accelerator_name: Optional[str] = ACCELERATOR_OPTION,
+    old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
     as_json: bool = JSON_OPTION,
     *,
     batch: BatchOptions,
@@ -38,13 +42,14 @@ def image(
 
     The NPZ holds frame (N,) and features (N, D); nothing is downloaded.
 
-    Example: midas features image session/video/recording.mkv --backbone resnet50 --weights resnet50-11ad3fa6.pth --out session/derived/image_features.npz
+    Example: midas extract image-features session/video/recording.mkv --backbone resnet50 --weights resnet50-11ad3fa6.pth --out session/derived/image_features.npz
 
-    Example (every session, one SLURM array task with a GPU each): midas features image data/*/ --backbone dinov2 --weights dinov2_vits14.pth --device cuda --executor slurm --run-dir runs/features
+    Example (every session, one SLURM array task with a GPU each): midas extract image-features data/*/ --backbone dinov2 --weights dinov2_vits14.pth --accelerator cuda --executor slurm --run-dir runs/features
     """
     from midas_cli.models.image_features import ExtractOptions  # torch: imported on use
     from midas_cli.models.image_features_units import TASK, plan_units
 
+    device = accelerator(accelerator_name, old_device)  # torch's word for it
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     if out_path is not None and len(inputs) > 1:
         raise ConfigError("--out names one output file: give one input, or leave --out out")

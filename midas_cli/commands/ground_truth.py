@@ -1,4 +1,7 @@
-"""`midas ground-truth pedals`: pedal states read from the console video's UI indicators."""
+"""`midas extract pedals`: pedal states read from the console video's UI indicators.
+
+The `extract` group (commands/extract.py) registers ``pedals``; ``app`` here is its old spelling,
+`midas ground-truth pedals`, kept for a release (hidden; commands/root.py's registry warns on use)."""
 
 from __future__ import annotations
 
@@ -41,7 +44,7 @@ def pedals(
     frame index = seq of the session's video stream, t_host_ns, one 0/1 column per pedal) and a
     JSON sidecar.
 
-    Example: midas ground-truth pedals sessions/suturing_S1_T1_20260101T120000Z --min-duration 2
+    Example: midas extract pedals sessions/suturing_S1_T1_20260101T120000Z --min-duration 2
     """
     from midas_cli.analysis.pedal_video.ground_truth import GroundTruthRequest
     from midas_cli.analysis.pedal_video.layout import load_layout

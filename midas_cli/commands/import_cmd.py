@@ -7,7 +7,7 @@ from typing import Any
 
 import typer
 
-from midas_cli.commands.common import err, out, print_json
+from midas_cli.commands.common import err, error_line, out, print_json
 from midas_cli.commands.options import JSON_OPTION
 
 app = typer.Typer(help="Import sessions from other formats.\n\n"
@@ -47,9 +47,10 @@ def _summary(report: dict[str, Any]) -> str:
 @app.command("midas-dcs")
 def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
               platform: str = typer.Option("unknown", "--platform", help="Platform to record (not in the source)."),
-              split: bool = typer.Option(False, "--split", help="A folder holding several recordings (host time "
-                                         "going back, row shape changing mid-file) becomes one session per "
-                                         "recording; without it such a folder is refused (exit 4)."),
+              split: bool = typer.Option(False, "--split-recordings", help="A folder holding several recordings "
+                                         "(host time going back, row shape changing mid-file) becomes one session "
+                                         "per recording; without it such a folder is refused (exit 4)."),
+              old_split: bool = typer.Option(False, "--split", hidden=True, help="Old name of --split-recordings."),
               as_json: bool = JSON_OPTION) -> None:
     """Import one folder of the original MiDAS system.
 
@@ -59,7 +60,9 @@ def midas_dcs(folder: Path = FOLDER_ARG, out_dir: Path = OUT_OPTION,
     """
     from midas_cli.importers.midas_dcs import import_midas_dcs
 
-    _render(import_midas_dcs(folder, out_dir, platform, split), as_json)
+    if old_split:  # `--split` is train's split strategy; here it was this flag's old name
+        error_line("midas: warning: --split is now --split-recordings (the old name will go in a later release)")
+    _render(import_midas_dcs(folder, out_dir, platform, split or old_split), as_json)
 
 
 @app.command("jigsaws")

@@ -9,13 +9,14 @@ from typing import Any, Optional
 import typer
 from rich.table import Table
 
-from midas_cli.commands.common import err, out, positive, print_json
-from midas_cli.commands.options import JSON_OPTION, SESSION_ARG
+from midas_cli.commands.common import err, error_line, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION, SESSION_ARG, renamed_option, take_renamed
 from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResult, export_labels, import_transcription
 from midas_cli.labels.sessions import import_via as import_via_file
 from midas_cli.labels.sessions import load_recordings
 from midas_cli.labels.stats import GestureStats, gesture_stats, transition_heatmap
 from midas_cli.labels.taxonomy import Taxonomy, list_taxonomies, load_taxonomy, shipped_taxonomy
+from midas_cli.labels.transcription import JIGSAWS_FPS
 from midas_cli.session.labels import label_set_files
 from midas_cli.session.outputs import out_target, write_text
 
@@ -169,7 +170,9 @@ def stats(
     name: str = NAME_OPTION,
     taxonomy_name: Optional[str] = typer.Option(None, "--taxonomy", help="Taxonomy for names and class order "
                                                 "(default: the one the sessions' labels name)."),
-    fps: float = typer.Option(30.0, "--fps", callback=positive, help="Frame rate of transcription files, Hz."),
+    frame_rate: Optional[float] = typer.Option(None, "--frame-rate", callback=positive, help="Frame rate of "
+                                               "transcription files, Hz (default 30)."),
+    old_fps: Optional[float] = renamed_option("--fps", "--frame-rate"),
     exclude: list[str] = typer.Option([], "--exclude", help="Leave out this label (repeatable), e.g. Idle."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Also write the transition matrix as a PNG heatmap."),
     as_json: bool = JSON_OPTION,
@@ -181,6 +184,7 @@ def stats(
 
     Example: midas labels stats ../shared/data/compass-suturing-gestures --taxonomy jigsaws-suturing
     """
+    fps = take_renamed(frame_rate, old_fps, "--fps", "--frame-rate", error_line) or JIGSAWS_FPS
     recordings, recorded_taxonomy = load_recordings(paths, name, fps)
     taxonomy = (load_taxonomy(taxonomy_name) if taxonomy_name
                 else shipped_taxonomy(recorded_taxonomy) if recorded_taxonomy else None)

@@ -1,7 +1,7 @@
 """The `midas` entry point: command registration and the error -> exit code mapping.
 
-Commands are registered from a table (``root.COMMANDS``) and only the module of the command being run is
-imported (``midas record`` never loads torch or OpenCV). ``midas --version`` and ``midas --help`` never
+Commands are registered from the one command table (``root.REGISTRY``) and only the module of the command
+being run is imported (``midas record`` never loads torch or OpenCV). ``midas --version`` and ``midas --help`` never
 get here: ``root.answer_without_typer`` answers them from a static table, without importing typer.
 """
 
@@ -16,7 +16,7 @@ import typer
 
 from midas_cli import __version__
 from midas_cli.commands.common import STDERR_LOG, error_line
-from midas_cli.commands.root import COMMANDS, ROOT_HELP
+from midas_cli.commands.root import COMMANDS, REGISTRY, ROOT_HELP
 from midas_cli.errors import ConfigError, MidasError, SessionError, disk_full, disk_full_message
 
 _state = {"debug": False}
@@ -48,15 +48,23 @@ def build_app(only: str | None = None) -> typer.Typer:
         context_settings={"help_option_names": ["-h", "--help"]},
     )
     app.callback(help=ROOT_HELP)(_main)
-    for name, (module_name, attribute, kind) in COMMANDS.items():
-        if only is not None and name != only:
+    for entry in REGISTRY:
+        if only is not None and entry.name != only:
             continue
-        target = getattr(importlib.import_module(f"midas_cli.commands.{module_name}"), attribute)
-        if kind == "group":
-            app.add_typer(target, name=name)
+        target = getattr(importlib.import_module(f"midas_cli.commands.{entry.module}"), entry.attribute)
+        if entry.kind == "group":
+            app.add_typer(target, name=entry.name, hidden=entry.hidden)
         else:
-            app.command(name)(target)
+            app.command(entry.name, hidden=entry.hidden)(target)
     return app
+
+
+def _warn_if_renamed(name: str | None) -> None:
+    """One warning line on stderr when ``name`` is an old spelling (it still runs, for a release)."""
+    entry = COMMANDS.get(name or "")
+    if entry is not None and entry.renamed_to:
+        error_line(f"midas: warning: `midas {entry.name}` is now `{entry.renamed_to}` (the old name will go in a "
+                   f"later release)")
 
 
 def _invoked_command(argv: list[str]) -> str | None:
@@ -82,7 +90,9 @@ def run() -> None:
     from typer.exceptions import Abort
 
     try:
-        code = build_app(_invoked_command(sys.argv[1:]))(prog_name="midas", standalone_mode=False)
+        invoked = _invoked_command(sys.argv[1:])
+        _warn_if_renamed(invoked)
+        code = build_app(invoked)(prog_name="midas", standalone_mode=False)
         if isinstance(code, int) and code:  # typer.Exit(N) (no command returns a number)
             sys.exit(code)
     except UsageError as exc:

@@ -12,15 +12,22 @@ Names and what they always mean:
   ``align --downsample``; the rate the gesture models see is ``train --model-rate``.
 * ``--model``: which gesture model ``train`` trains; the calibration model ``align`` and ``eval``
   use is ``--calibration-model``.
+* ``--device``: a rig device, by name (``calibrate fps``, ``extract handkp``) or defined as NAME=URL
+  (``record``). Where torch computes (cpu or cuda) is ``--accelerator`` (``train``, ``extract
+  image-features``); ``--device`` there is its old name, kept for a release.
+* ``fps`` is the foot-pedal board (the device kind, ``fps://``); a video's frame rate is
+  ``--frame-rate`` (``labels stats``, ``simulate console-video``; ``--fps`` there is its old name).
+* ``--split``: how ``train`` splits sessions into train/test; ``import midas-dcs`` cutting a folder into
+  one session per recording is ``--split-recordings`` (``--split`` there is its old name).
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional
 
 import typer
 
-from midas_cli.commands.common import positive
+from midas_cli.commands.common import error_line, positive
 from midas_cli.errors import ConfigError
 
 JSON_OPTION = typer.Option(False, "--json", help="Print machine-readable JSON on stdout instead of a table.")
@@ -35,9 +42,22 @@ SESSION_TREES_ARG = typer.Argument(..., help="Session folders, or folders holdin
                                    "deep).")
 
 
-def renamed_option(old: str, new: str) -> typer.models.OptionInfo:
-    """A hidden option under a flag's old name, still accepted for a release (see ``take_renamed``)."""
-    return typer.Option(None, old, hidden=True, callback=positive, help=f"Old name of {new}.")
+ACCELERATOR_OPTION = typer.Option(None, "--accelerator", help="Where torch computes: cpu (default) or cuda.")
+
+
+def renamed_option(old: str, new: str, callback: Optional[Callable] = positive) -> typer.models.OptionInfo:
+    """A hidden option under a flag's old name, still accepted for a release (see ``take_renamed``);
+    ``callback`` checks its value as the new option's does (numbers: ``positive``; None: no check)."""
+    return typer.Option(None, old, hidden=True, callback=callback, help=f"Old name of {new}.")
+
+
+OLD_ACCELERATOR_OPTION = renamed_option("--device", "--accelerator", callback=None)
+
+
+def accelerator(value: Optional[str], old_value: Optional[str]) -> str:
+    """The torch device ``--accelerator`` names (or its old name ``--device``, with a warning); cpu when
+    neither is given."""
+    return take_renamed(value, old_value, "--device", "--accelerator", error_line) or "cpu"
 
 
 def take_renamed(value, old_value, old: str, new: str, warn: Callable[[str], None]):

@@ -1,9 +1,10 @@
-"""`midas rig check`: pre-flight check of a rig's devices (open, read a few seconds, close; records nothing)."""
+"""`midas rig check|show`: a rig's devices before recording: open and read each a few seconds (records
+nothing), or list what `midas record` would open."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.table import Table
@@ -12,15 +13,21 @@ from midas_cli.commands.common import out, positive, print_json
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.errors import ConfigError, DeviceError
 
-app = typer.Typer(no_args_is_help=True, help="Check a rig's devices before recording.\n\n"
+if TYPE_CHECKING:
+    from midas_cli.devices.rigconfig import RigConfig
+
+app = typer.Typer(no_args_is_help=True, help="Check or list a rig's devices before recording.\n\n"
                   "Example: midas rig check sessions_template/rigs/simulated.toml")
+
+RIG_ARG = typer.Argument(None, help="Rig file (TOML; templates in sessions_template/rigs/; default: $MIDAS_RIG or "
+                         "[record] rig in the config).")
+SIMULATE_OPTION = typer.Option(False, "--simulate", help="The built-in simulated rig.")
 
 
 @app.command("check")
 def check(
-    rig: Optional[Path] = typer.Argument(None, help="Rig file (TOML; templates in sessions_template/rigs/; default: "
-                                         "$MIDAS_RIG or [record] rig in the config)."),
-    simulate: bool = typer.Option(False, "--simulate", help="Check the built-in simulated rig."),
+    rig: Optional[Path] = RIG_ARG,
+    simulate: bool = SIMULATE_OPTION,
     seconds: float = typer.Option(3.0, "--seconds", callback=positive, help="Seconds to read from each device."),
     as_json: bool = JSON_OPTION,
 ) -> None:
@@ -36,19 +43,9 @@ def check(
 
     Example: midas rig check sessions_template/rigs/simulated.toml --seconds 3
     """
-    from midas_cli.devices.rigconfig import load_rig
     from midas_cli.record.rigcheck import check_rig
-    from midas_cli.rig import simulated_rig
 
-    from midas_cli.config import RIG_ENV, config_path, default_rig
-
-    if simulate and rig is not None:
-        raise ConfigError("give a rig file or --simulate (one of them)")
-    if not simulate and rig is None:
-        rig = default_rig()
-        if rig is None:
-            raise ConfigError(f"give a rig file or --simulate (or set {RIG_ENV} or [record] rig in {config_path()})")
-    config = simulated_rig() if simulate else load_rig(rig)
+    config = _the_rig(rig, simulate)
     results = check_rig(config, seconds)
     failed = [r.device for r in results if r.state == "failed"]
     if as_json:
@@ -71,3 +68,38 @@ def check(
                 out.print(f"{r.device} serial port: {r.serial_line()}", markup=False, soft_wrap=True)
     if failed:
         raise DeviceError(f"rig check: {len(failed)} device(s) failed: {', '.join(failed)}")
+
+
+@app.command("show")
+def show(rig: Optional[Path] = RIG_ARG, simulate: bool = SIMULATE_OPTION, as_json: bool = JSON_OPTION) -> None:
+    """List the devices a rig gives `midas record`: name, kind and URL.
+
+    Opens nothing. URLs are shown as a manifest records them (a password source named, never a
+    password). Without a rig file it shows the default rig and where that came from.
+
+    Example: midas rig show sessions_template/rigs/simulated.toml
+    """
+    config = _the_rig(rig, simulate)
+    summary = config.to_manifest()
+    if as_json:
+        print_json(summary)
+        return
+    table = Table("device", "kind", "url", title=f"rig {config.name} ({config.source}), platform {config.platform}")
+    for name, device in summary["devices"].items():
+        table.add_row(name, device["kind"], device["url"])
+    out.print(table)
+
+
+def _the_rig(rig: Optional[Path], simulate: bool) -> RigConfig:
+    """The rig a command was given: a rig file, the simulated rig, else the configured default."""
+    from midas_cli.config import RIG_ENV, config_path, default_rig
+    from midas_cli.devices.rigconfig import load_rig
+    from midas_cli.rig import simulated_rig
+
+    if simulate and rig is not None:
+        raise ConfigError("give a rig file or --simulate (one of them)")
+    if not simulate and rig is None:
+        rig = default_rig()
+        if rig is None:
+            raise ConfigError(f"give a rig file or --simulate (or set {RIG_ENV} or [record] rig in {config_path()})")
+    return simulated_rig() if simulate else load_rig(rig)

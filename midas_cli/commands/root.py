@@ -3,8 +3,9 @@
 `midas --version` and `midas --help` (or plain `midas`) used to build the whole CLI, importing every
 command's module (scipy, pandas, torch...): seconds for one line. Here they cost the interpreter's own
 start-up. The root help is drawn to look like typer's (same panels, wrapping and colours), from
-``COMMAND_SUMMARIES``; tests/commands/test_startup.py holds that table and ``ROOT_HELP`` to the real commands'
-help and the drawing to typer's own. Only stdlib imports here: this module is on the fast path.
+``REGISTRY``, the one table of commands (commands/main.py registers them from it); tests/commands/test_startup.py
+holds its summaries and ``ROOT_HELP`` to the real commands' help and the drawing to typer's own. Only
+stdlib imports here: this module is on the fast path.
 """
 
 from __future__ import annotations
@@ -14,58 +15,70 @@ import sys
 
 from midas_cli import __version__
 
-# name -> (module under midas_cli.commands, attribute, "command" | "group")
-COMMANDS: dict[str, tuple[str, str, str]] = {
-    "record": ("record", "record", "command"),
-    "mark": ("control", "mark", "command"),
-    "ctl": ("control", "app", "group"),
-    "session": ("session", "app", "group"),
-    "labels": ("labels", "app", "group"),
-    "simulate": ("simulate", "app", "group"),
-    "import": ("import_cmd", "app", "group"),
-    "emulate": ("emulate", "app", "group"),
-    "calibrate": ("calibrate", "app", "group"),
-    "ground-truth": ("ground_truth", "app", "group"),
-    "align": ("align", "align", "command"),
-    "eval": ("eval", "app", "group"),
-    "train": ("train", "app", "group"),
-    "features": ("features", "app", "group"),
-    "extract": ("extract", "app", "group"),
-    "export": ("export", "export", "command"),
-    "replay": ("replay", "replay", "command"),
-    "plot": ("plot", "plot", "command"),
-    "rig": ("rig", "app", "group"),
-    "jobs": ("jobs", "app", "group"),
-    "doctor": ("doctor", "doctor", "command"),
-    "config": ("config_cmd", "config", "command"),
-}
+class Command:
+    """One entry of the command registry: everything midas needs to know about a top-level command.
 
-# Each command's one-line summary (the first paragraph of its help), as `midas --help` lists them:
-# commands first, then groups, each in COMMANDS order. Kept in sync by tests/commands/test_startup.py.
-COMMAND_SUMMARIES: dict[str, str] = {
-    "record": "Record a session from the rig's devices into a new session folder.",
-    "mark": "Add a marker to the running recording's events stream.",
-    "align": "Align each session's streams onto its video frame clock.",
-    "export": "Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) and/or LeRobot datasets.",
-    "replay": "Play a session's streams back as live LSL outlets with their recorded timing.",
-    "plot": "Draw a quick-look page of a session: every stream against session time.",
-    "doctor": "Report versions, serial ports, OBS reachability, GPU and free disk.",
-    "config": "Show the defaults in use (rig, sessions, SLURM) and where each comes from.",
-    "ctl": "Remote control of a running recording (start, stop, status, mark).",
-    "session": "Inspect, list, verify and repair session folders.",
-    "labels": "Gesture taxonomies, annotation import/export and label statistics.",
-    "simulate": "Synthetic recordings with known ground truth (no hardware needed).",
-    "import": "Import sessions from other formats.",
-    "emulate": "Serve emulated serial devices on pseudo-terminals.",
-    "calibrate": "Calibrate devices and write the results into a rig file.",
-    "ground-truth": "Ground truth read from recordings (pedal states from the console video).",
-    "eval": "Validate sensing modalities against robot ground truth (paper tables).",
-    "train": "Train and evaluate gesture-recognition models.",
-    "features": "Extract learned features from recordings.",
-    "extract": "Derive streams from recorded data (offline).",
-    "rig": "Check a rig's devices before recording.",
-    "jobs": "Follow batch runs (--executor local|slurm): each unit's state, log and error.",
-}
+    ``module`` (under midas_cli.commands) and ``attribute`` name the typer command function or group
+    (``kind`` "command" or "group"); ``summary`` is the first paragraph of its help, as `midas --help`
+    lists it (tests/commands/test_startup.py holds it to the real help). An entry with ``renamed_to`` is an old
+    spelling kept for a release: hidden from help and completion, and running it warns on stderr.
+    """
+
+    __slots__ = ("name", "module", "attribute", "kind", "summary", "renamed_to")
+
+    def __init__(self, name: str, module: str, attribute: str, kind: str, summary: str = "",
+                 renamed_to: str = "") -> None:
+        self.name, self.module, self.attribute, self.kind = name, module, attribute, kind
+        self.summary, self.renamed_to = summary, renamed_to
+
+    @property
+    def hidden(self) -> bool:
+        return bool(self.renamed_to)
+
+
+# In the order of the tree (README, "Commands"): record and control it; inspect sessions and labels;
+# derive and analyse; move data in and out; simulate hardware; the machine, the defaults, batch runs.
+REGISTRY: tuple[Command, ...] = (
+    Command("record", "record", "record", "command",
+            "Record a session from the rig's devices into a new session folder."),
+    Command("mark", "control", "mark", "command", "Add a marker to the running recording's events stream."),
+    Command("ctl", "control", "app", "group", "Remote control of a running recording (start, stop, status, mark)."),
+    Command("session", "session", "app", "group", "Inspect, list, verify and repair session folders."),
+    Command("labels", "labels", "app", "group", "Gesture taxonomies, annotation import/export and label statistics."),
+    Command("plot", "plot", "plot", "command",
+            "Draw a quick-look page of a session: every stream against session time."),
+    Command("align", "align", "align", "command", "Align each session's streams onto its video frame clock."),
+    Command("extract", "extract", "app", "group",
+            "Derive data from recordings offline: hand keypoints, pedal states, image features."),
+    Command("calibrate", "calibrate", "app", "group", "Calibrate devices and write the results into a rig file."),
+    Command("eval", "eval", "app", "group",
+            "Validate sensing modalities against robot ground truth (paper tables)."),
+    Command("train", "train", "app", "group", "Train and evaluate gesture-recognition models."),
+    Command("export", "export", "export", "command",
+            "Export sessions as MCAP (Foxglove), Parquet, XDF (LSL) and/or LeRobot datasets."),
+    Command("replay", "replay", "replay", "command",
+            "Play a session's streams back as live LSL outlets with their recorded timing."),
+    Command("import", "import_cmd", "app", "group", "Import sessions from other formats."),
+    Command("simulate", "simulate", "app", "group",
+            "Synthetic recordings with known ground truth (no hardware needed)."),
+    Command("emulate", "emulate", "app", "group", "Serve emulated serial devices on pseudo-terminals."),
+    Command("rig", "rig", "app", "group", "Check or list a rig's devices before recording."),
+    Command("doctor", "doctor", "doctor", "command", "Report versions, serial ports, OBS reachability, GPU and free disk."),
+    Command("config", "config_cmd", "config", "command",
+            "Show the defaults in use (rig, sessions, SLURM) and where each comes from."),
+    Command("jobs", "jobs", "app", "group",
+            "Follow batch runs (--executor local|slurm): each unit's state, log and error."),
+    Command("ground-truth", "ground_truth", "app", "group", renamed_to="midas extract pedals"),
+    Command("features", "features", "app", "group", renamed_to="midas extract image-features"),
+)
+COMMANDS: dict[str, Command] = {command.name: command for command in REGISTRY}
+
+
+def listed() -> list[Command]:
+    """The commands `midas --help` lists, as typer orders them: commands, then groups, each in registry order."""
+    shown = [command for command in REGISTRY if not command.hidden]
+    return [c for c in shown if c.kind == "command"] + [c for c in shown if c.kind == "group"]
+
 
 # `midas --help`'s description (typer's app callback takes it as its help).
 ROOT_HELP = """midas: record and analyse multimodal data in robot-assisted surgery (MiDAS).
@@ -192,11 +205,11 @@ def root_help(width: int, styled: bool = False) -> str:
         option_rows.append(([cell, " " * len(plain)], help_text))
     panel("Options", option_rows, len(option_rows[0][0][1]) + 1)
 
-    command_width = max(len(name) for name in COMMAND_SUMMARIES)
+    command_width = max(len(command.name) for command in listed())
     command_rows = []
-    for name, summary in COMMAND_SUMMARIES.items():
-        cell = " " + sgr(name.ljust(command_width), "1", "36") + sgr(" ", "1", "36") + " "
+    for command in listed():
+        cell = " " + sgr(command.name.ljust(command_width), "1", "36") + sgr(" ", "1", "36") + " "
         blank = " " + sgr(" " * (command_width + 1), "1", "36") + " "
-        command_rows.append(([cell, blank], summary))
+        command_rows.append(([cell, blank], command.summary))
     panel("Commands", command_rows, command_width + 4)
     return "\n".join(lines) + "\n\n"

@@ -8,8 +8,8 @@ from typing import Any, Optional
 import typer
 
 from midas_cli.commands import executor as ex
-from midas_cli.commands.common import err, non_negative, out, positive, print_json
-from midas_cli.commands.options import JSON_OPTION
+from midas_cli.commands.common import err, error_line, non_negative, out, positive, print_json
+from midas_cli.commands.options import JSON_OPTION, renamed_option, take_renamed
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
@@ -73,7 +73,9 @@ def console_video(
     out_path: Path = typer.Option(..., "--out", help="Video file to write (.mkv/.mp4: mp4v, .avi: MJPG)."),
     duration: float = typer.Option(20.0, "--duration", callback=positive, help="Length in seconds."),
     seed: int = typer.Option(0, "--seed", help="Seed of the pedal schedule, picture and noise."),
-    fps: float = typer.Option(30.0, "--fps", callback=positive, help="Frame rate in Hz."),
+    frame_rate: Optional[float] = typer.Option(None, "--frame-rate", callback=positive, help="Frame rate in Hz "
+                                               "(default 30)."),
+    old_fps: Optional[float] = renamed_option("--fps", "--frame-rate"),
     size: str = typer.Option("1920x1080", "--size", help="One view's WIDTHxHEIGHT in pixels."),
     stereo: bool = typer.Option(False, "--stereo", help="Side-by-side stereo (two views in one frame)."),
     noise: float = typer.Option(3.0, "--noise", callback=non_negative, help="Sensor noise, standard deviation in grey levels."),
@@ -92,6 +94,7 @@ def console_video(
     from midas_cli.simulate.console_video import render_console_video
     from midas_cli.synthetic.console_video import ConsoleVideoSpec
 
+    fps = take_renamed(frame_rate, old_fps, "--fps", "--frame-rate", error_line) or 30.0
     spec = ConsoleVideoSpec(duration, seed, fps, _parse_size(size), stereo, noise, max_shift, layout)
     with progress_display() as progress:
         task = progress.add_task("rendering frames", total=spec.frames)

@@ -11,7 +11,8 @@ from rich.table import Table
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import error_line, out, positive, print_json
-from midas_cli.commands.options import JSON_OPTION, SESSION_TREES_ARG, renamed_option, take_renamed
+from midas_cli.commands.options import (ACCELERATOR_OPTION, JSON_OPTION, OLD_ACCELERATOR_OPTION, SESSION_TREES_ARG,
+                                       accelerator, renamed_option, take_renamed)
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
@@ -38,7 +39,6 @@ BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", help="Cross-valida
 EPOCHS_OPT = typer.Option(None, "--epochs", min=0, help="Training epochs (default: the model's recipe, "
                           "mstcn 100, transformer 50).")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
-DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
 MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
                               "table at (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
@@ -125,7 +125,8 @@ def gestures(
     baseline: bool = BASELINE_OPT,
     epochs: int = EPOCHS_OPT,
     seed: int = SEED_OPT,
-    device: str = DEVICE_OPT,
+    accelerator_name: Optional[str] = ACCELERATOR_OPTION,
+    old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
     model_rate: Optional[float] = MODEL_RATE_OPT,
     rate: Optional[float] = renamed_option("--rate", "--model-rate"),
     exclude_clutch: bool = EXCLUDE_OPT,
@@ -142,18 +143,19 @@ def gestures(
     """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser.
 
     Metrics go to stdout. With --fold all, each fold is a unit of --executor local (--jobs N) or slurm
-    (one array task per fold; --device cuda asks each for a GPU); the run folder is OUT/jobs/ unless
+    (one array task per fold; --accelerator cuda asks each for a GPU); the run folder is OUT/jobs/ unless
     --run-dir says otherwise, and a re-run trains only the folds not done.
 
     Example: midas train gestures sessions/ --model mstcn --modalities emht --features pos,ori,vel --split gesture --epochs 50 --out runs/emht-mstcn
 
-    Example (leave one user out, every fold a SLURM task with a GPU): midas train gestures data/jigsaws/ --split louo --fold all --device cuda --executor slurm --slurm-time 02:00:00 --out runs/louo
+    Example (leave one user out, every fold a SLURM task with a GPU): midas train gestures data/jigsaws/ --split louo --fold all --accelerator cuda --executor slurm --slurm-time 02:00:00 --out runs/louo
     """
     from midas_cli.models import cv
     from midas_cli.models.splits import GROUP_SPLITS
     from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
 
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
+    device = accelerator(accelerator_name, old_device)  # torch's word for it
     fold_index = _parse_fold(fold)
     if fold_index is None and split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
@@ -240,7 +242,8 @@ def ablation(
     baseline: bool = BASELINE_OPT,
     epochs: int = EPOCHS_OPT,
     seed: int = SEED_OPT,
-    device: str = DEVICE_OPT,
+    accelerator_name: Optional[str] = ACCELERATOR_OPTION,
+    old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
     out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
     as_json: bool = JSON_OPTION,
     *,
@@ -259,6 +262,7 @@ def ablation(
     from midas_cli.models.train import TrainConfig
     from midas_cli.session.outputs import out_folder
 
+    device = accelerator(accelerator_name, old_device)  # torch's word for it
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     paths = session_paths(sessions)
     rows = parse_grid(grid)

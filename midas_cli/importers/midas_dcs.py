@@ -307,7 +307,7 @@ def import_midas_dcs(folder: Path | str, out_root: Path | str, platform: str = "
         cuts = [d for d in discontinuities if d["what"].endswith("a new recording")]
         where = "; ".join(f"{d['file']} line {d['line']}: {d['what'].removesuffix(': a new recording')}" for d in cuts)
         raise SessionError(f"{folder} holds {len(parts)} recordings written into one folder ({where}): "
-                           "import them as separate sessions with --split")
+                           "import them as separate sessions with --split-recordings")
     built = []
     for index, recording in enumerate(parts):
         report: dict[str, Any] = {"source": str(folder), "format": "midas-dcs (UVA-DSA/MiDAS 2024)",

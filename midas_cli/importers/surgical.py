@@ -29,10 +29,11 @@ from midas_cli.analysis.kinematics_schema import kinematics_spec
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.geometry import quaternions_from_matrices
 from midas_cli.importers.common import file_facts, write_session
+from midas_cli.labels.segments import FrameSegment
+from midas_cli.labels.transcription import read_transcription
 from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 from midas_cli.session.writer import SessionMetadata
-from midas_cli.simulate.gestures import read_transcription
 
 RATE_HZ = 30.0
 EPOCH_NS = 1_262_304_000_000_000_000  # 2010-01-01T00:00:00Z: stands in for the missing host clock
@@ -137,11 +138,11 @@ def transcription_for(kinematics: Path, root: Path, fmt: str) -> Path | None:
     return None
 
 
-def frame_labels(segments: list[tuple[int, int, str]], frames: int) -> np.ndarray:
+def frame_labels(segments: list[FrameSegment], frames: int) -> np.ndarray:
     """(frames,) labels: each segment's label on its inclusive frame range, '' elsewhere."""
     labels = np.full(frames, "", dtype=object)
-    for start, end, label in segments:
-        labels[start:min(end, frames - 1) + 1] = label
+    for segment in segments:
+        labels[segment.first:min(segment.last, frames - 1) + 1] = segment.label
     return labels
 
 
@@ -175,7 +176,7 @@ def import_trial(path: Path, root: Path, fmt: str, out_root: Path) -> tuple[Path
     report["transcription"] = file_facts(transcription) if transcription else "none found: no labels written"
     session = write_session(out_root, metadata, devices, streams, report)
     if transcription:
-        segments = read_transcription(transcription)
+        segments = read_transcription(transcription, index_base=0)  # the file's frame k is kinematic row k
         write_frame_labels(session, k, frame_labels(segments, n), {
             "taxonomy": f"{fmt}-{task}", "source": str(transcription), "segments": len(segments)})
     return session, report

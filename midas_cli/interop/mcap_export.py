@@ -126,7 +126,7 @@ def _write_images(session: Session, name: str, context: Any, counts: dict[str, i
     from foxglove.channels import CompressedImageChannel
     from foxglove.messages import CompressedImage
 
-    from midas_cli.devices.rgbd.handkp import iter_frames
+    from midas_cli.analysis.handkp import iter_frames
 
     spec = session.stream_spec(name)
     channel = CompressedImageChannel(f"/{name}/image", context=context)

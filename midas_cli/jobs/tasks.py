@@ -18,7 +18,7 @@ UNIT_MODULES: dict[str, str] = {
     "align": "midas_cli.analysis.align_units",
     "train-fold": "midas_cli.models.cv_units",
     "image-features": "midas_cli.models.image_features_units",
-    "extract-handkp": "midas_cli.devices.rgbd.handkp_units",
+    "extract-handkp": "midas_cli.analysis.handkp_units",
     "ablation-cell": "midas_cli.models.ablation_units",
     "pedals-gt": "midas_cli.analysis.pedal_video.units",
     "simulate-trial": "midas_cli.simulate.dataset_units",

@@ -326,12 +326,12 @@ def _image_features(path: Path, frames: np.ndarray, name: str) -> tuple[np.ndarr
     """(N, D) image features at ``frames`` (NaN where the NPZ has no row for a frame)."""
     npz = Path(path) / "derived" / f"{name}.npz"
     if not npz.is_file():
-        raise SessionError(f"{path} has no derived/{name}.npz: run `midas features image` on its video first")
+        raise SessionError(f"{path} has no derived/{name}.npz: run `midas extract image-features` on its video first")
     try:
         with np.load(npz, allow_pickle=False) as data:
             feature_frames, features = data["frame"].astype(np.int64), data["features"].astype(np.float64)
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # damaged or not an npz at all
-        raise SessionError(f"cannot read {npz}: {exc} (re-run `midas features image`)") from exc
+        raise SessionError(f"cannot read {npz}: {exc} (re-run `midas extract image-features`)") from exc
     out = np.full((len(frames), features.shape[1]), np.nan)
     pos = np.searchsorted(feature_frames, frames)
     ok = pos < len(feature_frames)

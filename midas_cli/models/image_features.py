@@ -66,7 +66,7 @@ def extract_features(video: Path, weights: Path, options: ExtractOptions, out: P
                      progress: Callable[[int, int], None] | None = None) -> dict:
     """Encode every ``options.every``-th frame of ``video``; write the NPZ ``out``; return a summary."""
     if options.device == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda asked for, but torch sees no CUDA GPU (use --device cpu)")
+        raise ConfigError("--accelerator cuda asked for, but torch sees no CUDA GPU (use --accelerator cpu)")
     out = out_target(out, inputs=(video, weights))  # checked before the (long) encoding: never a session's own file
     model = load_backbone(options.backbone, weights).to(options.device)
     frames, chunks = [], []

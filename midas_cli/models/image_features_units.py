@@ -1,4 +1,4 @@
-"""`midas features image` as units of a batch run (midas_cli/jobs): one unit per video or session.
+"""`midas extract image-features` as units of a batch run (midas_cli/jobs): one unit per video or session.
 
 An input is a video file (features to ``--out``, or ``<video stem>.image_features.npz`` beside it) or a
 session folder with one video in ``video/`` (features to ``derived/image_features.npz``, where

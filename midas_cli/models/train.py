@@ -358,7 +358,7 @@ def _new_run_dir(out_dir: Path) -> Path:
 
 def _device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda asked for, but torch sees no CUDA GPU (use --device cpu)")
+        raise ConfigError("--accelerator cuda asked for, but torch sees no CUDA GPU (use --accelerator cpu)")
     if name not in ("cpu", "cuda"):
         raise ConfigError(f"--device must be cpu or cuda, got {name!r}")
     return torch.device(name)

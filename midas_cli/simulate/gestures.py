@@ -1,4 +1,7 @@
-"""Gesture taxonomies, per-gesture durations and the sequence model of simulated trials.
+"""The simulated surgeon's gestures: per-gesture durations and the order of gestures in a trial.
+
+The gesture sets themselves (ids, names, order) are the shipped taxonomies of ``midas_cli.labels``
+(``peg-transfer``, ``hernia-suturing``); this module adds what a simulation needs on top of them.
 
 Durations (mean +/- std, seconds) and segment counts are the paper's dataset table (Raven-II peg
 transfer after DESK, S1-S7; da Vinci Xi hernia suturing, G1-G8). Each duration is drawn from a
@@ -16,7 +19,6 @@ Order: a first-order Markov chain over gestures.
 from __future__ import annotations
 
 import json
-import re
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -24,6 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from midas_cli.errors import ConfigError, SessionError
+from midas_cli.labels.taxonomy import Taxonomy, shipped_taxonomy
+from midas_cli.labels.transcription import read_transcription
 
 MIN_DURATION_S = 0.5
 MAX_DURATION_S = 150.0
@@ -31,26 +35,26 @@ IDLE = "Idle"
 END = "END"
 TRANSITIONS_FILE = "suturing_transitions.json"
 
-# label: (name, samples in the paper's table, mean s, std s)
+# gesture id (names: the taxonomy's file): (samples in the paper's table, mean s, std s)
 PEG_TRANSFER_TABLE = {
-    "S1": ("Approach peg", 49, 5.84, 3.66),
-    "S2": ("Align & grasp", 50, 6.05, 7.22),
-    "S3": ("Lift peg", 51, 2.83, 1.28),
-    "S4": ("Transfer peg - Get together", 52, 8.08, 4.04),
-    "S5": ("Transfer peg - Exchange", 50, 9.65, 6.85),
-    "S6": ("Approach pole", 47, 5.87, 2.52),
-    "S7": ("Align & place", 46, 5.37, 2.74),
-    IDLE: ("Idle (between pegs; not in the paper's table)", 0, 2.0, 1.0),
+    "S1": (49, 5.84, 3.66),
+    "S2": (50, 6.05, 7.22),
+    "S3": (51, 2.83, 1.28),
+    "S4": (52, 8.08, 4.04),
+    "S5": (50, 9.65, 6.85),
+    "S6": (47, 5.87, 2.52),
+    "S7": (46, 5.37, 2.74),
+    IDLE: (0, 2.0, 1.0),  # between pegs; not in the paper's table
 }
 SUTURING_TABLE = {
-    "G1": ("Orient Needle", 246, 9.30, 9.48),
-    "G2": ("Target Needle", 321, 3.61, 7.63),
-    "G3": ("Push Needle Through Tissue", 328, 7.82, 10.88),
-    "G4": ("Pull Needle out of Tissue", 273, 5.72, 6.67),
-    "G5": ("Reach Suture", 39, 6.10, 6.56),
-    "G6": ("Pull Suture", 233, 13.12, 21.98),
-    "G7": ("Make C Loop", 143, 5.07, 3.74),
-    "G8": ("Square Knot and Cinch", 141, 8.47, 6.88),
+    "G1": (246, 9.30, 9.48),
+    "G2": (321, 3.61, 7.63),
+    "G3": (328, 7.82, 10.88),
+    "G4": (273, 5.72, 6.67),
+    "G5": (39, 6.10, 6.56),
+    "G6": (233, 13.12, 21.98),
+    "G7": (143, 5.07, 3.74),
+    "G8": (141, 8.47, 6.88),
 }
 # DESK order with retries: S2->S1 missed approach, S3->S2 peg slipped, S5->S4 failed exchange,
 # S7->S6 re-approach; after placing, the next peg (S1) or a pause (Idle).
@@ -69,15 +73,25 @@ SUTURING_SEGMENTS_PER_TRIAL = (101.0, 12.0)  # 1,724 segments / 17 trials; sprea
 
 
 @dataclass(frozen=True)
-class Taxonomy:
-    """A gesture set: name (label-file taxonomy), labels in order, duration stats, transition matrix."""
+class GestureModel:
+    """How a simulated surgeon performs a taxonomy's gestures: duration stats and transition matrix,
+    indexed in the taxonomy's order."""
 
-    name: str
-    labels: tuple[str, ...]
+    taxonomy: Taxonomy
     mean_s: np.ndarray  # (K,)
     std_s: np.ndarray  # (K,)
     transitions: np.ndarray  # (K, K) row-stochastic, zero diagonal
     start: str
+
+    @property
+    def name(self) -> str:
+        """The taxonomy's name, as label sets record it."""
+        return self.taxonomy.name
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """The gesture ids in the taxonomy's order."""
+        return tuple(self.taxonomy.ids)
 
     def index(self, label: str) -> int:
         return self.labels.index(label)
@@ -101,17 +115,26 @@ def _matrix(labels: tuple[str, ...], table: dict[str, dict[str, float]]) -> np.n
     return matrix / matrix.sum(axis=1, keepdims=True)
 
 
-def peg_transfer() -> Taxonomy:
-    labels = tuple(PEG_TRANSFER_TABLE)
-    stats = np.array([PEG_TRANSFER_TABLE[k][2:] for k in labels])
-    return Taxonomy("peg-transfer", labels, stats[:, 0], stats[:, 1], _matrix(labels, PEG_TRANSITIONS), IDLE)
+def _taxonomy_with_stats(name: str, table: dict[str, tuple[int, float, float]]) -> tuple[Taxonomy, np.ndarray]:
+    """The shipped taxonomy ``name`` and (K, 2) mean and std seconds of its gestures, in its order;
+    ConfigError when the table and the taxonomy name different gestures."""
+    taxonomy = shipped_taxonomy(name)
+    if set(taxonomy.ids) != set(table):
+        raise ConfigError(f"taxonomy {name!r} ({', '.join(taxonomy.ids)}) and the simulation's duration table "
+                          f"({', '.join(table)}) name different gestures")
+    return taxonomy, np.array([table[k][1:] for k in taxonomy.ids])
 
 
-def hernia_suturing() -> Taxonomy:
-    labels = tuple(SUTURING_TABLE)
-    stats = np.array([SUTURING_TABLE[k][2:] for k in labels])
-    data = load_transition_data()
-    return Taxonomy("hernia-suturing", labels, stats[:, 0], stats[:, 1], suturing_matrix(data, labels), "G1")
+def peg_transfer() -> GestureModel:
+    taxonomy, stats = _taxonomy_with_stats("peg-transfer", PEG_TRANSFER_TABLE)
+    labels = tuple(taxonomy.ids)
+    return GestureModel(taxonomy, stats[:, 0], stats[:, 1], _matrix(labels, PEG_TRANSITIONS), IDLE)
+
+
+def hernia_suturing() -> GestureModel:
+    taxonomy, stats = _taxonomy_with_stats("hernia-suturing", SUTURING_TABLE)
+    labels = tuple(taxonomy.ids)
+    return GestureModel(taxonomy, stats[:, 0], stats[:, 1], suturing_matrix(load_transition_data(), labels), "G1")
 
 
 def load_transition_data() -> dict:
@@ -148,33 +171,15 @@ def derive_transition_counts(folder: Path | str) -> dict[str, dict[str, int]]:
         raise SessionError(f"{folder} holds no *.txt gesture transcriptions")
     counts: dict[str, dict[str, int]] = {}
     for path in files:
-        sequence = [label for _, _, label in read_transcription(path)] + [END]
+        sequence = [segment.label for segment in read_transcription(path)] + [END]
         for a, b in zip(sequence[:-1], sequence[1:]):
             counts.setdefault(a, {}).setdefault(b, 0)
             counts[a][b] += 1
     return {a: dict(sorted(row.items())) for a, row in sorted(counts.items())}
 
 
-_SEGMENT = re.compile(r"^\s*(\d+)\s+(\d+)\s+(\S+)\s*$")
-
-
-def read_transcription(path: Path) -> list[tuple[int, int, str]]:
-    """Segments (start frame, end frame inclusive, label) of a JIGSAWS/COMPASS transcription file."""
-    segments = []
-    for number, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), start=1):
-        if not line.strip():
-            continue
-        match = _SEGMENT.match(line)
-        if not match:
-            raise SessionError(f"{path}:{number}: expected 'start end label', got {line.strip()!r}")
-        start, end = int(match[1]), int(match[2])
-        if end < start:
-            raise SessionError(f"{path}:{number}: segment ends ({end}) before it starts ({start})")
-        segments.append((start, end, match[3]))
-    return segments
-
-
-def taxonomy_for(platform: str) -> Taxonomy:
+def gesture_model_for(platform: str) -> GestureModel:
+    """The gesture model of a platform's simulated task (raven-ii: peg transfer, davinci-xi: suturing)."""
     if platform == "raven-ii":
         return peg_transfer()
     if platform == "davinci-xi":
@@ -182,21 +187,21 @@ def taxonomy_for(platform: str) -> Taxonomy:
     raise ConfigError(f"platform {platform!r} unknown (expected raven-ii or davinci-xi)")
 
 
-def sample_segments(rng: np.random.Generator, taxonomy: Taxonomy, max_seconds: float | None = None
+def sample_segments(rng: np.random.Generator, model: GestureModel, max_seconds: float | None = None
                     ) -> list[tuple[str, float]]:
     """(label, duration s) of one trial. Peg transfer: until the third peg is placed, then Idle.
     Suturing: a segment count ~ N(101, 12). ``max_seconds`` ends the trial at the first gesture
     boundary past it (short trials for tests)."""
-    peg = taxonomy.name == "peg-transfer"
+    peg = model.name == "peg-transfer"
     target = PEGS_PER_TRIAL if peg else max(8, int(rng.normal(*SUTURING_SEGMENTS_PER_TRIAL)))
-    label, done, elapsed, segments = taxonomy.start, 0, 0.0, []
+    label, done, elapsed, segments = model.start, 0, 0.0, []
     while True:
-        segments.append((label, taxonomy.draw_duration(rng, label)))
+        segments.append((label, model.draw_duration(rng, label)))
         elapsed += segments[-1][1]
         done += (label == "S7") if peg else 1
         if done >= target or (max_seconds is not None and elapsed >= max_seconds):
             break
-        label = taxonomy.next_label(rng, label)
+        label = model.next_label(rng, label)
     if peg and segments[-1][0] != IDLE:
-        segments.append((IDLE, taxonomy.draw_duration(rng, IDLE)))
+        segments.append((IDLE, model.draw_duration(rng, IDLE)))
     return segments

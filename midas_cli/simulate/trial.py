@@ -84,11 +84,11 @@ class _Trial:
 
 def draw_trial(config: TrialConfig) -> _Trial:
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, config.trial]))
-    taxonomy = gestures.taxonomy_for(config.platform)
+    model = gestures.gesture_model_for(config.platform)
     easy = difficulty_style.check_difficulty(config.difficulty) == "easy"
-    style = None if easy else difficulty_style.subject_style(config.seed, config.subject, len(taxonomy.labels))
+    style = None if easy else difficulty_style.subject_style(config.seed, config.subject, len(model.labels))
     limit = config.max_seconds if style is None or config.max_seconds is None else config.max_seconds * style.speed
-    drawn = gestures.sample_segments(rng, taxonomy, limit)  # real: durations / speed below, so the cut scales
+    drawn = gestures.sample_segments(rng, model, limit)  # real: durations / speed below, so the cut scales
     seed = config.seed * 1000 + config.trial
     start_ns = EPOCH_NS + config.trial * 3_600_000_000_000
     truth = GroundTruth.build(config.distortion_mm, config.latency_ms)
@@ -100,7 +100,7 @@ def draw_trial(config: TrialConfig) -> _Trial:
         hands = GestureHands(segments, clutches, seed)
         return _Trial(config, segments, schedule, hands, truth, float(bounds[-1]), start_ns, np.zeros((0, 2)))
     hard = difficulty_style.trial_rng(config.seed, config.trial)
-    pause_label = gestures.IDLE if gestures.IDLE in taxonomy.labels else ""
+    pause_label = gestures.IDLE if gestures.IDLE in model.labels else ""
     parts = difficulty_style.add_pauses(hard, style, drawn, pause_label, PAUSE)
     bounds = np.concatenate([[0.0], np.cumsum([d for _, _, d in parts])])
     moving = difficulty_style.motion_bounds(hard, style, bounds)
@@ -109,7 +109,7 @@ def draw_trial(config: TrialConfig) -> _Trial:
     clutches = trial_pedals.clutch_intervals(rng, config.platform, motion)
     schedule = trial_pedals.pedal_schedule(rng, config.platform, clutches, float(bounds[-1]))
     hands = GestureHands(motion, clutches, seed, style, difficulty_style.Placement.draw(config.seed, config.trial),
-                         {label: k for k, label in enumerate(taxonomy.labels)})
+                         {label: k for k, label in enumerate(model.labels)})
     blank = difficulty_style.unlabelled_stretches(hard, style, float(bounds[-1]))
     return _Trial(config, segments, schedule, hands, truth, float(bounds[-1]), start_ns, blank, style)
 
@@ -246,10 +246,10 @@ def _write_kinematics(writer: SessionWriter, mtm_spec: StreamSpec, psm_spec: Str
 def _write_derived(folder: Path, trial: _Trial, frames: np.ndarray) -> None:
     frame_s = frames / 30.0
     labels = _frame_labels(trial, frame_s)
-    taxonomy = gestures.taxonomy_for(trial.config.platform)
+    model = gestures.gesture_model_for(trial.config.platform)
     write_frame_labels(folder, frames, labels, {
-        "taxonomy": taxonomy.name, "source": "simulated (midas simulate dataset): exact generator labels",
-        "classes": list(taxonomy.labels)})
+        "taxonomy": model.name, "source": "simulated (midas simulate dataset): exact generator labels",
+        "classes": list(model.labels)})
     truth = trial.truth.to_json(trial.hands.rig.camera_from_transmitter())
     if trial.style is not None:
         truth["difficulty"] = {"level": trial.config.difficulty, "subject_style": trial.style.to_json(),
@@ -257,7 +257,7 @@ def _write_derived(folder: Path, trial: _Trial, frames: np.ndarray) -> None:
                                "unlabelled_stretches_s": np.round(trial.blank, 3).tolist(),
                                "note": "simulate/style.py: subject style, pauses, unlabelled stretches, placement"}
     artifacts.write_json(folder, "calib/ground_truth.json", truth)
-    features = _image_features(trial, labels, taxonomy.labels)
+    features = _image_features(trial, labels, model.labels)
     artifacts.write_npz(folder, "derived/image_features.npz", frame=frames.astype(np.int64), features=features,
                         note=np.array("SYNTHETIC image features (no video was rendered): class embedding of the "
                                       "frame's gesture (a random other gesture for 30% of segments) plus AR(1) "

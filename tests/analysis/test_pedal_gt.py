@@ -1,4 +1,4 @@
-"""`midas ground-truth pedals` and `midas simulate console-video`: detectors on small synthetic frames,
+"""`midas extract pedals` and `midas simulate console-video`: detectors on small synthetic frames,
 layouts, relative coordinates, debouncing, and extraction of a rendered 20 s console video end to end."""
 
 from __future__ import annotations
@@ -204,7 +204,7 @@ def _session_with_video(root: Path, video: Path, frames: int, first_seq: int = 0
 def test_session_extraction_recovers_the_rendered_schedule(console, tmp_path: Path) -> None:
     schedule = pd.read_csv(console["schedule"])
     session = _session_with_video(tmp_path, console["video"], len(schedule), first_seq=3)
-    result = midas("ground-truth", "pedals", str(session), "--json", check=True, timeout=240)
+    result = midas("extract", "pedals", str(session), "--json", check=True, timeout=240)
     summary = json.loads(result.stdout)[0]
     assert summary["ok"] and summary["frames"] == len(schedule) and summary["frames_without_host_time"] == 3
     table = pd.read_csv(session / "derived" / "pedals_gt.csv", dtype={"t_host_ns": "Int64"})
@@ -220,7 +220,7 @@ def test_preview_draws_regions_and_reports_the_frame_states(console, tmp_path: P
     schedule = pd.read_csv(console["schedule"])
     frame = int(np.flatnonzero(schedule["camera"].to_numpy())[5])
     png = tmp_path / "check.png"
-    result = midas("ground-truth", "pedals", str(console["video"]), "--preview", str(frame), "--out", str(png),
+    result = midas("extract", "pedals", str(console["video"]), "--preview", str(frame), "--out", str(png),
                    "--json", check=True)
     report = json.loads(result.stdout)
     assert report["pedals"] == {p: bool(schedule[p].iloc[frame]) for p in schedule.columns[1:]}
@@ -243,7 +243,7 @@ def stereo_videos(tmp_path_factory) -> list[Path]:
 
 
 def test_stereo_720p_videos_in_parallel_jobs(stereo_videos: list[Path]) -> None:
-    result = midas("ground-truth", "pedals", *map(str, stereo_videos), "--jobs", "2", "--json", check=True, timeout=240)
+    result = midas("extract", "pedals", *map(str, stereo_videos), "--jobs", "2", "--json", check=True, timeout=240)
     assert [r["ok"] for r in json.loads(result.stdout)] == [True, True]
     for path in stereo_videos:
         table = pd.read_csv(path.with_name(path.stem + ".pedals_gt.csv"))
@@ -256,7 +256,7 @@ def test_stereo_720p_videos_in_parallel_jobs(stereo_videos: list[Path]) -> None:
 
 def test_bare_video_with_out_and_min_duration(stereo_videos: list[Path], tmp_path: Path) -> None:
     out = tmp_path / "gt.csv"
-    midas("ground-truth", "pedals", str(stereo_videos[0]), "--min-duration", "3", "--view", "left", "--out", str(out),
+    midas("extract", "pedals", str(stereo_videos[0]), "--min-duration", "3", "--view", "left", "--out", str(out),
           check=True, timeout=120)
     table = pd.read_csv(out)
     schedule = pd.read_csv(stereo_videos[0].with_name("stereo1.schedule.csv"))
@@ -277,9 +277,9 @@ def test_view_auto_takes_the_left_half_of_side_by_side_frames_only() -> None:
 def test_usage_and_data_errors(console, tmp_path: Path) -> None:
     session = _session_with_video(tmp_path, console["video"], 10)
     os.link(console["video"], session / "video" / "second.mkv")
-    two = midas("ground-truth", "pedals", str(session))
+    two = midas("extract", "pedals", str(session))
     assert two.returncode == 4 and "has 2 videos" in two.stderr
-    no_out = midas("ground-truth", "pedals", str(console["video"]), "--preview", "3")
+    no_out = midas("extract", "pedals", str(console["video"]), "--preview", "3")
     assert no_out.returncode == 2 and "--out" in no_out.stderr
     with pytest.raises(ConfigError, match="neither a file nor a built-in layout"):
         load_layout("nope")
@@ -289,13 +289,17 @@ def test_usage_and_data_errors(console, tmp_path: Path) -> None:
 
 def test_simulate_console_video_command_writes_video_and_schedule(tmp_path: Path) -> None:
     result = midas("simulate", "console-video", "--out", str(tmp_path / "tiny.mp4"), "--duration", "2", "--size",
-                   "640x360", "--seed", "5", "--json", check=True)
+                   "640x360", "--seed", "5", "--frame-rate", "30", "--json", check=True)
     paths = json.loads(result.stdout)
     capture = cv2.VideoCapture(paths["video"])
     assert (capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (640, 360)
     schedule = pd.read_csv(paths["schedule"])
     assert len(schedule) == 60 and list(schedule.columns) == ["frame", *load_layout("davinci-xi").pedal_names]
     assert json.loads(Path(paths["schedule"]).with_suffix(".json").read_text())["seed"] == 5
+    old = midas("simulate", "console-video", "--out", str(tmp_path / "old.mp4"), "--duration", "5", "--size", "320x180",
+                "--fps", "15", "--json", check=True)  # the old name of --frame-rate
+    assert len(pd.read_csv(json.loads(old.stdout)["schedule"])) == 75
+    assert "midas: warning: --fps is now --frame-rate" in old.stderr
 
 
 @pytest.mark.slow
@@ -308,7 +312,7 @@ def test_a_long_1080p_video_meets_the_issue_bar(tmp_path: Path) -> None:
     linearly with the length (BENCHMARKS.md section 3): the 5-minute video adds time, not cases."""
     video = render_console_video(tmp_path / "ninety_seconds.mkv", ConsoleVideoSpec(90.0, seed=11))
     session = _session_with_video(tmp_path, video.video, video.frames)
-    midas("ground-truth", "pedals", str(session), "--json", check=True, timeout=600)
+    midas("extract", "pedals", str(session), "--json", check=True, timeout=600)
     schedule = pd.read_csv(video.schedule_csv)
     assert all(np.diff(np.r_[0, schedule[p].to_numpy()]).clip(0).sum() >= 10 for p in schedule.columns[1:])
     assert_recovers(pd.read_csv(session / "derived" / "pedals_gt.csv"), schedule)

@@ -17,6 +17,8 @@ def _commands(group: typer.Typer, prefix: tuple[str, ...] = ()) -> list[tuple[st
     found = []
     for name, command in click_group.commands.items():
         path = (*prefix, name)
+        if command.hidden:  # an old spelling, kept for a release
+            continue
         if hasattr(command, "commands"):
             found += [(*path, sub) for sub in command.commands]
         else:

@@ -40,8 +40,8 @@ def copy_session(session: Path, tmp_path: Path) -> Path:
 # --- bad option values: exit 2, the option named -------------------------------------------------
 
 @pytest.mark.parametrize("args, option", [
-    (["labels", "stats", "{t}", "--fps", "0"], "--fps"),
-    (["labels", "stats", "{t}", "--fps", "nan"], "--fps"),
+    (["labels", "stats", "{t}", "--frame-rate", "0"], "--frame-rate"),
+    (["labels", "stats", "{t}", "--frame-rate", "nan"], "--frame-rate"),
     (["simulate", "console-video", "--out", "{d}/v.mkv", "--duration", "nan"], "--duration"),
     (["calibrate", "emht", "{d}", "--weight-decay", "nan"], "--weight-decay"),
     (["emulate", "fps", "--corrupt", "2"], "--corrupt"),
@@ -94,7 +94,7 @@ def test_bad_checkpoint_is_exit_4_naming_it(gestures, tmp_path, content):
 def test_empty_backbone_weights_is_exit_4_not_aborted(tmp_path):
     weights = tmp_path / "resnet50.pth"
     weights.write_bytes(b"")
-    result = midas("features", "image", str(tmp_path / "v.mkv"), "--backbone", "resnet50", "--weights", str(weights),
+    result = midas("extract", "image-features", str(tmp_path / "v.mkv"), "--backbone", "resnet50", "--weights", str(weights),
                    "--out", str(tmp_path / "f.npz"))
     assert_one_error(result, 4, str(weights))
     assert "Aborted" not in result.stderr

@@ -1,4 +1,4 @@
-"""`midas plot` (the quick-look page) and `midas rig check` (pre-flight) (issue 15 items 4 and 6)."""
+"""`midas plot` (the quick-look page) and `midas rig check|show` (pre-flight) (issue 15 items 4 and 6)."""
 
 from __future__ import annotations
 
@@ -89,6 +89,17 @@ def test_rig_check_needs_a_rig_or_simulate() -> None:
     result = midas("rig", "check")
     assert result.returncode == 2
     assert "--simulate" in result.stderr
+
+
+def test_rig_show_lists_the_default_rigs_devices_and_opens_none(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[rig]\nname = "lab"\nplatform = "davinci-xi"\n\n'
+                   '[devices.emht]\nurl = "fob:///dev/nonexistent?rate=200&sensors=4"\n')
+    result = midas("rig", "show", "--json", env={"MIDAS_RIG": str(rig)}, check=True)  # no device opened: exit 0
+    shown = json.loads(result.stdout)
+    assert shown["name"] == "lab" and shown["source"] == str(rig)
+    assert shown["devices"] == {"emht": {"url": "fob:///dev/nonexistent?rate=200&sensors=4", "kind": "emht"}}
+    assert "emht" in midas("rig", "show", "--simulate", check=True).stdout
 
 
 def test_plot_draws_markers_as_lines_not_as_a_panel(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
 """Issue 14, small things users hit: the JIGSAWS import summary, `session list` order, the
-processing-speed column of `ground-truth pedals`."""
+processing-speed column of `extract pedals`."""
 
 from __future__ import annotations
 
@@ -49,7 +49,8 @@ def test_session_list_sorts_trial_numbers_naturally(tmp_path: Path) -> None:
 
 def test_ground_truth_table_names_processing_speed_not_fps(tmp_path: Path) -> None:
     video = render_console_video(tmp_path / "c.avi", ConsoleVideoSpec(2.0, 1, size=(320, 180))).video
-    result = midas("ground-truth", "pedals", str(video), check=True)
+    result = midas("ground-truth", "pedals", str(video), check=True)  # the old spelling still works, and warns
+    assert result.stderr.startswith("midas: warning: `midas ground-truth` is now `midas extract pedals`")
     header_lines = [line for line in result.stdout.splitlines() if "┃" in line]
     cells = {cell.strip() for line in header_lines for cell in line.split("┃")}
     assert "fps" not in cells and {"processed", "processed frames/s"} & cells, header_lines

@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from midas_cli import __version__
 from midas_cli.commands.main import build_app
-from midas_cli.commands.root import COMMAND_SUMMARIES, COMMANDS, MIN_STATIC_WIDTH, ROOT_HELP, root_help
+from midas_cli.commands.root import COMMANDS, MIN_STATIC_WIDTH, REGISTRY, ROOT_HELP, listed, root_help
 from helpers.cli import REPO, write_session
 
 HEAVY = ("numpy", "pandas", "scipy", "torch", "cv2", "matplotlib", "pyarrow")
@@ -66,7 +66,7 @@ def test_version_imports_neither_typer_nor_any_command(args: list[str]) -> None:
 def test_root_help_imports_neither_typer_nor_any_command(args: list[str]) -> None:
     result, modules = _imported(*args)
     assert result.returncode == 0, result.stderr[-2000:]
-    assert "Exit codes" in result.stdout and "ground-truth" in result.stdout
+    assert "Exit codes" in result.stdout and "extract" in result.stdout and "ground-truth" not in result.stdout
     assert not _top_level(modules) & {"typer", "rich", *HEAVY}
     assert not {m for m in modules if m.startswith("midas_cli.commands.")} - {"midas_cli.commands.root"}
 
@@ -108,8 +108,8 @@ def test_session_verify_imports_no_scipy_torch_cv2_matplotlib(small_session: Pat
 # `<cmd> --help` imports only the command's own module, and for these none of the heavy libraries.
 # Not listed: record (the recorder), labels (pandas: EXPORT_FORMATS in its help), align (scipy: METHODS),
 # calibrate (numpy: TARGETS), and train/features/extract/plot/doctor were already light.
-LIGHT_HELP = ["session", "simulate", "import", "emulate", "ground-truth", "eval", "export", "rig", "train",
-              "features", "extract", "plot", "doctor"]
+LIGHT_HELP = ["session", "simulate", "import", "emulate", "eval", "export", "rig", "train", "extract", "plot",
+              "doctor"]
 
 
 @pytest.mark.parametrize("command", LIGHT_HELP)
@@ -117,10 +117,10 @@ def test_command_help_imports_only_its_module_and_no_heavy_library(command: str)
     result, modules = _imported(command, "--help")
     assert result.returncode == 0, result.stderr[-2000:]
     assert not _top_level(modules) & set(HEAVY), sorted(_top_level(modules) & set(HEAVY))
-    own = f"midas_cli.commands.{COMMANDS[command][0]}"
+    own = f"midas_cli.commands.{COMMANDS[command].module}"
     commands = {m for m in modules if m.startswith("midas_cli.commands.")}
     assert own in commands
-    others = {f"midas_cli.commands.{module}" for name, (module, _, _) in COMMANDS.items() if name != command}
+    others = {f"midas_cli.commands.{c.module}" for c in listed() if c.name != command}
     assert not commands & others
 
 
@@ -132,10 +132,12 @@ def _summary(command) -> str:
 
 def test_the_static_summaries_match_the_commands_own_help() -> None:
     root = typer.main.get_command(build_app())
-    real = {name: _summary(command) for name, command in root.commands.items()}
-    assert COMMAND_SUMMARIES == real  # also the order: commands, then groups, as typer lists them
-    assert list(COMMAND_SUMMARIES) == list(real)
-    assert set(COMMAND_SUMMARIES) == set(COMMANDS)
+    real = {name: _summary(command) for name, command in root.commands.items() if not command.hidden}
+    summaries = {c.name: c.summary for c in listed()}
+    assert summaries == real  # also the order: commands, then groups, as typer lists them
+    assert list(summaries) == list(real)
+    hidden = {name for name, command in root.commands.items() if command.hidden}
+    assert hidden == {c.name for c in REGISTRY if c.renamed_to} and set(root.commands) == set(COMMANDS)
     assert inspect.cleandoc(root.help) == ROOT_HELP
 
 
@@ -184,7 +186,8 @@ def test_recording_needs_no_torch_and_training_says_how_to_get_it(tmp_path: Path
 
 
 @pytest.mark.parametrize("words, cword, expected", [
-    ("midas exp", 1, "export"), ("midas session ve", 2, "verify"), ("midas export --fo", 2, "--format")])
+    ("midas exp", 1, "export"), ("midas session ve", 2, "verify"), ("midas export --fo", 2, "--format"),
+    ("midas ext", 1, "extract"), ("midas extract im", 2, "image-features")])
 def test_shell_completion_answers_from_the_commands(words: str, cword: int, expected: str) -> None:
     """Completion was switched off; bash's request (what `midas --install-completion` wires up) is
     answered from the real commands, not by the static root help."""

@@ -13,7 +13,7 @@ from midas_cli.clock import HostClock
 from midas_cli.devices.base import DeviceContext, DeviceUrl
 from midas_cli.devices.rgbd.calibration import Rectifier, load_zed_conf, parse_zed_conf
 from midas_cli.devices.rgbd.device import ZedSdkStereoDevice
-from midas_cli.devices.rgbd.handkp import handkp_spec
+from midas_cli.analysis.handkp import handkp_spec
 from midas_cli.devices.rgbd.stereo import keypoints_3d
 from midas_cli.devices.sim.devices import SimHandKP
 from midas_cli.errors import ConfigError, DeviceError
@@ -127,7 +127,7 @@ def test_handkp_layout_matches_the_simulated_handkp_stream() -> None:
 def test_mediapipe_missing_says_how_to_get_it(tmp_path: Path) -> None:
     if importlib.util.find_spec("mediapipe") is not None:
         pytest.skip("mediapipe is installed here")
-    from midas_cli.devices.rgbd.handkp import MediaPipeDetector
+    from midas_cli.analysis.handkp import MediaPipeDetector
 
     with pytest.raises(ConfigError, match="mediapipe==0.10.21 and numpy<2"):
         MediaPipeDetector()

@@ -1,6 +1,6 @@
 """Issue 14: a MiDAS folder into which two acquisition servers wrote at once (host time going back,
 a partial line, the column block changing mid-file) is refused, or split into one session per
-recording with --split; every discontinuity is reported with file and line. Built at test time
+recording with --split-recordings; every discontinuity is reported with file and line. Built at test time
 from the shared sample (two real folders spliced into one)."""
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def test_spliced_folder_is_refused_naming_each_cut(tmp_path: Path) -> None:
     result = midas("import", "midas-dcs", str(spliced_folder(tmp_path)), "--out", str(tmp_path / "out"))
     assert result.returncode == 4, result.stderr
     message = result.stderr.strip()
-    assert len(message.splitlines()) == 1 and "holds 2 recordings" in message and "--split" in message
+    assert len(message.splitlines()) == 1 and "holds 2 recordings" in message and "--split-recordings" in message
     assert "synced_data.csv line 303: row shape changes from 41 to 34 values" in message
     assert "PDS.csv line 302: host time jumps back by" in message
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
@@ -56,7 +56,8 @@ def test_spliced_folder_is_refused_naming_each_cut(tmp_path: Path) -> None:
 
 def test_split_writes_one_session_per_recording(tmp_path: Path) -> None:
     folder = spliced_folder(tmp_path)
-    result = midas("import", "midas-dcs", str(folder), "--out", str(tmp_path / "out"), "--split", "--json", check=True)
+    result = midas("import", "midas-dcs", str(folder), "--out", str(tmp_path / "out"), "--split-recordings", "--json",
+                   check=True)
     imported = json.loads(result.stdout)
     assert len(imported) == 2
     first, second = (Session.open(item["path"]) for item in imported)
@@ -78,8 +79,9 @@ def test_split_writes_one_session_per_recording(tmp_path: Path) -> None:
     assert report2["synced_data"]["row_widths"] == {"34": 101}
     assert report2["synced_data"]["pds_block_placeholders"] == {"-2": 101 * 8}
     assert report1["recording"].startswith("1 of 2") and report2["recording"].startswith("2 of 2")
-    assert "discontinuity: synced_data.csv line 302: partial line" in midas(
-        "import", "midas-dcs", str(folder), "--out", str(tmp_path / "again"), "--split", check=True).stderr
+    again = midas("import", "midas-dcs", str(folder), "--out", str(tmp_path / "again"), "--split", check=True)
+    assert "discontinuity: synced_data.csv line 302: partial line" in again.stderr  # the old name still works
+    assert again.stderr.startswith("midas: warning: --split is now --split-recordings")
     assert midas("session", "verify", imported[1]["path"]).returncode == 0
 
 

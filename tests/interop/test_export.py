@@ -301,7 +301,7 @@ def test_mcap_with_video_has_the_rgbd_frames_as_images(tmp_path: Path) -> None:
 
 def test_only_six_dof_sensors_become_transforms() -> None:
     from midas_cli.devices.emht_layout import emht_stream
-    from midas_cli.devices.rgbd.handkp import handkp_spec
+    from midas_cli.analysis.handkp import handkp_spec
     from midas_cli.interop.foxglove_topics import sensor_columns
 
     sensors = sensor_columns(emht_stream("emht", 2, 240.0))

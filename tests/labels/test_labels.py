@@ -295,6 +295,9 @@ def test_stats_counts_durations_and_transitions(tmp_path: Path) -> None:
     assert rows["G1"]["samples"] == 2 and rows["G1"]["mean_s"] == 1.0 and rows["G1"]["std_s"] == 0.0
     assert rows["G2"]["mean_s"] == 2.0 and rows["G3"]["std_s"] is None
     assert data["transitions"] == {"labels": ["G1", "G2", "G3"], "counts": [[0, 1, 0], [1, 0, 1], [0, 0, 0]]}
+    old = midas("labels", "stats", str(folder), "--fps", "15", "--json", check=True)  # the old name of --frame-rate
+    assert {r["id"]: r["mean_s"] for r in json.loads(old.stdout)["gestures"]}["G2"] == 4.0
+    assert "midas: warning: --fps is now --frame-rate" in old.stderr
     without = gesture_stats(load_recordings([folder])[0], exclude=["G2"])
     assert without.classes == ["G1", "G3"] and without.transitions.tolist() == [[1, 0], [0, 0]]
     import cv2

@@ -1,4 +1,4 @@
-"""Image backbones in plain torch: official checkpoint key layouts, and `midas features image`."""
+"""Image backbones in plain torch: official checkpoint key layouts, and `midas extract image-features`."""
 
 from __future__ import annotations
 
@@ -64,15 +64,22 @@ def test_cli_extracts_resnet_features_from_user_weights(tmp_path):
     torch.save(ResNet().state_dict(), weights)
     video = write_video(tmp_path / "clip.avi")
     out = tmp_path / "derived" / "image_features.npz"
-    result = midas("features", "image", str(video), "--backbone", "resnet50", "--weights", str(weights),
-                   "--out", str(out), "--crop", "64", "--batch-size", "2", "--json", check=True)
+    result = midas("extract", "image-features", str(video), "--backbone", "resnet50", "--weights", str(weights),
+                   "--out", str(out), "--crop", "64", "--batch-size", "2", "--accelerator", "cpu", "--json",
+                   check=True)
     assert json.loads(result.stdout)["frames"] == 5
     with np.load(out) as data:
         assert data["frame"].tolist() == [0, 1, 2, 3, 4]
         assert data["features"].shape == (5, 2048) and data["features"].dtype == np.float32
         assert not np.allclose(data["features"][0], data["features"][4])  # different frames, different features
     wrong = midas("features", "image", str(video), "--backbone", "dinov2", "--weights", str(weights), "--out", str(out))
-    assert wrong.returncode == 2 and "dinov2" in wrong.stderr
+    assert wrong.returncode == 2 and "dinov2" in wrong.stderr  # the old spelling runs the same command, and warns
+    assert wrong.stderr.startswith("midas: warning: `midas features` is now `midas extract image-features`")
+    again = midas("extract", "image-features", str(video), "--backbone", "resnet50", "--weights", str(weights),
+                  "--out", str(tmp_path / "again.npz"), "--crop", "64", "--device", "cpu", check=True)  # the old name
+    assert "midas: warning: --device is now --accelerator" in again.stderr
+    with np.load(out) as first, np.load(tmp_path / "again.npz") as second:
+        assert np.allclose(first["features"], second["features"], rtol=1e-4, atol=1e-6)  # same weights, frames
 
 
 def test_dinov2_extraction_every_other_frame(tmp_path):

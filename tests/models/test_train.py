@@ -92,13 +92,14 @@ def test_grid_rows_parse_and_title_like_the_paper():
 def test_cli_train_eval_only_and_ablation(sessions, tmp_path):
     root = str(sessions[0].parent)
     run = midas("train", "gestures", root, "--model", "transformer", "--epochs", "1", "--seed", "1",
-                "--out", str(tmp_path / "run"), "--json", check=True)
+                "--accelerator", "cpu", "--out", str(tmp_path / "run"), "--json", check=True)
     summary = json.loads(run.stdout)["test"]
     assert 0.0 <= summary["accuracy"] <= 1.0 and "f1@50" in summary
     assert "epochs" in run.stderr  # progress bar on stderr
     again = midas("train", "gestures", root, "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
-                  "--out", str(tmp_path / "eval"), "--json", check=True)
+                  "--device", "cpu", "--out", str(tmp_path / "eval"), "--json", check=True)  # the old name
     assert json.loads(again.stdout)["test"] == summary
+    assert "midas: warning: --device is now --accelerator" in again.stderr
     table = midas("train", "ablation", root, "--models", "transformer", "--epochs", "1",
                   "--grid", "emht:pos:exclude-clutch;psm:pos", "--out", str(tmp_path / "abl"), check=True)
     assert "| MTRSAP | EmHT | pos. |" in table.stdout and "Skipped" in table.stdout  # no PSM stream

@@ -252,7 +252,7 @@ def test_a_session_whose_stream_names_are_refused_leaves_no_folder(tmp_path: Pat
 
 
 def test_extract_handkp_refuses_a_stream_option_that_is_no_stream_name(tmp_path: Path) -> None:
-    from midas_cli.devices.rgbd.handkp_units import plan_units
+    from midas_cli.analysis.handkp_units import plan_units
 
     with pytest.raises(ConfigError, match="--stream"):
         plan_units([tmp_path], "truth", None, "../derived/x", False, False)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from midas_cli.analysis.kinematics_schema import kinematics_spec, side_columns
+from midas_cli.labels.taxonomy import shipped_taxonomy
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.reader import Session
 from midas_cli.simulate import gestures
@@ -121,6 +122,13 @@ def test_labels_cover_every_frame_with_the_platform_taxonomy(raven: list[Path], 
     assert labels.meta["taxonomy"] == "peg-transfer" and set(labels.classes()) <= set(gestures.PEG_TRANSFER_TABLE)
     assert labels.labels[0] == "Idle" and "S1" in labels.classes()
     assert set(read_frame_labels(davinci).classes()) <= set(gestures.SUTURING_TABLE)
+
+
+def test_simulated_gestures_are_the_shipped_taxonomies() -> None:
+    """One home for a gesture set: the simulation draws over labels' taxonomy, in its order."""
+    for model, name in ((gestures.peg_transfer(), "peg-transfer"), (gestures.hernia_suturing(), "hernia-suturing")):
+        assert model.taxonomy == shipped_taxonomy(name) and model.name == name
+        assert model.labels == tuple(shipped_taxonomy(name).ids) and len(model.mean_s) == len(model.labels)
 
 
 def test_duration_statistics_follow_the_papers_table() -> None:

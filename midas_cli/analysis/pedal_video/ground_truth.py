@@ -1,4 +1,4 @@
-"""`midas ground-truth pedals` as a library: session or bare video in, pedal-state table + sidecar out.
+"""`midas extract pedals` as a library: session or bare video in, pedal-state table + sidecar out.
 
 Frame convention: row ``frame`` = 0-based index of the decoded video frame = ``seq`` of the session's
 video stream. (The original MiDAS scripts numbered the energy-pedal frames from 1 and the camera and

@@ -1,4 +1,4 @@
-"""`midas ground-truth pedals` as units of a batch run (midas_cli/jobs): one unit per session or video.
+"""`midas extract pedals` as units of a batch run (midas_cli/jobs): one unit per session or video.
 
 A unit's fingerprint covers its request (input, layout, view, debouncing, output), the video's size
 and modification time, the layout file's bytes (when the layout is a file) and the midas version.

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from midas_cli import __version__
-from midas_cli.devices.rgbd.handkp import extract_handkp
+from midas_cli.analysis.handkp import extract_handkp
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.rundir import Unit, fingerprint
 from midas_cli.jobs.tasks import task_name
