@@ -11,8 +11,6 @@ help panel to its signature and hands them over as that one object. The command 
 
 from __future__ import annotations
 
-import functools
-import inspect
 from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
@@ -20,7 +18,8 @@ from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from midas_cli.commands.common import error_line
+from midas_cli.commands.common import error_line, print_json
+from midas_cli.commands.options import keyword_options, option_group
 from midas_cli.commands.progress import progress_display, progress_interval_s
 from midas_cli.jobs.options import BatchOptions, ExecutorChoice
 
@@ -51,31 +50,17 @@ GPUS_OPT = typer.Option(None, "--slurm-gpus", rich_help_panel=PANEL, help="GPUs 
 PARALLEL_OPT = typer.Option(None, "--slurm-array-parallelism", rich_help_panel=PANEL, help="Most array tasks "
                             "running at once.")
 
-# The executor options as parameters of a command (names: the fields of jobs.batch.BatchOptions), in the
-# order of the help's "Executor" panel.
-BATCH_PARAMETERS = tuple(
-    inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option, annotation=annotation)
-    for name, option, annotation in (
-        ("executor", EXECUTOR_OPT, str), ("jobs", JOBS_OPT, int), ("run_dir", RUN_DIR_OPT, Optional[Path]),
-        ("no_wait", NO_WAIT_OPT, bool), ("slurm_partition", PARTITION_OPT, Optional[str]),
-        ("slurm_time", TIME_OPT, Optional[str]), ("slurm_mem", MEM_OPT, Optional[str]),
-        ("slurm_gpus", GPUS_OPT, Optional[int]), ("slurm_array_parallelism", PARALLEL_OPT, Optional[int])))
+# The executor options as parameters of a command (names: the fields of jobs.options.BatchOptions), in
+# the order of the help's "Executor" panel.
+BATCH_PARAMETERS = keyword_options(
+    ("executor", EXECUTOR_OPT, str), ("jobs", JOBS_OPT, int), ("run_dir", RUN_DIR_OPT, Optional[Path]),
+    ("no_wait", NO_WAIT_OPT, bool), ("slurm_partition", PARTITION_OPT, Optional[str]),
+    ("slurm_time", TIME_OPT, Optional[str]), ("slurm_mem", MEM_OPT, Optional[str]),
+    ("slurm_gpus", GPUS_OPT, Optional[int]), ("slurm_array_parallelism", PARALLEL_OPT, Optional[int]))
 
-
-def batch_command(command: Callable[..., None]) -> Callable[..., None]:
-    """Declare ``command`` a batch command: its signature (what typer reads) gets the executor options
-    after its own, and it is called with them as one ``batch: BatchOptions`` argument."""
-    own = [p for name, p in inspect.signature(command).parameters.items() if name != "batch"]
-
-    @functools.wraps(command)
-    def run(**given: Any) -> None:
-        batch = BatchOptions(**{p.name: given.pop(p.name) for p in BATCH_PARAMETERS})
-        command(**given, batch=batch)
-
-    signature = inspect.Signature([*own, *BATCH_PARAMETERS])
-    run.__signature__ = signature  # type: ignore[attr-defined]
-    run.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
-    return run
+# Declares a batch command: its signature gets the executor options after its own, and it is called
+# with them as one ``batch: BatchOptions`` argument.
+batch_command = option_group("batch", BatchOptions, BATCH_PARAMETERS)
 
 
 def run_plan(task: str, units: Sequence[Unit], choice: ExecutorChoice, label: str,
@@ -106,6 +91,16 @@ def counted(description: str) -> Steps:
         bar = display.add_task(description, total=None, info="")
         return lambda done, total: display.update(bar, completed=done, total=total or None)
     return attach
+
+
+def shown_results(outcome: Outcome, as_json: bool, single: bool) -> list[Any]:
+    """The units' results for a command to render as lines; with --json they are printed here instead
+    (one object when the command was given one input) and nothing is left to render."""
+    results = [r for r in outcome.results if r is not None]
+    if not as_json:
+        return results
+    print_json(results[0] if single and results else results)
+    return []
 
 
 def unit_progress():

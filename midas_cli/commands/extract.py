@@ -12,13 +12,13 @@ from typing import Optional
 import typer
 
 from midas_cli.commands import executor as ex
-from midas_cli.commands.common import out, print_json
+from midas_cli.commands.common import out
 from midas_cli.commands.features import image as image_features
 from midas_cli.commands.ground_truth import pedals
 from midas_cli.commands.options import JSON_OPTION
 from midas_cli.jobs.options import BatchOptions
 
-app = typer.Typer(help="Derive data from recordings offline: hand keypoints, pedal states, image features.",
+app = typer.Typer(help="Derive data from recordings offline: hand keypoints, pedals, image features.",
                   no_args_is_help=True)
 
 
@@ -53,14 +53,10 @@ def handkp(
     outcome = ex.run_plan(TASK, units, choice, "sessions", ex.counted("extracting hand keypoints"))
     if outcome.submitted:  # --no-wait: the run folder is printed
         return
-    results = [r for r in outcome.results if r is not None]
-    if as_json:
-        print_json(results[0] if len(sessions) == 1 and results else results)
-    else:
-        for result in results:
-            out.print(f"{result['stream']}: {result['frames']} frames from {result['device']}, hands detected left "
-                      f"{result['detected']['left']} right {result['detected']['right']}, "
-                      f"{result['keypoints_with_depth']} fingertips with depth", markup=False, highlight=False)
+    for result in ex.shown_results(outcome, as_json, single=len(sessions) == 1):
+        out.print(f"{result['stream']}: {result['frames']} frames from {result['device']}, hands detected left "
+                  f"{result['detected']['left']} right {result['detected']['right']}, "
+                  f"{result['keypoints_with_depth']} fingertips with depth", markup=False, highlight=False)
     outcome.raise_failed("sessions")
 
 

@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 
 from midas_cli.commands import executor as ex
-from midas_cli.commands.common import out, print_json
+from midas_cli.commands.common import out
 from midas_cli.commands.options import ACCELERATOR_OPTION, JSON_OPTION, OLD_ACCELERATOR_OPTION, accelerator
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
@@ -59,11 +59,7 @@ def image(
                           ex.counted(f"{backbone} frames"))
     if outcome.submitted:  # --no-wait: the run folder is printed
         return
-    results = [r for r in outcome.results if r is not None]
-    if as_json:
-        print_json(results[0] if len(inputs) == 1 and results else results)
-    else:
-        for summary in results:
-            out.print(f"{summary['frames']} frames x {summary['dim']} features ({backbone}) -> {summary['out']}",
-                      markup=False)
+    for summary in ex.shown_results(outcome, as_json, single=len(inputs) == 1):
+        out.print(f"{summary['frames']} frames x {summary['dim']} features ({backbone}) -> {summary['out']}",
+                  markup=False)
     outcome.raise_failed("inputs")

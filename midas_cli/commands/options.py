@@ -17,13 +17,17 @@ Names and what they always mean:
   image-features``); ``--device`` there is its old name, kept for a release.
 * ``fps`` is the foot-pedal board (the device kind, ``fps://``); a video's frame rate is
   ``--frame-rate`` (``labels stats``, ``simulate console-video``; ``--fps`` there is its old name).
+* Options that always travel together are declared once as a group (``option_group``: the executor
+  options of every batch command) and reach the command as one object.
 * ``--split``: how ``train`` splits sessions into train/test; ``import midas-dcs`` cutting a folder into
   one session per recording is ``--split-recordings`` (``--split`` there is its old name).
 """
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+import functools
+import inspect
+from typing import Any, Callable, Optional, Sequence
 
 import typer
 
@@ -69,3 +73,29 @@ def take_renamed(value, old_value, old: str, new: str, warn: Callable[[str], Non
         raise ConfigError(f"{old} is the old name of {new}: give only {new}")
     warn(f"midas: warning: {old} is now {new} (the old name will go in a later release)")
     return old_value
+
+
+def keyword_options(*specs: tuple[str, Any, Any]) -> tuple[inspect.Parameter, ...]:
+    """(name, typer option, annotation) triples as keyword-only parameters, for ``option_group``."""
+    return tuple(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option, annotation=annotation)
+                 for name, option, annotation in specs)
+
+
+def option_group(name: str, factory: Callable[..., Any],
+                 parameters: Sequence[inspect.Parameter]) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """A decorator for options several commands share, declared once (the sqlite-utils ``output_options``
+    way): the command's signature, which typer reads, gets ``parameters`` after its own, and the command
+    is called with their values bundled as one keyword argument ``name`` = ``factory(**values)``."""
+    def declare(command: Callable[..., None]) -> Callable[..., None]:
+        own = [p for key, p in inspect.signature(command).parameters.items() if key != name]
+
+        @functools.wraps(command)
+        def run(**given: Any) -> None:
+            bundle = factory(**{p.name: given.pop(p.name) for p in parameters})
+            command(**given, **{name: bundle})
+
+        signature = inspect.Signature([*own, *parameters])
+        run.__signature__ = signature  # type: ignore[attr-defined]
+        run.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
+        return run
+    return declare

@@ -49,7 +49,7 @@ REGISTRY: tuple[Command, ...] = (
             "Draw a quick-look page of a session: every stream against session time."),
     Command("align", "align", "align", "command", "Align each session's streams onto its video frame clock."),
     Command("extract", "extract", "app", "group",
-            "Derive data from recordings offline: hand keypoints, pedal states, image features."),
+            "Derive data from recordings offline: hand keypoints, pedals, image features."),
     Command("calibrate", "calibrate", "app", "group", "Calibrate devices and write the results into a rig file."),
     Command("eval", "eval", "app", "group",
             "Validate sensing modalities against robot ground truth (paper tables)."),

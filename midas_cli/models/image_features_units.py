@@ -17,8 +17,7 @@ from midas_cli.errors import SessionError
 from midas_cli.jobs.rundir import Unit, fingerprint
 from midas_cli.jobs.tasks import task_name
 from midas_cli.models.image_features import ExtractOptions, extract_features
-from midas_cli.session.manifest import MANIFEST_NAME
-from midas_cli.session.pedals_gt import session_videos
+from midas_cli.session.pedals_gt import the_session_video
 
 TASK = task_name(__name__)  # registered in jobs/tasks.py
 SESSION_OUTPUT = Path("derived") / "image_features.npz"
@@ -28,12 +27,7 @@ def resolve(source: Path, out: Path | None) -> tuple[Path, Path]:
     """(video, output NPZ) of one input; SessionError for a session without exactly one video."""
     source = Path(source)
     if source.is_dir():
-        if not (source / MANIFEST_NAME).is_file():
-            raise SessionError(f"{source} is a folder but not a session (no {MANIFEST_NAME}): give a video file")
-        videos = session_videos(source)
-        if len(videos) != 1:
-            raise SessionError(f"{source} has {len(videos)} videos in video/: give the video file itself")
-        return videos[0], out or source / SESSION_OUTPUT
+        return the_session_video(source), out or source / SESSION_OUTPUT
     return source, out or source.with_name(f"{source.stem}.image_features.npz")
 
 

@@ -141,10 +141,7 @@ def session_folder(session: Path | str, relative: str) -> Path:
     reason = _owned_reason(Path(session).resolve(), resolved)
     if reason is not None:
         raise SessionError(f"refusing to write into {relative}: it is {reason} of {session}")
-    try:
-        resolved.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SessionError(f"cannot create {resolved}: {exc.strerror or exc}") from exc
+    _make_folder(resolved, SessionError, str(resolved))
     return resolved
 
 
@@ -176,10 +173,7 @@ def out_folder(path: Path | str, option: str = "--out") -> Path:
         reason = _owned_reason(session, resolved)
         if reason is not None:
             raise ConfigError(f"{option} {path} is {reason} of {session}: choose another folder")
-    try:
-        resolved.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"cannot create {option} folder {path}: {exc.strerror or exc}") from exc
+    _make_folder(resolved, ConfigError, f"{option} folder {path}")
     return resolved
 
 
@@ -207,10 +201,15 @@ def _child_of(folder: Path | str, name: str) -> Path:
 
 
 def _make_parent(resolved: Path, error: type[MidasError], option: str = "output") -> None:
+    _make_folder(resolved.parent, error, f"the folder of {option} {resolved}")
+
+
+def _make_folder(folder: Path, error: type[MidasError], what: str) -> None:
+    """Create ``folder`` and its parents; ``error`` ("cannot create WHAT: reason") when it cannot be."""
     try:
-        resolved.parent.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise error(f"cannot create the folder of {option} {resolved}: {exc.strerror or exc}") from exc
+        raise error(f"cannot create {what}: {exc.strerror or exc}") from exc
 
 
 # ---- atomic writes -----------------------------------------------------------------------------

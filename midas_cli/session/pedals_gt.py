@@ -39,6 +39,19 @@ def session_videos(session_path: Path | str) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
 
 
+def the_session_video(session_path: Path) -> Path:
+    """The one video of a session folder given where a video is expected; SessionError, naming what is
+    there, when the folder is no session or holds no or several videos."""
+    if not (session_path / MANIFEST_NAME).is_file():
+        raise SessionError(f"{session_path} is a folder without {MANIFEST_NAME}: give a session folder or a video file")
+    videos = session_videos(session_path)
+    if len(videos) != 1:
+        found = ", ".join(v.name for v in videos) or "none"
+        raise SessionError(f"session {session_path} has {len(videos)} videos in video/ ({found}); "
+                           f"give the video file itself, e.g. {session_path}/video/<file>")
+    return videos[0]
+
+
 def session_of_video(video_path: Path | str) -> Path | None:
     """The session folder a video file sits in (``<session>/video/<file>``), or None for a bare file."""
     parent = Path(video_path).resolve().parent

@@ -20,9 +20,8 @@ from midas_cli import __version__
 from midas_cli.analysis.pedal_video.extract import PedalStates, debounce, extract_pedal_states
 from midas_cli.analysis.pedal_video.layout import load_layout
 from midas_cli.errors import ConfigError, SessionError
-from midas_cli.session.manifest import MANIFEST_NAME
 from midas_cli.session.outputs import out_target
-from midas_cli.session.pedals_gt import (pedals_gt_path, session_of_video, session_videos, video_frame_times,
+from midas_cli.session.pedals_gt import (pedals_gt_path, session_of_video, the_session_video, video_frame_times,
                                          write_pedals_gt)
 from midas_cli.session.reader import Session
 
@@ -66,14 +65,7 @@ def resolve_input(path: Path, out: Path | None) -> tuple[Path, Path | None, Path
     """(video file, session folder or None, output CSV) for a session folder or a video file."""
     path = Path(path)
     if path.is_dir():
-        if not (path / MANIFEST_NAME).is_file():
-            raise SessionError(f"{path} is a folder without {MANIFEST_NAME}: give a session folder or a video file")
-        videos = session_videos(path)
-        if len(videos) != 1:
-            found = ", ".join(v.name for v in videos) or "none"
-            raise SessionError(f"session {path} has {len(videos)} videos in video/ ({found}); "
-                               f"give the video file itself, e.g. {path}/video/<file>")
-        return videos[0], path, pedals_gt_path(path)
+        return the_session_video(path), path, pedals_gt_path(path)
     if not path.is_file():
         raise SessionError(f"{path} is neither a session folder nor a video file")
     session = session_of_video(path)
