@@ -83,6 +83,17 @@ def test_an_idle_fold_keeps_its_weights_and_adam_state():
         torch.testing.assert_close(models[1].state_dict()[key], value, rtol=1e-5, atol=1e-6)
 
 
+def test_mixed_precision_skips_the_step_of_a_fold_with_inf_gradients_and_halves_its_scale():
+    """The CUDA path's per-fold GradScaler rule, checked on the CPU: fold 1's gradient overflowed."""
+    weights = torch.ones(2, 3, requires_grad=True)
+    state = fold_batch.new_state([weights], 2, torch.device("cpu"), mixed=True)
+    weights.grad = torch.tensor([[1.0, -2.0, 3.0], [1.0, float("inf"), 0.0]]) * state.scale[:, None]
+    fold_batch.adam_step([weights], state, torch.tensor([True, True]), TrainConfig(lr=0.1))
+    assert state.steps.tolist() == [1.0, 0.0] and state.scale.tolist() == [2.0 ** 16, 2.0 ** 15]
+    torch.testing.assert_close(weights[0].detach(), torch.tensor([0.9, 1.1, 0.9]))  # Adam's first step: lr x sign
+    assert weights[1].tolist() == [1.0, 1.0, 1.0] and state.m[3:].tolist() == [0.0, 0.0, 0.0]
+
+
 def test_the_mode_decides_from_the_device():
     assert fold_batch.enabled("auto", "cuda", 8) and not fold_batch.enabled("auto", "cpu", 8)
     assert fold_batch.enabled("on", "cpu", 2) and not fold_batch.enabled("on", "cuda", 1)

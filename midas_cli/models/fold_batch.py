@@ -92,7 +92,7 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
     for p in params.values():
         p.requires_grad_(True)
     mixed = device.type == "cuda"
-    state = _new_state([params[n] for n in names], len(models), device, mixed)
+    state = new_state([params[n] for n in names], len(models), device, mixed)
     step = _stacked_loss(models[0], mixed, device)
     rngs = [np.random.default_rng(config.seed) for _ in models]
     histories: list[list[dict]] = [[] for _ in models]
@@ -106,7 +106,7 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
             losses = step(params, buffers, x, y, mask)
             losses = torch.where(active, losses, torch.zeros_like(losses))  # an idle fold: no gradient
             (losses * state.scale).sum().backward()
-            _adam_step([params[n] for n in names], state, active, config)
+            adam_step([params[n] for n in names], state, active, config)
             loss_sum += losses.detach().float()
         _copy_into(models, params)
         for k, model in enumerate(models):
@@ -155,7 +155,8 @@ def _stack(batches: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
     return xs.to(device), ys.to(device), masks.to(device)
 
 
-def _new_state(params: list[torch.Tensor], k: int, device: torch.device, mixed: bool) -> StepState:
+def new_state(params: list[torch.Tensor], k: int, device: torch.device, mixed: bool) -> StepState:
+    """Zero moments and step counts for ``k`` folds of the stacked ``params``; GradScaler's first scale if ``mixed``."""
     sizes = [p[0].numel() for p in params]
     owner = torch.cat([torch.arange(k, device=device).repeat_interleave(n) for n in sizes])
     zeros = torch.zeros(owner.shape[0], device=device)
@@ -165,7 +166,7 @@ def _new_state(params: list[torch.Tensor], k: int, device: torch.device, mixed: 
 
 
 @torch.no_grad()
-def _adam_step(params: list[torch.Tensor], state: StepState, active: torch.Tensor, config: TrainConfig) -> None:
+def adam_step(params: list[torch.Tensor], state: StepState, active: torch.Tensor, config: TrainConfig) -> None:
     """One Adam step (torch.optim.Adam's update, L2 weight decay) of the folds in ``active`` (K,) bool;
     the others keep weights, moments and step count. Gradients are unscaled per fold; a fold whose
     gradients are not finite skips the step and halves its scale (mixed precision)."""
