@@ -14,6 +14,7 @@ import torch
 
 from helpers.cli import midas
 from helpers.gesture_sessions import write_gesture_session
+from midas_cli.commands.train import FOLD_BATCH_MODES
 from midas_cli.errors import ConfigError
 from midas_cli.models import fold_batch
 from midas_cli.models.train import Sequences, TrainConfig, build_model, fit
@@ -100,6 +101,14 @@ def test_the_mode_decides_from_the_device():
     assert not fold_batch.enabled("off", "cuda", 8)
     with pytest.raises(ConfigError, match="--fold-batch"):
         fold_batch.enabled("always", "cpu", 8)
+    assert fold_batch.MODES == FOLD_BATCH_MODES  # the command checks the option without importing torch
+
+
+def test_a_bad_fold_batch_mode_is_one_line_and_exit_2(jigsaws, tmp_path):
+    result = midas("train", "gestures", str(jigsaws), "--split", "louo", "--fold", "all", "--fold-batch", "always",
+                   "--out", str(tmp_path / "cv"))
+    assert result.returncode == 2 and result.stderr.strip().count("\n") == 0 and "--fold-batch" in result.stderr
+    assert not (tmp_path / "cv").exists()
 
 
 @pytest.fixture(scope="module")

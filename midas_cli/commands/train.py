@@ -39,6 +39,7 @@ EPOCHS_OPT = typer.Option(None, "--epochs", min=0, help="Training epochs (defaul
                           "mstcn 100, transformer 50).")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="cpu or cuda.")
+FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
 FOLD_BATCH_OPT = typer.Option("auto", "--fold-batch", help="--fold all, --executor local: train the folds together "
                               "in this one process, one stacked model per step (on), each alone (off); auto "
                               "(default): on with --device cuda.")
@@ -159,6 +160,8 @@ def gestures(
 
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
     fold_index = _parse_fold(fold)
+    if fold_batch not in FOLD_BATCH_MODES:
+        raise ConfigError(f"--fold-batch must be one of {', '.join(FOLD_BATCH_MODES)}, got {fold_batch!r}")
     if fold_index is None and split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
