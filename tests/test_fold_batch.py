@@ -20,6 +20,7 @@ from midas_cli.models import fold_batch
 from midas_cli.models.train import Sequences, TrainConfig, build_model, fit
 
 DIMS, CLASSES = {"emht": 5}, 3
+EMPTY = Sequences([], [], [])  # no validation units
 
 
 def _sequences(seed: int, lengths: list[int]) -> Sequences:
@@ -76,9 +77,9 @@ def test_an_idle_fold_keeps_its_weights_and_adam_state():
     config = TrainConfig(model="mstcn", epochs=1, batch_size=1, lr=1e-2, selection="last", seed=0)
     short = _sequences(1, [30])
     alone = _model("mstcn", SMALL["mstcn"])
-    fit(alone, short, _sequences(9, []), config, torch.device("cpu"))
+    fit(alone, short, EMPTY, config, torch.device("cpu"))
     models = [_model("mstcn", SMALL["mstcn"]) for _ in range(2)]
-    fold_batch.fit_stacked(models, [_sequences(0, [30, 20, 25]), short], [_sequences(9, [])] * 2, config,
+    fold_batch.fit_stacked(models, [_sequences(0, [30, 20, 25]), short], [EMPTY] * 2, config,
                            torch.device("cpu"))
     for key, value in alone.state_dict().items():
         torch.testing.assert_close(models[1].state_dict()[key], value, rtol=1e-5, atol=1e-6)
