@@ -43,7 +43,7 @@ SCALE_INIT, SCALE_GROWTH_STEPS = 2.0 ** 16, 2000  # torch.amp.GradScaler's defau
 
 def enabled(mode: str, device: str, folds: int) -> bool:
     """Whether ``mode`` (auto, on, off) trains ``folds`` folds batched on ``device``: auto = on CUDA only
-    (on the CPU the stacked step is no faster per epoch than the folds one after another)."""
+    (on the CPU the stacked step is slower per epoch than the folds one after another)."""
     if mode not in MODES:
         raise ConfigError(f"--fold-batch must be one of {', '.join(MODES)}, got {mode!r}")
     return folds > 1 and (mode == "on" or (mode == "auto" and device == "cuda"))
