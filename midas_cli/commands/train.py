@@ -39,6 +39,10 @@ BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", help="Cross-valida
 EPOCHS_OPT = typer.Option(None, "--epochs", min=0, help="Training epochs (default: the model's recipe, "
                           "mstcn 100, transformer 50).")
 SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
+FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
+FOLD_BATCH_OPT = typer.Option("auto", "--fold-batch", help="--fold all, --executor local: train the folds together "
+                              "in this one process, one stacked model per step (on), each alone (off); auto "
+                              "(default): on with --accelerator cuda.")
 MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
                               "table at (default: Raven-II 10, otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
@@ -127,6 +131,7 @@ def gestures(
     seed: int = SEED_OPT,
     accelerator_name: Optional[str] = ACCELERATOR_OPTION,
     old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
+    fold_batch: str = FOLD_BATCH_OPT,
     model_rate: Optional[float] = MODEL_RATE_OPT,
     rate: Optional[float] = renamed_option("--rate", "--model-rate"),
     exclude_clutch: bool = EXCLUDE_OPT,
@@ -157,6 +162,8 @@ def gestures(
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
     device = accelerator(accelerator_name, old_device)  # torch's word for it
     fold_index = _parse_fold(fold)
+    if fold_batch not in FOLD_BATCH_MODES:
+        raise ConfigError(f"--fold-batch must be one of {', '.join(FOLD_BATCH_MODES)}, got {fold_batch!r}")
     if fold_index is None and split not in GROUP_SPLITS:
         raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
@@ -167,7 +174,7 @@ def gestures(
         _train_folds(paths, data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise),
                      TrainConfig(model=model, split=split, fold=0, validation=val, epochs=epochs, seed=seed,
                                  device=device, shuffle_labels=shuffle_labels),
-                     out_dir, cv.BASELINE if baseline else None, choice, as_json)
+                     out_dir, cv.BASELINE if baseline else None, choice, as_json, fold_batch)
         return
     with _progress() as progress:
         if eval_only is not None:
@@ -187,12 +194,16 @@ def gestures(
     _render_metrics(result.metrics, result.out_dir)
 
 
-def _train_folds(paths: list[Path], data, config, out_dir: Path, baseline: Optional[str], choice, as_json: bool) -> None:
-    """--fold all: every fold (and baseline fold) a unit of the chosen executor, then cv.json / cv.md."""
+def _train_folds(paths: list[Path], data, config, out_dir: Path, baseline: Optional[str], choice, as_json: bool,
+                 fold_batch: str = "auto") -> None:
+    """--fold all: every fold (and baseline fold) a unit of the chosen executor, then cv.json / cv.md.
+    With fold batching (local executor) the folds not started yet train first, together in this process;
+    their units then find them finished."""
     from midas_cli.models import cv
     from midas_cli.models.cv_units import TASK, plan_units
 
     units = plan_units(paths, data, config, out_dir, baseline)
+    _batched_folds(paths, data, config, cv.cv_jobs(config, out_dir, baseline), len(units), choice, fold_batch)
     if choice.run_dir is None:
         choice.run_dir = out_dir / "jobs"
     outcome = ex.run_plan(TASK, units, choice, f"{config.model} folds",
@@ -201,6 +212,28 @@ def _train_folds(paths: list[Path], data, config, out_dir: Path, baseline: Optio
         return
     outcome.raise_failed("folds")
     _render_cv(cv.summarise(out_dir), out_dir, as_json)
+
+
+def _batched_folds(paths: list[Path], data, config, jobs: list, n_units: int, choice, mode: str) -> None:
+    """``--fold-batch``: train the pending folds of each model batched here (one stderr line says so), or
+    say why --jobs N on CUDA is N processes sharing the GPU."""
+    from midas_cli.models import cv, fold_batch
+
+    n_folds = n_units // len(jobs)
+    if not fold_batch.enabled(mode, config.device, n_folds) or choice.executor != "local":
+        if mode == "on" and choice.executor != "local":
+            raise ConfigError("--fold-batch on trains the folds in this process: it needs --executor local")
+        if choice.jobs > 1 and config.device == "cuda":
+            error_line(f"midas: --jobs {choice.jobs} --accelerator cuda: {choice.jobs} processes share each GPU "
+                       "(time-sliced); --fold-batch auto trains the folds together in one process")
+        return
+    for job_config, run_dirs in cv.pending_folds(jobs, range(n_folds)):
+        error_line(f"midas: {len(run_dirs)} {job_config.model} folds train batched in one process on "
+                   f"{config.device} (--fold-batch {mode}" + (f"; --jobs {choice.jobs} is not used for them)"
+                                                             if choice.jobs > 1 else ")"))
+        with _progress() as progress:
+            fold_batch.train_folds(paths, data, job_config, run_dirs,
+                                   _epoch_progress(progress, f"{job_config.model} epochs ({len(run_dirs)} folds)"))
 
 
 def _render_cv(report: dict, root: Path, as_json: bool) -> None:

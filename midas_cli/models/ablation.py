@@ -135,7 +135,8 @@ def _run_one(sessions: Sequence[Path], model: str, row: GridRow, base: TrainConf
     if cv:
         from midas_cli.models.cv import fold_dir, run_cv, summarise
 
-        report = run_cv(sessions, data, replace(base, model=model), run_dir, baseline=None, progress=progress) \
+        report = run_cv(sessions, data, replace(base, model=model), run_dir, baseline=None, progress=progress,
+                        batched=base.device == "cuda") \
             or summarise(run_dir)
         run = json.loads((fold_dir(run_dir, report["folds"][0]["fold"]) / "run.json").read_text(encoding="utf-8"))
         scores = {k: report["mean"][k] for k in CV_SCORES}

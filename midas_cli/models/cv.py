@@ -63,10 +63,11 @@ def fold_dir(root: Path, fold: int) -> Path:
 
 def run_cv(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainConfig, out_dir: Path,
            folds: Sequence[int] | None = None, baseline: str | None = BASELINE, on_fold: RunFn | None = None,
-           progress: Callable[[int, int, dict], None] | None = None) -> dict | None:
+           progress: Callable[[int, int, dict], None] | None = None, batched: bool = False) -> dict | None:
     """Train the folds (all when ``folds`` is None) into ``out_dir/fold-<k>/`` and, unless ``baseline``
     is None or the model itself, the baseline into ``out_dir/baseline/fold-<k>/``; then write
-    ``cv.json`` / ``cv.md`` when every fold is there. Returns the report (None while folds are missing)."""
+    ``cv.json`` / ``cv.md`` when every fold is there. Returns the report (None while folds are missing).
+    ``batched``: the folds not started yet train together in this process (models/fold_batch.py)."""
     if config.split not in GROUP_SPLITS:
         raise ConfigError(f"cross-validation needs a group split ({', '.join(GROUP_SPLITS)}), got {config.split!r}")
     groups = fold_groups(build_dataset(sessions, data_config), config.split)
@@ -77,9 +78,12 @@ def run_cv(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainCo
     if bad:
         raise ConfigError(f"--fold {bad[0]} is out of range for {config.split}: 0..{len(groups) - 1}")
     out_dir = out_folder(out_dir)
-    jobs = [(config, out_dir)]
-    if baseline and baseline != config.model:
-        jobs.append((replace(config, model=baseline, model_options={}, lr=None), out_dir / "baseline"))
+    jobs = cv_jobs(config, out_dir, baseline)
+    if batched:
+        from midas_cli.models.fold_batch import train_folds
+
+        for job_config, run_dirs in pending_folds(jobs, wanted):
+            train_folds(sessions, data_config, job_config, run_dirs, progress)
     total = len(jobs) * len(wanted)
     done = 0
     for job_config, root in jobs:
@@ -89,6 +93,26 @@ def run_cv(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainCo
                 on_fold(f"{job_config.model} fold {k} ({config.split} {groups[k]})", done, total)
             run_fold(sessions, data_config, replace(job_config, fold=k), fold_dir(root, k), progress)
     return summarise(out_dir) if complete(out_dir) else None
+
+
+def cv_jobs(config: TrainConfig, out_dir: Path, baseline: str | None = BASELINE) -> list[tuple[TrainConfig, Path]]:
+    """The model's folds under ``out_dir`` and, unless ``baseline`` is None or the model itself, the
+    baseline's (its own recipe, no model options) under ``out_dir/baseline``."""
+    jobs = [(config, Path(out_dir))]
+    if baseline and baseline != config.model:
+        jobs.append((replace(config, model=baseline, model_options={}, lr=None), Path(out_dir) / BASELINE))
+    return jobs
+
+
+def pending_folds(jobs: Sequence[tuple[TrainConfig, Path]], folds: Sequence[int]) -> list[tuple[TrainConfig, dict[int, Path]]]:
+    """Per job of :func:`cv_jobs`, its ``folds`` not started yet (no ``run.json``), where more than one
+    is left: what ``fold_batch.train_folds`` trains together. A started fold is left to ``run_fold``."""
+    found = []
+    for config, root in jobs:
+        run_dirs = {k: fold_dir(root, k) for k in folds if not (fold_dir(root, k) / "run.json").exists()}
+        if len(run_dirs) > 1:
+            found.append((config, run_dirs))
+    return found
 
 
 def run_fold(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainConfig, run_dir: Path,

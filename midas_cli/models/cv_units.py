@@ -41,9 +41,7 @@ def plan_units(sessions: Sequence[Path], data_config: DatasetConfig, config: Any
     if len(groups) < 2:
         raise ConfigError(f"split {config.split} needs at least 2 groups, the data have {len(groups)}")
     out_dir = out_folder(out_dir)
-    jobs = [(config, out_dir)]
-    if baseline and baseline != config.model:
-        jobs.append((replace(config, model=baseline, model_options={}, lr=None), out_dir / cv.BASELINE))
+    jobs = cv.cv_jobs(config, out_dir, baseline)
     data = dataset.fingerprint()
     units = []
     for job_config, root in jobs:

@@ -101,35 +101,61 @@ ProgressFn = Callable[[int, int, dict], None]
 def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainConfig, out_dir: Path,
               progress: ProgressFn | None = None) -> RunResult:
     """Build the data, train, evaluate on the test units and write the run folder."""
-    out_dir = _new_run_dir(out_dir)
+    out_dir = new_run_dir(out_dir)
     config = config.resolved()
-    device = _device(config.device)
+    device = torch_device(config.device)
     dataset = build_dataset(sessions, data_config)
-    data_config = dataset.config  # "auto" modalities / features resolved from the sessions
+    fold = prepare_fold(dataset, config)
+    model, model_cfg = seeded_model(dataset, config)
+    model.to(device)
+    history = fit(model, fold.parts["train"], fold.parts["val"], config, device, progress)
+    return finish_run(out_dir, dataset, fold, config, model, model_cfg, history, device)
+
+
+@dataclass
+class PreparedFold:
+    """One run's split of the data and its normalised parts (train, val, test)."""
+
+    split: Split
+    normaliser: Normaliser | None
+    parts: dict[str, Sequences]
+
+
+def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
+    """The split of ``config`` (seed, fold, validation), the training-set normaliser and the parts as
+    arrays (training labels shuffled for the control run)."""
     split = make_split(dataset, config.split, config.seed, config.fold, config.validation)
-    order = list(data_config.modalities)
+    order = list(dataset.config.modalities)
     normaliser = fit_normaliser(dataset, split.units["train"], order)
     parts = {part: _sequences(dataset, split.units[part], normaliser, order) for part in PARTS}
     if not parts["train"].units or not parts["test"].units:
         raise SessionError(f"split {split.kind} left no training or no test units: more labelled data needed")
     if config.shuffle_labels:
         parts["train"].y = shuffled_instance_labels(parts["train"].y, config.seed)
+    return PreparedFold(split, normaliser, parts)
+
+
+def seeded_model(dataset: GestureDataset, config: TrainConfig) -> tuple[torch.nn.Module, dict]:
+    """The untrained network of ``config`` (on the CPU), its weights drawn after ``torch.manual_seed(seed)``."""
     torch.manual_seed(config.seed)
-    model, model_cfg = build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options)
-    model.to(device)
-    history = fit(model, parts["train"], parts["val"], config, device, progress)
-    result = {"test": _evaluate(model, parts["test"], dataset.classes, device)}
-    if parts["val"].units:
-        result["val"] = _evaluate(model, parts["val"], dataset.classes, device)
-    run = _run_record(dataset, split, normaliser, config, model_cfg, history)
-    _write_run(out_dir, run, result, model, dataset, parts["test"], device)
+    return build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options)
+
+
+def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, config: TrainConfig,
+               model: torch.nn.Module, model_cfg: dict, history: list[dict], device: torch.device) -> RunResult:
+    """Evaluate the trained ``model`` on the test (and validation) units and write the run folder."""
+    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device)}
+    if fold.parts["val"].units:
+        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device)
+    run = _run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history)
+    _write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
     return RunResult(out_dir, result, history)
 
 
 def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Path, device_name: str = "cpu") -> RunResult:
     """Re-evaluate a saved model on the test units of its own split (trials found in ``sessions``)."""
-    out_dir = _new_run_dir(out_dir)
-    device = _device(device_name)
+    out_dir = new_run_dir(out_dir)
+    device = torch_device(device_name)
     saved = load_checkpoint(checkpoint)
     data_config = DatasetConfig.from_json(saved["dataset_config"])
     dataset = build_dataset(sessions, data_config, classes=saved["classes"])
@@ -178,7 +204,7 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     for epoch in range(1, config.epochs + 1):
         model.train()
         losses = []
-        for batch in _batches(train, rng.permutation(len(train.x)), config.batch_size):
+        for batch in padded_batches(train, rng.permutation(len(train.x)), config.batch_size):
             x, y, mask = (t.to(device) for t in batch)
             with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=mixed):
                 loss = model.loss(model(x, mask), y, mask)
@@ -187,7 +213,7 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
             scaler.step(optimiser)
             scaler.update()
             losses.append(float(loss.detach()))
-        val_acc = _accuracy(model, val, device) if val.units else None
+        val_acc = frame_accuracy(model, val, device) if val.units else None
         history.append({"epoch": epoch, "loss": float(np.mean(losses)), "val_accuracy": val_acc})
         if config.selection == "best-val" and val_acc is not None and val_acc > best[0]:
             best = (val_acc, {k: v.detach().clone() for k, v in model.state_dict().items()})
@@ -269,7 +295,7 @@ def _sequences(dataset: GestureDataset, units: list[tuple[str, int, int]], norma
     return Sequences(list(units), xs, ys)
 
 
-def _batches(seqs: Sequences, order: np.ndarray, batch_size: int):
+def padded_batches(seqs: Sequences, order: np.ndarray, batch_size: int):
     """Padded batches: x (B, D, T_max) float32, y (B, T_max) long (-1 on padding), mask (B, T_max) bool."""
     for start in range(0, len(order), batch_size):
         pick = order[start:start + batch_size]
@@ -287,7 +313,7 @@ def _batches(seqs: Sequences, order: np.ndarray, batch_size: int):
         yield torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(mask)
 
 
-def _accuracy(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> float:
+def frame_accuracy(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> float:
     preds = predict(model, seqs, device)
     truth = np.concatenate(seqs.y)
     keep = truth >= 0
@@ -349,14 +375,14 @@ def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, 
         write_timeline_png(out_child(out_dir / "plots", f"{name}.png"), trial.labels, timeline, dataset.classes, name)
 
 
-def _new_run_dir(out_dir: Path) -> Path:
+def new_run_dir(out_dir: Path) -> Path:
     out_dir = Path(out_dir)
     if (out_dir / "run.json").exists():
         raise ConfigError(f"{out_dir} already holds a run (run.json): choose a new --out folder")
     return out_folder(out_dir)
 
 
-def _device(name: str) -> torch.device:
+def torch_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--accelerator cuda asked for, but torch sees no CUDA GPU (use --accelerator cpu)")
     if name not in ("cpu", "cuda"):
