@@ -20,7 +20,8 @@ against the send times.
 
     .venv/bin/python benchmarks/bench_timestamp_error.py            # 40 s per condition -> results/timestamp_error.json
     .venv/bin/python benchmarks/bench_timestamp_error.py --quick    # 8 s smoke run
-    .venv/bin/python benchmarks/bench_timestamp_error.py --conditions loaded,loaded-workers-high --duration 20
+    .venv/bin/python benchmarks/bench_timestamp_error.py --conditions loaded,loaded-recorder-nice,loaded-workers-high \
+        --duration 20 --name timestamp_error_priority                # -> results/timestamp_error_priority.json
 """
 
 from __future__ import annotations
@@ -267,8 +268,11 @@ def main() -> None:
     parser.add_argument("--load", type=int, default=2, help="busy-loop processes in the loaded conditions")
     parser.add_argument("--conditions", default=",".join(CONDITIONS),
                         help=f"comma-separated, of {', '.join(CONDITIONS)} (default: all)")
+    parser.add_argument("--name", default="timestamp_error", help="the result's name: results/NAME.json")
     args = parser.parse_args()
     names = [name for name in args.conditions.split(",") if name]
+    if not args.name.replace("_", "").replace("-", "").isalnum():
+        parser.error(f"--name must be letters, digits, '_' and '-', got {args.name!r}")
     unknown = sorted(set(names) - set(CONDITIONS))
     if unknown:
         parser.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
@@ -281,7 +285,7 @@ def main() -> None:
         if nice < 0 and prioritised != PRIORITY_NICE:
             continue  # the recorder cannot be started at nice -10 without the right to
         conditions.append(run_condition(name, args.load if load is None else load, nice, priority, duration, bare_s))
-    write_result("timestamp_error", {
+    write_result(args.name, {
         "machine": machine_info(), "quick": args.quick, "cores": len(os.sched_getaffinity(0)),
         "emulator_nice": prioritised,
         "devices": [url.format(folder="$TMP") for url in DEVICES.values()], "goal_raw_p99_ms": GOAL_RAW_P99_MS,
