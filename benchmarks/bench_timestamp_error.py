@@ -11,14 +11,17 @@ session's clock (the manifest's ``clock.anchor_ns``). The fit is analysis/clockf
 at its nominal rate (the FOB stream carries no device time). Beside each recording, a bare reader
 (select, os.read, stamp: no midas) reads the pedal board for a while: what the kernel and the scheduler
 alone give on this machine at that moment, against which midas's share can be told. Conditions: idle; with busy-loop processes
-on the cores; and loaded with the recorder at a higher priority (``nice -n -10``, where permitted), to
-show how much of the error is the wait for a CPU. The emulators stand in for hardware, which is never
+on the cores; loaded with the whole recorder at a higher priority (``nice -n -10``, where permitted), to
+show how much of the error is the wait for a CPU; and loaded with only the device workers at that priority
+(``midas record --priority high``, what midas offers; the recorder at nice 0). The emulators stand in for hardware, which is never
 late: they run at ``nice -n -10`` where permitted, and how late they still were (``t_out - t_due``) is
 reported, because the fit works on the device's clock (the due times) while the error is taken
 against the send times.
 
     .venv/bin/python benchmarks/bench_timestamp_error.py            # 40 s per condition -> results/timestamp_error.json
     .venv/bin/python benchmarks/bench_timestamp_error.py --quick    # 8 s smoke run
+    .venv/bin/python benchmarks/bench_timestamp_error.py --conditions loaded,loaded-recorder-nice,loaded-workers-high \
+        --duration 20 --name timestamp_error_priority                # -> results/timestamp_error_priority.json
 """
 
 from __future__ import annotations
@@ -54,6 +57,9 @@ GOAL_RAW_P99_MS, GOAL_FITTED_P99_MS = 1.5, 0.5
 PAPER_MEAN_MS = {"emht": 43.3, "fps": 12.97}  # Appendix A.1, Table "latencies": source-to-disk means
 TAIL_MAX = 20  # cycles the trakSTAR may send after the recorder stopped reading
 PRIORITY_NICE = -10  # the emulators' niceness, and the recorder's in the "loaded, prioritised" condition
+# name -> (busy-loop processes (None: --load), the recorder's niceness, `record --priority`)
+CONDITIONS = {"idle": (0, 0, "normal"), "loaded": (None, 0, "normal"),
+              "loaded-recorder-nice": (None, PRIORITY_NICE, "normal"), "loaded-workers-high": (None, 0, "high")}
 
 
 def set_niceness(nice: int) -> int:
@@ -143,11 +149,13 @@ def start_load(processes: int) -> list[subprocess.Popen]:
             for _ in range(processes)]
 
 
-def record(folder: Path, duration_s: float, nice: int) -> Path:
-    """`midas record` of both emulators for ``duration_s`` at niceness ``nice``; the session's path."""
+def record(folder: Path, duration_s: float, nice: int, priority: str) -> Path:
+    """`midas record --priority PRIORITY` of both emulators for ``duration_s`` at niceness ``nice``; the
+    session's path."""
     args = [arg for name, url in DEVICES.items() for arg in ("--device", f"{name}={url.format(folder=folder)}")]
     done = subprocess.run([PY, "-m", "midas_cli", "record", *args, "--duration", str(duration_s), "--out",
-                           str(folder / "s"), "--subject", "1", "--task", "bench", "--trial", "1", "--no-tui"],
+                           str(folder / "s"), "--subject", "1", "--task", "bench", "--trial", "1", "--no-tui",
+                           "--priority", priority],
                           capture_output=True, text=True, timeout=duration_s + 120,
                           preexec_fn=lambda: set_niceness(nice))
     if done.returncode != 0:
@@ -206,7 +214,8 @@ def stream_errors(session: Session, name: str, log: dict[str, np.ndarray], ancho
             "emulator_late": error_figures(out_ns - due_ns)}
 
 
-def run_condition(load_processes: int, nice: int, duration_s: float, bare_s: float) -> dict[str, Any]:
+def run_condition(name: str, load_processes: int, nice: int, priority: str, duration_s: float,
+                  bare_s: float) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="midas-bench-ts-") as tmp:
         folder = Path(tmp)
         load = start_load(load_processes)
@@ -215,7 +224,7 @@ def run_condition(load_processes: int, nice: int, duration_s: float, bare_s: flo
             load_before = load_average()
             procs, stop = start_emulators(folder)
             try:
-                session_path = record(folder, duration_s, nice)
+                session_path = record(folder, duration_s, nice, priority)
             finally:
                 stop_emulators(procs, stop)
             bare = bare_reference(folder / "bare", bare_s)
@@ -230,7 +239,9 @@ def run_condition(load_processes: int, nice: int, duration_s: float, bare_s: flo
         streams = {name: {**stream_errors(session, name, read_send_log(folder / f"{name}.sendlog"),
                                           manifest["clock"]["anchor_ns"]), "missing": missing[name]}
                    for name in DEVICES}
-    return {"load_processes": load_processes, "recorder_nice": nice, "duration_s": duration_s,
+    workers = {device: manifest["devices"][device].get("priority") for device in DEVICES}  # read back in each worker
+    return {"condition": name, "load_processes": load_processes, "recorder_nice": nice, "priority": priority,
+            "worker_priority": workers, "duration_s": duration_s,
             "load_average_before_after": [load_before, load_after], "streams": streams, "bare_fps_reader": bare}
 
 
@@ -254,15 +265,27 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="8 s per condition (smoke run)")
     parser.add_argument("--duration", type=float, default=40.0, help="seconds of recording per condition")
-    parser.add_argument("--load", type=int, default=2, help="busy-loop processes in the loaded condition")
+    parser.add_argument("--load", type=int, default=2, help="busy-loop processes in the loaded conditions")
+    parser.add_argument("--conditions", default=",".join(CONDITIONS),
+                        help=f"comma-separated, of {', '.join(CONDITIONS)} (default: all)")
+    parser.add_argument("--name", default="timestamp_error", help="the result's name: results/NAME.json")
     args = parser.parse_args()
+    names = [name for name in args.conditions.split(",") if name]
+    if not args.name.replace("_", "").replace("-", "").isalnum():
+        parser.error(f"--name must be letters, digits, '_' and '-', got {args.name!r}")
+    unknown = sorted(set(names) - set(CONDITIONS))
+    if unknown:
+        parser.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
     duration = 8.0 if args.quick else args.duration
     bare_s = 4.0 if args.quick else 15.0
     prioritised = set_niceness(PRIORITY_NICE)  # where permitted; the recorder and the load are started at 0
-    conditions = [run_condition(0, 0, duration, bare_s), run_condition(args.load, 0, duration, bare_s)]
-    if prioritised == PRIORITY_NICE:
-        conditions.append(run_condition(args.load, PRIORITY_NICE, duration, bare_s))
-    write_result("timestamp_error", {
+    conditions = []
+    for name in names:
+        load, nice, priority = CONDITIONS[name]
+        if nice < 0 and prioritised != PRIORITY_NICE:
+            continue  # the recorder cannot be started at nice -10 without the right to
+        conditions.append(run_condition(name, args.load if load is None else load, nice, priority, duration, bare_s))
+    write_result(args.name, {
         "machine": machine_info(), "quick": args.quick, "cores": len(os.sched_getaffinity(0)),
         "emulator_nice": prioritised,
         "devices": [url.format(folder="$TMP") for url in DEVICES.values()], "goal_raw_p99_ms": GOAL_RAW_P99_MS,

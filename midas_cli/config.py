@@ -8,6 +8,7 @@ empty config. Its sections and keys are checked (a typo is an error, not a silen
     [record]
     rig = "/etc/midas/console-rig.toml"   # MIDAS_RIG; relative paths are relative to this file
     sessions = "/data/midas/sessions"     # MIDAS_SESSIONS; where `midas record` puts new sessions
+    priority = "high"                     # the device workers' priority: normal (default) or high (nice -10)
 
     [slurm]                               # `--executor slurm` settings (flags override them)
     partition = "gpu"
@@ -36,10 +37,11 @@ CONFIG_ENV = "MIDAS_CONFIG"
 RIG_ENV = "MIDAS_RIG"
 SESSIONS_ENV = "MIDAS_SESSIONS"
 DEFAULT_SESSIONS = Path("sessions")
+PRIORITY_CHOICES = ("normal", "high")  # `record --priority`, [record] priority (record/priority.py)
 
 # section -> key -> accepted Python types (TOML values); path keys are resolved against the file's folder
 KNOWN: dict[str, dict[str, tuple[type, ...]]] = {
-    "record": {"rig": (str,), "sessions": (str,)},
+    "record": {"rig": (str,), "sessions": (str,), "priority": (str,)},
     "slurm": {"partition": (str,), "time": (str,), "mem": (str,), "gpus": (int,), "array_parallelism": (int,),
               "account": (str,), "qos": (str,), "cpus_per_task": (int,)},
 }
@@ -140,6 +142,8 @@ def _checked(data: dict[str, Any], path: Path) -> dict[str, dict[str, Any]]:
                 expected = " or ".join(t.__name__ for t in keys[key])
                 raise ConfigError(f"config {path}: [{section}] {key} = {_shown(value)} should be a {expected}")
             problem = slurm_value_problem(key, value) if section == "slurm" else None
+            if (section, key) == ("record", "priority") and value not in PRIORITY_CHOICES:
+                problem = f"is not one of {', '.join(PRIORITY_CHOICES)}"
             if (section, key) in PATH_KEYS and (not isinstance(value, str) or _CONTROL.search(value) or not value):
                 problem = "is not a usable path (empty, or a NUL, line break or other control character)"
             if problem:
@@ -193,6 +197,11 @@ def default_sessions() -> Path:
         return Path(value).expanduser()
     configured = section("record").get("sessions")
     return Path(configured) if configured else DEFAULT_SESSIONS
+
+
+def default_priority() -> str:
+    """The device workers' priority when --priority is not given: [record] priority, else "normal"."""
+    return section("record").get("priority", PRIORITY_CHOICES[0])
 
 
 def describe_defaults() -> dict[str, Any]:

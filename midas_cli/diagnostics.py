@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from midas_cli import __version__
+from midas_cli.record.priority import high_permitted
 
 PACKAGES = ("typer", "rich", "pyserial", "numpy", "pandas", "scipy", "opencv-python-headless", "obsws-python",
             "torch")
@@ -29,6 +30,7 @@ def collect(obs_host: str = "localhost", obs_port: int = 4455, disk_path: Path =
         "tools": {name: shutil.which(name) for name in TOOLS},
         "serial_ports": _serial_ports(),
         "usb_serial": usb_serial_adapters(),
+        "high_priority": high_permitted(),  # may `record --priority high` give the workers nice -10
         "obs_websocket": _tcp_reachable(obs_host, obs_port),
         "gpu": _gpu(),
         "disk_free_bytes": shutil.disk_usage(disk_path if disk_path.exists() else Path(".")).free,

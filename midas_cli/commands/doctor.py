@@ -41,6 +41,7 @@ def doctor(
         out.print("USB serial adapters: none", markup=False)
     for adapter in facts["usb_serial"]:
         out.print(f"USB serial adapter {AdapterReport(**adapter).summary()}", markup=False, soft_wrap=True)
+    out.print(_priority_line(facts["high_priority"]), markup=False, soft_wrap=True)
     obs = facts["obs_websocket"]
     out.print(f"OBS websocket {obs['address']}: {'reachable' if obs['reachable'] else 'unreachable'}", markup=False)
     for saved in facts["obs_saved_settings"]:
@@ -51,6 +52,12 @@ def doctor(
                   "do: pip install 'midas-cli[train]')", markup=False)
     out.print(f"GPU: {', '.join(gpu['devices']) if gpu.get('cuda') else 'none (CPU only)'}", markup=False)
     out.print(f"disk free here: {human_bytes(facts['disk_free_bytes'])}", markup=False)
+
+
+def _priority_line(priority: dict) -> str:
+    """Whether `record --priority high` may lower the workers' nice value, and how to allow it if not."""
+    verdict = f"permitted ({priority['by']})" if priority["permitted"] else f"not permitted; {priority['how']}"
+    return f"record --priority high (nice -10): {verdict}"
 
 
 def _saved_settings_line(saved: dict) -> str:

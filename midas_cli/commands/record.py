@@ -16,7 +16,7 @@ from rich.table import Table
 from rich.text import Text
 
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
-from midas_cli.config import RIG_ENV, config_path, default_rig, default_sessions
+from midas_cli.config import RIG_ENV, config_path, default_priority, default_rig, default_sessions
 from midas_cli.console import dashboard, is_interactive, status_line
 from midas_cli.devices.base import DeviceUrl, redact_url
 from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
@@ -25,6 +25,7 @@ from midas_cli.errors import ConfigError, DeviceError, MidasError, SessionError
 from midas_cli.record.foxglove_live import DEFAULT_ADDRESS as DEFAULT_FOXGLOVE, parse_address
 from midas_cli.record.markers import check_stream_names, events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
+from midas_cli.record.priority import checked_priority
 from midas_cli.record.recorder import RecordPlan, Recorder, run_until
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.rig import simulated_rig
@@ -74,6 +75,10 @@ def record(
                                            "(default: record-<pid>.sock in $XDG_RUNTIME_DIR/midas or /tmp/midas-<uid>)."),
     armed: bool = typer.Option(False, "--armed", help="Open the devices, then wait for `midas ctl start` (rows before "
                                "it are kept as warm-up; --duration counts from it)."),
+    priority: Optional[str] = typer.Option(None, "--priority", metavar="normal|high", help="The device workers' "
+                                           "scheduling priority: high = nice -10 where permitted (root, CAP_SYS_NICE "
+                                           "or ulimit -e 30; else a warning), for a busy host (default: [record] "
+                                           "priority in the config, else normal)."),
 ) -> None:
     """Record a session from the rig's devices into a new session folder.
 
@@ -95,10 +100,12 @@ def record(
             from midas_cli.devices.lsl.device import import_pylsl
 
             import_pylsl()  # pylsl missing: one error line before anything is created
+        priority = default_priority() if priority is None else checked_priority(priority, "--priority")
         rig_config = _choose_rig(simulate, rig, device)
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
-                          rig_config.to_manifest(), lsl_out, foxglove=live_address, extra_streams=(events_spec(),))
+                          rig_config.to_manifest(), lsl_out, foxglove=live_address, extra_streams=(events_spec(),),
+                          priority=priority)
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         check_stream_names(recorder.streams)
         _exit_if_stopped_before_start(stop)
@@ -142,6 +149,9 @@ def _record_session(recorder: Recorder, display: "_Display", stop: "_StopFlag", 
         if recorder.live is not None:
             display.message(f"midas: --foxglove: serving ws://{recorder.live.address} (Foxglove WebSocket)")
         ready = recorder.wait_ready(READY_TIMEOUT_S, ended, on_tick)
+        priority_warning = recorder.priority_warning()
+        if priority_warning:
+            display.message(priority_warning)
         failed = {} if ended() else recorder.unopened()
         if failed:
             remote.finish("")

@@ -66,7 +66,15 @@ def info(path: Path = SESSION_ARG, as_json: bool = JSON_OPTION) -> None:
                       f"({_fmt(fit['segments'])} segment(s); midas align)", markup=False)
     for name, d in summary["devices"].items():
         out.print(f"device {name}: {d['kind']} {d['url']}  serial {d['serial'] or '—'}  "
-                  f"reconnects {_fmt(d['reconnects'])}", markup=False)
+                  f"reconnects {_fmt(d['reconnects'])}{_priority_text(d['priority'])}", markup=False)
+
+
+def _priority_text(priority: Optional[dict[str, Any]]) -> str:
+    """The worker's priority as `record --priority` left it ('' when the manifest has none)."""
+    if not priority:
+        return ""
+    refused = " (high asked, not permitted)" if priority.get("asked") == "high" and priority.get("got") != "high" else ""
+    return f"  priority {priority.get('got')}, nice {_fmt(priority.get('nice'))}{refused}"
 
 
 @app.command("list")

@@ -27,6 +27,7 @@ from midas_cli.record.foxglove_live import FoxgloveLive
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
+from midas_cli.record.priority import denied_warning
 from midas_cli.record.stats import DeviceRecord, StreamStats, device_labels
 from midas_cli.record.spawn import (reap_workers, start_worker, start_worker_server, stop_signals_blocked,
                                     worker_context)
@@ -55,6 +56,7 @@ class RecordPlan:
     lsl_out: bool = False  # workers also publish every stream as an LSL outlet (record/lsl_out.py)
     foxglove: str | None = None  # HOST:PORT of a live Foxglove WebSocket server (record/foxglove_live.py)
     extra_streams: tuple[StreamSpec, ...] = ()  # written by the recorder's own process (the events stream)
+    priority: str = "normal"  # the device workers' priority: "high" asks for nice -10 (record/priority.py)
 
 
 class Recorder:
@@ -138,7 +140,7 @@ class Recorder:
                 job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
                                 session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size,
-                                lsl_out=self.plan.lsl_out, kind=self.devices[name].kind)
+                                lsl_out=self.plan.lsl_out, kind=self.devices[name].kind, priority=self.plan.priority)
                 self._start_worker(name, job)
         self._stop_workers.close_reader()
         self._bookkeeping_thread = threading.Thread(target=self._bookkeeping_loop, name="midas-bookkeeping",
@@ -182,6 +184,11 @@ class Recorder:
         """Devices that failed every attempt to open so far: name -> their last error."""
         with self._lock:
             return {name: r.last_error for name, r in self.devices.items() if r.opens == 0 and r.state == "lost"}
+
+    def priority_warning(self) -> str | None:
+        """One line when --priority high was refused for some workers (record/priority.py), else None."""
+        with self._lock:
+            return denied_warning({name: r.priority for name, r in self.devices.items()})
 
     def _stall_timeout(self, device: str) -> float:
         """Silence that counts as a lost device: 10 periods of its slowest regular stream (at least
@@ -251,6 +258,7 @@ class Recorder:
             record = self.devices[event.device]
             record.events.append({"t_host_ns": event.t_host_ns, "event": event.event, "message": event.message})
             if event.event == "opening":
+                record.priority = event.info.get("priority") or record.priority
                 if record.state == "starting":
                     record.state = "opening"
             elif event.event == "opened":

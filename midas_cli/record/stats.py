@@ -143,6 +143,7 @@ class DeviceRecord:
     last_error: str = ""
     exited: bool = False
     labels: dict[str, str] = field(default_factory=dict)  # channel/sensor number -> name (the live screen)
+    priority: dict[str, Any] = field(default_factory=dict)  # what its worker's priority was (record/priority.py)
 
     @property
     def reconnects(self) -> int:
@@ -161,6 +162,7 @@ class DeviceRecord:
             "settings": self.settings,
             "streams": self.streams,
             "info": self.info,
+            **({"priority": self.priority} if self.priority else {}),
             "reconnects": self.reconnects,
             "events": self.events[-200:],
         }

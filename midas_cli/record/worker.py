@@ -38,6 +38,7 @@ from midas_cli.processes import process_alive
 from midas_cli.record.link import StopSignal, WorkerLink
 from midas_cli.record.lsl_out import LiveOutlets
 from midas_cli.record.messages import DataBatch, DeviceEvent
+from midas_cli.record.priority import apply_priority
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.writer import StreamAppender
 
@@ -66,6 +67,7 @@ class WorkerJob:
     queue_size: int = 4096  # bookkeeping messages held before they are merged (a slow recorder)
     lsl_out: bool = False  # also publish the rows as LSL outlets (record/lsl_out.py)
     kind: str = ""  # the device's kind (the outlets' LSL type)
+    priority: str = "normal"  # "high": nice -10 where permitted (record/priority.py)
 
 
 class StreamWriteFailed(Exception):
@@ -195,26 +197,29 @@ class WorkerOutput:
 
 def worker_main(job: WorkerJob, sender: Connection, stop_reader: Connection) -> None:
     """Entry point of the worker process: the signals first (they arrive blocked, see
-    ``Recorder.start``), then the pipes, then ``run_worker``."""
+    ``Recorder.start``), then its priority (before any thread starts: threads inherit it), then the
+    pipes, then ``run_worker``."""
     stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     for signum in stop_signals:
         signal.signal(signum, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, stop_signals)
+    priority = apply_priority(job.priority)
     link = WorkerLink(sender, job.queue_size)
     try:
-        run_worker(job, link, StopSignal(stop_reader))
+        run_worker(job, link, StopSignal(stop_reader), priority)
     finally:
         link.close()
 
 
-def run_worker(job: WorkerJob, out: "queue.Queue", stop) -> None:
-    """Process entry point. A failed write is reported as a 'write_failed' event (the worker then
+def run_worker(job: WorkerJob, out: "queue.Queue", stop, priority: dict[str, Any] | None = None) -> None:
+    """Process entry point; ``priority`` (what ``apply_priority`` put in force) goes with the 'opening'
+    event. A failed write is reported as a 'write_failed' event (the worker then
     exits normally); a bug (any other exception) as a 'crashed' event with its traceback, never
     swallowed, and the worker exits with status 1."""
     output = WorkerOutput(job.device, out, HostClock(job.anchor_ns))
     status = 0
     try:
-        output.event("opening")
+        output.event("opening", info={"priority": priority} if priority else None)
         output.open(job.stream_files)
         if job.lsl_out:
             output.outlets = LiveOutlets(Path(job.session_dir).name, job.kind, job.anchor_ns,

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from midas_cli.session.reader import Session
-from midas_cli.session.sync_statement import statement
+from midas_cli.session.sync_statement import statement, worker_priority
 
 
 def summarize_session(session: Session, clock_fits: bool = False) -> dict[str, Any]:
@@ -40,7 +40,7 @@ def summarize_session(session: Session, clock_fits: bool = False) -> dict[str, A
         }
     devices = {
         name: {"kind": d.get("kind"), "url": d.get("url"), "reconnects": d.get("reconnects"),
-               "serial": (d.get("info") or {}).get("serial")}
+               "serial": (d.get("info") or {}).get("serial"), "priority": worker_priority(manifest).get(name)}
         for name, d in manifest["devices"].items()
     }
     return {

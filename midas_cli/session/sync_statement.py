@@ -1,11 +1,12 @@
 """The session's sync statement: how its streams were synchronised, in the words a dataset collection asks
 for (the Open-H-Embodiment collection requires one with every contributed dataset).
 
-Written into the manifest when a recording is finalised (``manifest["sync"]``: the method and each
-stream's clocks) and assembled in full on demand (``statement``): the same, plus what was measured
-later, each stream's fit of host stamps against its device clock (drift, jitter; `midas align`,
-analysis/clockfit.py) and the offsets between modalities (`midas eval sync`). Exports carry the full
-statement (Parquet schema metadata ``midas.sync``; `session info --json` shows it).
+Written into the manifest when a recording is finalised (``manifest["sync"]``: the method, each
+stream's clocks and each device worker's scheduling priority) and assembled in full on demand
+(``statement``): the same, plus what was measured later, each stream's fit of host stamps against its
+device clock (drift, jitter; `midas align`, analysis/clockfit.py) and the offsets between modalities
+(`midas eval sync`). Exports carry the full statement (Parquet schema metadata ``midas.sync``;
+`session info --json` shows it).
 """
 
 from __future__ import annotations
@@ -35,7 +36,18 @@ def recorded_statement(manifest: dict[str, Any]) -> dict[str, Any]:
     rig = manifest.get("rig")
     rig = rig if isinstance(rig, dict) else {}
     method = SIMULATED if rig.get("simulated") else IMPORTED if rig.get("imported") else METHOD
-    return {"method": method, "clock": manifest.get("clock"), "streams": streams}
+    priority = worker_priority(manifest)  # only recordings have workers (a simulated session's bytes stay)
+    return {"method": method, "clock": manifest.get("clock"), "streams": streams,
+            **({"worker_priority": priority} if priority else {})}
+
+
+def worker_priority(manifest: dict[str, Any]) -> dict[str, Any]:
+    """Each device worker's scheduling priority as recorded (``record --priority``: asked, got, nice read
+    back in the worker); {} for a session recorded before midas kept it, or not recorded live."""
+    devices = manifest.get("devices")
+    devices = devices if isinstance(devices, dict) else {}
+    return {name: {k: entry["priority"].get(k) for k in ("asked", "got", "nice")}
+            for name, entry in devices.items() if isinstance(entry, dict) and isinstance(entry.get("priority"), dict)}
 
 
 def _json_entry(path: Path, key: str) -> Any:

@@ -60,6 +60,8 @@ def test_ten_second_recording_is_complete_and_verifies(ten_second_session) -> No
     assert session.status == "complete"
     manifest = session.manifest
     assert manifest["lsl_out"] == {"enabled": False}  # no outlet listened on the network
+    nice = os.getpriority(os.PRIO_PROCESS, 0)  # the workers inherit it: --priority normal changes nothing
+    assert manifest["devices"]["emht"]["priority"] == {"asked": "normal", "nice": nice, "got": "normal" if nice > -10 else "high"}
     assert abs((manifest["stop"]["host_ns"] - manifest["start"]["host_ns"]) / 1e9 - 10) <= 0.5
     for name, rate in (("emht", 240), ("fps", 250)):  # nothing lost from the device's first to last sample
         frame = session.read_stream(name)
