@@ -183,20 +183,21 @@ def section(name: str) -> dict[str, Any]:
 
 def default_rig() -> Optional[Path]:
     """The rig file to record from when no --rig/--simulate/--device is given: MIDAS_RIG, then [record] rig."""
-    value = os.environ.get(RIG_ENV)
-    if value:
-        return Path(value).expanduser()
-    configured = section("record").get("rig")
-    return Path(configured) if configured else None
+    return _record_path(RIG_ENV, "rig")
 
 
 def default_sessions() -> Path:
     """Where new sessions go when --out is not given: MIDAS_SESSIONS, then [record] sessions, then ./sessions."""
-    value = os.environ.get(SESSIONS_ENV)
+    return _record_path(SESSIONS_ENV, "sessions") or DEFAULT_SESSIONS
+
+
+def _record_path(env: str, key: str) -> Optional[Path]:
+    """A path from the environment variable ``env``, else from ``[record] key`` (None: neither sets it)."""
+    value = os.environ.get(env)
     if value:
         return Path(value).expanduser()
-    configured = section("record").get("sessions")
-    return Path(configured) if configured else DEFAULT_SESSIONS
+    configured = section("record").get(key)
+    return Path(configured) if configured else None
 
 
 def default_priority() -> str:

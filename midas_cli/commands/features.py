@@ -12,7 +12,7 @@ import typer
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import out
-from midas_cli.commands.options import ACCELERATOR_OPTION, JSON_OPTION, OLD_ACCELERATOR_OPTION, accelerator
+from midas_cli.commands.options import JSON_OPTION, accelerator_option
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
 
@@ -21,6 +21,7 @@ app = typer.Typer(help="Extract learned features from recordings.", no_args_is_h
 
 @app.command()
 @ex.batch_command
+@accelerator_option  # device: cpu or cuda
 def image(
     inputs: list[Path] = typer.Argument(..., help="Video file(s) readable by OpenCV, or session folder(s) with one "
                                         "video in video/."),
@@ -32,11 +33,10 @@ def image(
     batch_size: int = typer.Option(32, "--batch-size", min=1, help="Frames per forward pass."),
     every: int = typer.Option(1, "--every", min=1, help="Keep every k-th frame."),
     crop: int = typer.Option(224, "--crop", help="Centre-crop size in pixels (DINOv2: a multiple of 14)."),
-    accelerator_name: Optional[str] = ACCELERATOR_OPTION,
-    old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
     as_json: bool = JSON_OPTION,
     *,
     batch: BatchOptions,
+    device: str,
 ) -> None:
     """Encode every frame of VIDEO into an NPZ of image features.
 
@@ -49,7 +49,6 @@ def image(
     from midas_cli.models.image_features import ExtractOptions  # torch: imported on use
     from midas_cli.models.image_features_units import TASK, plan_units
 
-    device = accelerator(accelerator_name, old_device)  # torch's word for it
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     if out_path is not None and len(inputs) > 1:
         raise ConfigError("--out names one output file: give one input, or leave --out out")

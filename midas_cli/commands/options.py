@@ -58,10 +58,10 @@ def renamed_option(old: str, new: str, callback: Optional[Callable] = positive) 
 OLD_ACCELERATOR_OPTION = renamed_option("--device", "--accelerator", callback=None)
 
 
-def accelerator(value: Optional[str], old_value: Optional[str]) -> str:
+def accelerator(accelerator_name: Optional[str], old_device: Optional[str]) -> str:
     """The torch device ``--accelerator`` names (or its old name ``--device``, with a warning); cpu when
     neither is given."""
-    return take_renamed(value, old_value, "--device", "--accelerator", error_line) or "cpu"
+    return take_renamed(accelerator_name, old_device, "--device", "--accelerator", error_line) or "cpu"
 
 
 def take_renamed(value, old_value, old: str, new: str, warn: Callable[[str], None]):
@@ -99,3 +99,8 @@ def option_group(name: str, factory: Callable[..., Any],
         run.__annotations__ = {p.name: p.annotation for p in signature.parameters.values()}
         return run
     return declare
+
+
+# Declares a command that runs torch: --accelerator (and its old name) reach it as one ``device: str``.
+accelerator_option = option_group("device", accelerator, keyword_options(
+    ("accelerator_name", ACCELERATOR_OPTION, Optional[str]), ("old_device", OLD_ACCELERATOR_OPTION, Optional[str])))

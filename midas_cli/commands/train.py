@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -11,13 +12,16 @@ from rich.table import Table
 
 from midas_cli.commands import executor as ex
 from midas_cli.commands.common import error_line, out, positive, print_json
-from midas_cli.commands.options import (ACCELERATOR_OPTION, JSON_OPTION, OLD_ACCELERATOR_OPTION, SESSION_TREES_ARG,
-                                       accelerator, renamed_option, take_renamed)
+from midas_cli.commands.options import (JSON_OPTION, SESSION_TREES_ARG, accelerator_option, keyword_options,
+                                       option_group, renamed_option, take_renamed)
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
 from midas_cli.models.registry import model_help
 from midas_cli.session.reader import find_sessions
+
+if TYPE_CHECKING:
+    from midas_cli.models.train import TrainConfig
 
 # midas_cli.models (torch) is imported inside the commands, so `midas --help` and other commands start fast;
 # models/registry.py (the --model help) imports no torch.
@@ -30,15 +34,19 @@ MODALITIES_OPT = typer.Option("auto", "--modalities", help="Comma list of emht, 
                                "(default): emht where every session has it (MiDAS), else mtm,psm (JIGSAWS-style).")
 FEATURES_OPT = typer.Option("auto", "--features", help="Comma list of pos, ori, vel, angvel, grasper, clutch; "
                              "auto (default): pos,ori,vel for emht (the paper), pos,ori,vel,grasper for robot arms.")
-SPLIT_OPT = typer.Option("gesture", "--split", help="gesture (stratified 60/20/20 instances), loto, louo or loso "
-                         "(leave one trial / user / super-trial out).")
-VAL_OPT = typer.Option("none", "--val", help="loto/louo/loso model selection: none (fixed epochs, last-epoch model; "
-                       "default, as in the papers) or inner (a seeded ~15% of the training trials validate).")
-BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", help="Cross-validation and ablation: also train the "
-                            "per-frame logistic-regression baseline and add its row to every table.")
-EPOCHS_OPT = typer.Option(None, "--epochs", min=0, help="Training epochs (default: the model's recipe, "
-                          "mstcn 100, transformer 50).")
-SEED_OPT = typer.Option(0, "--seed", help="Seed of the split, the weights, batch order and dropout.")
+TRAINING_PANEL = "Training"  # the options of training_options (below), shared by gestures and ablation
+SPLIT_OPT = typer.Option("gesture", "--split", rich_help_panel=TRAINING_PANEL, help="gesture (stratified 60/20/20 "
+                         "instances), loto, louo or loso (leave one trial / user / super-trial out).")
+VAL_OPT = typer.Option("none", "--val", rich_help_panel=TRAINING_PANEL, help="loto/louo/loso model selection: none "
+                       "(fixed epochs, last-epoch model; default, as in the papers) or inner (a seeded ~15% of the "
+                       "training trials validate).")
+BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", rich_help_panel=TRAINING_PANEL, help="Cross-validation "
+                            "and ablation: also train the per-frame logistic-regression baseline and add its row to "
+                            "every table.")
+EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=0, help="Training epochs (default: "
+                          "the model's recipe, mstcn 100, transformer 50).")
+SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
+                        "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
 FOLD_BATCH_OPT = typer.Option("auto", "--fold-batch", help="--fold all, --executor local: train the folds together "
                               "in this one process, one stacked model per step (on), each alone (off); auto "
@@ -51,6 +59,35 @@ ROTATION_OPT = typer.Option("matrix", "--rotation", help="Robot orientation as a
                             "quat (the logged quaternion, 4).")
 NORMALISE_OPT = typer.Option("train", "--normalise", help="z-score fitted on the training split (train), per "
                              "trial (trial), or none.")
+
+
+@dataclass(frozen=True)
+class Training:
+    """How models are trained and tested, as `train gestures` and `train ablation` both take it."""
+
+    split: str
+    val: str
+    baseline: bool
+    epochs: Optional[int]
+    seed: int
+
+    def config(self, **fields: Any) -> TrainConfig:
+        """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
+        from midas_cli.models.train import TrainConfig
+
+        return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed, **fields)
+
+
+# The "Training" panel of both commands' help, declared once.
+training_options = option_group("training", Training, keyword_options(
+    ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
+    ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int)))
+
+
+def training_command(command: Callable[..., None]) -> Callable[..., None]:
+    """gestures and ablation: batch commands (``batch``) that run torch (``device``) with the training
+    options (``training``)."""
+    return ex.batch_command(accelerator_option(training_options(command)))
 
 
 def data_config(modalities: str, features: str, exclude_clutch: bool, model_rate: Optional[float], sides: str,
@@ -116,21 +153,14 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 
 
 @app.command()
-@ex.batch_command
+@training_command
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
     model: str = typer.Option("mstcn", "--model", help=model_help()),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
-    split: str = SPLIT_OPT,
     fold: str = typer.Option("0", "--fold", help="loto/louo/loso: which trial/subject/super-trial (sorted) is held "
                              "out, or 'all': every fold into OUT/fold-<k>/ plus cv.json and cv.md."),
-    val: str = VAL_OPT,
-    baseline: bool = BASELINE_OPT,
-    epochs: int = EPOCHS_OPT,
-    seed: int = SEED_OPT,
-    accelerator_name: Optional[str] = ACCELERATOR_OPTION,
-    old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
     fold_batch: str = FOLD_BATCH_OPT,
     model_rate: Optional[float] = MODEL_RATE_OPT,
     rate: Optional[float] = renamed_option("--rate", "--model-rate"),
@@ -144,6 +174,8 @@ def gestures(
     as_json: bool = JSON_OPTION,
     *,
     batch: BatchOptions,
+    device: str,
+    training: Training,
 ) -> None:
     """Train (or with --eval-only, evaluate) a frame-wise gesture recogniser.
 
@@ -157,35 +189,32 @@ def gestures(
     """
     from midas_cli.models import cv
     from midas_cli.models.splits import GROUP_SPLITS
-    from midas_cli.models.train import TrainConfig, evaluate_checkpoint, train_run
+    from midas_cli.models.train import evaluate_checkpoint, train_run
 
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
-    device = accelerator(accelerator_name, old_device)  # torch's word for it
     fold_index = _parse_fold(fold)
     if fold_batch not in FOLD_BATCH_MODES:
         raise ConfigError(f"--fold-batch must be one of {', '.join(FOLD_BATCH_MODES)}, got {fold_batch!r}")
-    if fold_index is None and split not in GROUP_SPLITS:
-        raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {split}")
+    if fold_index is None and training.split not in GROUP_SPLITS:
+        raise ConfigError(f"--fold all needs a group split ({', '.join(GROUP_SPLITS)}), not --split {training.split}")
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     if fold_index is not None and (batch.executor != "local" or batch.jobs != 1 or batch.run_dir is not None):
         raise ConfigError("--executor, --jobs and --run-dir run the folds of --fold all; one fold is one run")
     paths = session_paths(sessions)
     if eval_only is None and fold_index is None:
         _train_folds(paths, data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise),
-                     TrainConfig(model=model, split=split, fold=0, validation=val, epochs=epochs, seed=seed,
-                                 device=device, shuffle_labels=shuffle_labels),
-                     out_dir, cv.BASELINE if baseline else None, choice, as_json, fold_batch)
+                     training.config(model=model, fold=0, device=device, shuffle_labels=shuffle_labels),
+                     out_dir, cv.BASELINE if training.baseline else None, choice, as_json, fold_batch)
         return
     with _progress() as progress:
         if eval_only is not None:
             result = evaluate_checkpoint(paths, eval_only, out_dir, device)
         else:
             data = data_config(modalities, features, exclude_clutch, model_rate, sides, rotation, normalise)
-            config = TrainConfig(model=model, split=split, fold=fold_index or 0, validation=val, epochs=epochs,
-                                 seed=seed, device=device, shuffle_labels=shuffle_labels)
+            config = training.config(model=model, fold=fold_index or 0, device=device, shuffle_labels=shuffle_labels)
             result = train_run(paths, data, config, out_dir, _epoch_progress(progress, f"{model} epochs"))
     cv_root = out_dir.parent.parent if out_dir.parent.name == cv.BASELINE else out_dir.parent
-    if eval_only is None and split in GROUP_SPLITS and out_dir.name == f"fold-{fold_index}" and cv.complete(cv_root):
+    if eval_only is None and training.split in GROUP_SPLITS and out_dir.name == f"fold-{fold_index}" and cv.complete(cv_root):
         cv.summarise(cv_root)  # the last fold of a cluster run: aggregate
         error_line(f"every fold under {cv_root} has finished: wrote cv.json and cv.md there")
     if as_json:
@@ -262,25 +291,20 @@ def cv_summary(
 
 
 @app.command()
-@ex.batch_command
+@training_command
 def ablation(
     sessions: list[Path] = SESSION_TREES_ARG,
     models: str = typer.Option("transformer,mstcn", "--models", help="Comma list of models (table order)."),
     grid: Optional[str] = typer.Option(None, "--grid", help="';'-separated rows MODALITIES:FEATURES[:exclude-clutch] "
                                        "(default: the paper's Raven-II grid)."),
-    split: str = SPLIT_OPT,
     fold: str = typer.Option("0", "--fold", help="loto/louo/loso: the held-out fold, or 'all': every cell is a "
                              "cross-validation (mean ± sd over folds)."),
-    val: str = VAL_OPT,
-    baseline: bool = BASELINE_OPT,
-    epochs: int = EPOCHS_OPT,
-    seed: int = SEED_OPT,
-    accelerator_name: Optional[str] = ACCELERATOR_OPTION,
-    old_device: Optional[str] = OLD_ACCELERATOR_OPTION,
     out_dir: Path = typer.Option(..., "--out", help="Folder for runs/ and table.md, table.tex, table.csv."),
     as_json: bool = JSON_OPTION,
     *,
     batch: BatchOptions,
+    device: str,
+    training: Training,
 ) -> None:
     """Train every model x grid row and write the paper-style table.
 
@@ -292,16 +316,14 @@ def ablation(
     """
     from midas_cli.models.ablation import check_ablation, finish_ablation, parse_grid
     from midas_cli.models.ablation_units import TASK, plan_units
-    from midas_cli.models.train import TrainConfig
     from midas_cli.session.outputs import out_folder
 
-    device = accelerator(accelerator_name, old_device)  # torch's word for it
     choice = batch.choice(gpu=device == "cuda")  # a CUDA unit asks SLURM for a GPU
     paths = session_paths(sessions)
     rows = parse_grid(grid)
     fold_index = _parse_fold(fold)
-    base = TrainConfig(split=split, fold=fold_index or 0, validation=val, epochs=epochs, seed=seed, device=device)
-    model_list = check_ablation(list(_split_list(models)), base, fold_index is None, baseline)
+    base = training.config(fold=fold_index or 0, device=device)
+    model_list = check_ablation(list(_split_list(models)), base, fold_index is None, training.baseline)
     out_folder(out_dir)
     if choice.run_dir is None:
         choice.run_dir = out_dir / "jobs"
