@@ -1,0 +1,239 @@
+"""Gesture recognition on real kinematics: leave-one-user-out over every fold of the JIGSAWS development
+tasks (Knot Tying, Needle Passing), every model at its defaults, through the CLI.
+
+Data: the jigsaws-dev folder (default ``../shared/data/jigsaws-dev`` beside the repository; its archives
+are never copied into the repository). Each task's archive is extracted into the work folder
+(``--work``, default ``$TMPDIR/midas-jigsaws-dev``), imported (``midas import jigsaws``) and aligned
+(``midas align``); every step already done there is skipped. Then, per task and model,
+``midas train gestures SESSIONS --model M --split louo --fold all`` (defaults otherwise; ``--epochs``
+overrides the recipe) into ``WORK/runs/<task>/<model>``; the first neural model's run also trains the
+per-frame baseline (the CLI's ``--baseline`` default), later runs pass ``--no-baseline``. A run whose
+folds are all finished is not trained again: its recorded wall time is reused (``timing.json``), and a
+run resumed after an interruption is marked ``resumed`` (its wall time covers only the folds it trained).
+
+From each run's ``cv.json``: accuracy, edit and F1@{10,25,50} pooled over all test videos (the MS-TCN way)
+and averaged per video, mean and sd of accuracy and edit over folds, and each fold's accuracy; with the
+wall time, the load average and the machine (cores, CPU model, torch version, threads per worker).
+Results accumulate in ``results/gestures_jigsaws.json`` (rows keyed by task, model and epochs, so parts
+can be run one at a time) and ``results/gestures_jigsaws.md``; ``report.py`` puts the table into
+BENCHMARKS.md. One progress line per finished (task, model) on stderr.
+
+Run it niced on a shared machine:
+
+    nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --jobs 2
+    nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --tasks knot_tying --models baseline,mstcn
+    .venv/bin/python benchmarks/gestures_jigsaws.py --tasks knot_tying --models mstcn --epochs 1   # smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import RESULTS, load_average, machine_info  # noqa: E402
+from report_gestures import gestures_jigsaws_table  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+NAME = "gestures_jigsaws"
+DEFAULT_DATA = ROOT.parent / "shared" / "data" / "jigsaws-dev"
+DEFAULT_WORK = Path(tempfile.gettempdir()) / "midas-jigsaws-dev"
+NEURAL = ("mstcn", "transformer")
+MODELS = ("baseline", *NEURAL)
+METRICS = ("accuracy", "edit", "f1@10", "f1@25", "f1@50")
+TARGET_EDIT = 85.0
+
+# Every CLI spelling this script uses, in one place (commands/ options may be renamed: adjust them here).
+CLI_IMPORT = ("import", "jigsaws")
+CLI_ALIGN = ("align",)
+CLI_TRAIN = ("train", "gestures", "--split", "louo", "--fold", "all")
+OPT_OUT, OPT_JOBS, OPT_MODEL, OPT_EPOCHS = "--out", "--jobs", "--model", "--epochs"
+OPT_NO_BASELINE, OPT_JSON = "--no-baseline", "--json"
+
+
+@dataclass(frozen=True)
+class Task:
+    """A development task: its archive, the folder the archive unpacks to, and the figures to compare."""
+
+    archive: str
+    folder: str
+    title: str
+    literature_accuracy: float  # jigsaws-dev README: published LOUO, kinematics only
+    target_accuracy: float  # issue 27's target at the defaults
+
+
+TASKS = {"knot_tying": Task("knot_tying.tar.xz", "Knot_Tying", "Knot Tying", 0.79, 0.80),
+         "needle_passing": Task("needle_passing.tar.xz", "Needle_Passing", "Needle Passing", 0.74, 0.76)}
+
+
+def midas(*args: str, jobs: int | None = None) -> str:
+    """Run ``python -m midas_cli ARGS`` (the repository's code first on the path); stdout, or raise."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    extra = [OPT_JOBS, str(jobs)] if jobs else []
+    proc = subprocess.run([sys.executable, "-m", "midas_cli", *args, *extra], capture_output=True, text=True,
+                          env=env, cwd=ROOT)
+    if proc.returncode != 0:
+        raise RuntimeError(f"midas {' '.join(args[:2])} failed ({proc.returncode}): {proc.stderr[-3000:]}")
+    return proc.stdout
+
+
+def extract(data: Path, task: Task, work: Path) -> Path:
+    """The task's unpacked folder under ``work/extract`` (extracted now unless it is already there)."""
+    target = work / "extract" / task.folder
+    if (target / "kinematics").is_dir():
+        return target
+    archive = data / task.archive
+    if not archive.is_file():
+        raise SystemExit(f"{archive}: no such archive (give the jigsaws-dev folder as DATA)")
+    staging = Path(tempfile.mkdtemp(prefix="extract-", dir=work))
+    with tarfile.open(archive) as tar:
+        tar.extractall(staging, filter="data")  # refuses absolute paths, links out of the folder, devices
+    if not (staging / task.folder / "kinematics").is_dir():
+        raise SystemExit(f"{archive} holds no {task.folder}/kinematics folder")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    (staging / task.folder).rename(target)
+    shutil.rmtree(staging)
+    return target
+
+
+def sessions_in(folder: Path) -> list[Path]:
+    """Session folders (with a manifest) directly under ``folder``."""
+    return sorted(p for p in folder.iterdir() if (p / "manifest.json").is_file()) if folder.is_dir() else []
+
+
+def prepare(data: Path, name: str, work: Path, jobs: int) -> tuple[Path, dict[str, Any]]:
+    """Extract, import and align one task (each step skipped where done); the sessions folder and times."""
+    sessions_dir = work / "sessions" / name
+    times: dict[str, Any] = {}
+    if not sessions_in(sessions_dir):
+        source = extract(data, TASKS[name], work)
+        t0 = time.monotonic()
+        midas(*CLI_IMPORT, str(source), OPT_OUT, str(sessions_dir), OPT_JSON)
+        times["import_s"] = round(time.monotonic() - t0, 1)
+    todo = [s for s in sessions_in(sessions_dir) if not (s / "derived" / "aligned.npz").is_file()]
+    if todo:
+        t0 = time.monotonic()
+        midas(*CLI_ALIGN, *map(str, todo), OPT_JSON, jobs=jobs)
+        times["align_s"] = round(time.monotonic() - t0, 1)
+    return sessions_dir, {"sessions": len(sessions_in(sessions_dir)), **times}
+
+
+def run_dir(work: Path, name: str, model: str, epochs: int | None) -> Path:
+    """Where one (task, model) cross-validation lives; runs at other epochs than the recipe's apart."""
+    return work / "runs" / name / (model if epochs is None else f"{model}-e{epochs}")
+
+
+def finished_folds(root: Path) -> int:
+    """Folds with their metrics written under ``root`` (the CLI reuses them on a re-run)."""
+    return sum(1 for f in root.glob("fold-*/metrics.json")) if root.is_dir() else 0
+
+
+def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, baseline: bool) -> dict[str, Any]:
+    """One LOUO cross-validation through the CLI, or the timing recorded when it last completed."""
+    timing_path = out / "timing.json"
+    if timing_path.is_file() and (out / "cv.json").is_file() and (not baseline or (out / "baseline").is_dir()):
+        timing: dict[str, Any] = json.loads(timing_path.read_text(encoding="utf-8"))
+        return {**timing, "reused": True}
+    args = [*CLI_TRAIN, str(sessions), OPT_MODEL, model, OPT_OUT, str(out)]
+    args += [OPT_EPOCHS, str(epochs)] if epochs is not None else []
+    args += [] if baseline and model != "baseline" else [OPT_NO_BASELINE]
+    before, load_before, t0 = finished_folds(out), load_average(), time.monotonic()
+    midas(*args, jobs=jobs)
+    timing = {"wall_s": round(time.monotonic() - t0, 1), "jobs": jobs, "resumed": before > 0,
+              "folds_done_before": before, "load_average_before_after": [load_before, load_average()],
+              "command": "midas " + " ".join(args + [OPT_JOBS, str(jobs)]),
+              "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    timing_path.write_text(json.dumps(timing, indent=2) + "\n", encoding="utf-8")
+    return timing
+
+
+def figures(cv: dict[str, Any]) -> dict[str, Any]:
+    """The figures of one cross-validation report (cv.json, or its ``baseline`` part)."""
+    return {"pooled": {k: cv["pooled"][k] for k in METRICS}, "per_video": {k: cv["per_video"][k] for k in METRICS},
+            "fold_mean": {k: cv["mean"][k] for k in ("accuracy", "edit")},
+            "fold_sd": {k: cv["sd"][k] for k in ("accuracy", "edit")},
+            "folds": [{"fold": f["fold"], "user": f["group"], "accuracy": f["accuracy"], "edit": f["edit"],
+                       "test_trials": len(f["test_trials"])} for f in cv["folds"]],
+            "n_folds": cv["n_folds"], "missing_folds": cv["missing_folds"], "videos": cv["per_video"]["videos"],
+            "frames": cv["pooled"]["frames"], "epochs": cv["epochs"], "model": cv["model"],
+            "inputs": {k: cv["dataset_config"].get(k) for k in ("modalities", "features", "sides", "rate_hz")}}
+
+
+def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Every requested model of one task; the rows (the baseline read from the first neural run)."""
+    sessions, prep = prepare(data, name, args.work, args.jobs)
+    neural = [m for m in NEURAL if m in models]
+    rows = []
+    for i, model in enumerate(neural or ["baseline"]):
+        out = run_dir(args.work, name, model, args.epochs)
+        timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
+        cv = json.loads((out / "cv.json").read_text(encoding="utf-8"))
+        parts = [(model, cv)] + ([("baseline", cv["baseline"])] if "baseline" in cv and "baseline" in models
+                                 and model != "baseline" else [])
+        for row_model, part in parts:
+            shared = "" if row_model == model else f" (trained inside the {model} run)"
+            row = {"task": name, "model": row_model, "epochs_option": args.epochs, "run_dir": str(out),
+                   "timing": timing, "trained_in": model, "prepare": prep, **figures(part)}
+            rows.append(row)
+            print(f"{name} {row_model}: {timing['wall_s']:g} s{shared}{' (reused)' if timing.get('reused') else ''}"
+                  f", {len(row['folds'])}/{row['n_folds']} folds, acc {row['pooled']['accuracy']:.3f}, "
+                  f"edit {row['pooled']['edit']:.1f}", file=sys.stderr, flush=True)
+    return rows
+
+
+def torch_facts(jobs: int) -> dict[str, Any]:
+    """torch version and the threads each training worker gets (the local executor's OMP_NUM_THREADS)."""
+    import torch
+
+    env = os.environ.get("OMP_NUM_THREADS")
+    return {"torch": torch.__version__, "jobs": jobs,
+            "threads_per_worker": int(env) if env else max(1, (os.cpu_count() or 1) // jobs),
+            "niceness": os.nice(0)}
+
+
+def merge(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Earlier rows kept unless this run measured the same (task, model, epochs) again."""
+    key = lambda r: (r["task"], r["model"], r["epochs_option"])  # noqa: E731
+    fresh = {key(r) for r in new}
+    return [r for r in old if key(r) not in fresh] + new
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", nargs="?", type=Path, default=DEFAULT_DATA, help="the jigsaws-dev folder")
+    parser.add_argument("--work", type=Path, default=DEFAULT_WORK, help="extracted data, sessions and runs")
+    parser.add_argument("--tasks", default=",".join(TASKS), help=f"comma list of {', '.join(TASKS)}")
+    parser.add_argument("--models", default=",".join(MODELS), help=f"comma list of {', '.join(MODELS)}")
+    parser.add_argument("--epochs", type=int, default=None, help="override every model's recipe epochs")
+    parser.add_argument("--jobs", type=int, default=2, help="folds trained at once (worker processes)")
+    args = parser.parse_args()
+    tasks, models = args.tasks.split(","), args.models.split(",")
+    unknown = sorted(set(tasks) - set(TASKS)) + sorted(set(models) - set(MODELS))
+    if unknown or args.jobs < 1 or (args.epochs is not None and args.epochs < 1):
+        parser.error(f"unknown task/model {', '.join(unknown)}" if unknown else "--jobs and --epochs must be >= 1")
+    args.work.mkdir(parents=True, exist_ok=True)
+    facts = {"machine": machine_info(), **torch_facts(args.jobs)}
+    rows = [{**row, **facts} for name in tasks for row in run_task(args.data, name, models, args)]
+    path = RESULTS / f"{NAME}.json"
+    old = json.loads(path.read_text(encoding="utf-8")).get("rows", []) if path.is_file() else []
+    report = {**facts, "data": str(args.data),
+              "tasks": {k: vars(v) for k, v in TASKS.items()}, "target_edit": TARGET_EDIT,
+              "rows": merge(old, rows)}
+    RESULTS.mkdir(exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    (RESULTS / f"{NAME}.md").write_text("\n".join(gestures_jigsaws_table(report)) + "\n", encoding="utf-8")
+    print("\n".join(gestures_jigsaws_table(report)))
+
+
+if __name__ == "__main__":
+    main()
