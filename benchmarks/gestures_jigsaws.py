@@ -142,8 +142,7 @@ def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, 
     """One LOUO cross-validation through the CLI, or the timing recorded when it last completed."""
     timing_path = out / "timing.json"
     if timing_path.is_file() and (out / "cv.json").is_file() and (not baseline or (out / "baseline").is_dir()):
-        timing: dict[str, Any] = json.loads(timing_path.read_text(encoding="utf-8"))
-        return {**timing, "reused": True}
+        return {**json.loads(timing_path.read_text(encoding="utf-8")), "reused": True}
     args = [*CLI_TRAIN, str(sessions), OPT_MODEL, model, OPT_OUT, str(out)]
     args += [OPT_EPOCHS, str(epochs)] if epochs is not None else []
     args += [] if baseline and model != "baseline" else [OPT_NO_BASELINE]
@@ -152,9 +151,51 @@ def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, 
     timing = {"wall_s": round(time.monotonic() - t0, 1), "jobs": jobs, "resumed": before > 0,
               "folds_done_before": before, "load_average_before_after": [load_before, load_average()],
               "command": "midas " + " ".join(args + [OPT_JOBS, str(jobs)]),
-              "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+              "finished_utc": utc_now()}
     timing_path.write_text(json.dumps(timing, indent=2) + "\n", encoding="utf-8")
     return timing
+
+
+def fold_seconds(out: Path, model: str) -> dict[int, float]:
+    """Each finished fold's own training time (the jobs folder's done markers: ``seconds``), by fold."""
+    seconds = {}
+    for marker in sorted(out.glob("jobs/units/*/done.json")):
+        try:
+            done = json.loads(marker.read_text(encoding="utf-8"))
+            name, secs = str(done["name"]).split(), float(done["seconds"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # a marker being written, or not the CLI's: left out
+        if len(name) >= 3 and name[0] == model and name[1] == "fold" and name[2].isdigit():
+            seconds[int(name[2])] = round(secs, 1)
+    return seconds
+
+
+def cross_validation(out: Path, part: str | None = None) -> dict[str, Any] | None:
+    """cv.json of a finished run (or its baseline part); for an unfinished one, the finished folds'
+    figures from the library's own aggregation (``models.cv.collect``, which writes nothing); None
+    without a finished fold."""
+    if (out / "cv.json").is_file():
+        cv = json.loads((out / "cv.json").read_text(encoding="utf-8"))
+        return cv if part is None else cv.get(part)
+    sys.path.insert(0, str(ROOT))
+    from midas_cli.models import cv as cv_lib
+
+    root = out if part is None else out / part
+    return cv_lib.collect(root) if any(root.glob("fold-*/metrics.json")) else None
+
+
+def unfinished_timing(out: Path) -> dict[str, Any]:
+    """--report-only: the timing of a completed run, or what an unfinished one can say (its start)."""
+    if (out / "timing.json").is_file() and (out / "cv.json").is_file():
+        return dict(json.loads((out / "timing.json").read_text(encoding="utf-8")))
+    plan = out / "jobs" / "plan.json"
+    started = json.loads(plan.read_text(encoding="utf-8")).get("created") if plan.is_file() else None
+    return {"wall_s": None, "unfinished": True, "started": started, "reported_utc": utc_now()}
+
+
+def utc_now() -> str:
+    """Now, UTC, to the second."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
 def figures(cv: dict[str, Any]) -> dict[str, Any]:
@@ -171,21 +212,28 @@ def figures(cv: dict[str, Any]) -> dict[str, Any]:
 
 def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace) -> list[dict[str, Any]]:
     """Every requested model of one task; the rows (the baseline read from the first neural run)."""
-    sessions, prep = prepare(data, name, args.work, args.jobs)
+    sessions, prep = (args.work / "sessions" / name, {}) if args.report_only else prepare(data, name, args.work,
+                                                                                          args.jobs)
     neural = [m for m in NEURAL if m in models]
     rows = []
     for i, model in enumerate(neural or ["baseline"]):
         out = run_dir(args.work, name, model, args.epochs)
-        timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
-        cv = json.loads((out / "cv.json").read_text(encoding="utf-8"))
-        parts = [(model, cv)] + ([("baseline", cv["baseline"])] if "baseline" in cv and "baseline" in models
-                                 and model != "baseline" else [])
-        for row_model, part in parts:
+        if args.report_only:
+            timing = {**unfinished_timing(out), "reused": True}
+        else:
+            timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
+        wanted = [model] + (["baseline"] if "baseline" in models and model != "baseline" else [])
+        for row_model in wanted:
+            part = cross_validation(out, None if row_model == model else "baseline")
+            if part is None:
+                continue
             shared = "" if row_model == model else f" (trained inside the {model} run)"
             row = {"task": name, "model": row_model, "epochs_option": args.epochs, "run_dir": str(out),
-                   "timing": timing, "trained_in": model, "prepare": prep, **figures(part)}
+                   "timing": timing, "trained_in": model, "prepare": prep, **figures(part),
+                   "fold_seconds": fold_seconds(out, row_model)}
             rows.append(row)
-            print(f"{name} {row_model}: {timing['wall_s']:g} s{shared}{' (reused)' if timing.get('reused') else ''}"
+            wall = "unfinished" if timing["wall_s"] is None else f"{timing['wall_s']:g} s"
+            print(f"{name} {row_model}: {wall}{shared}{' (reused)' if timing.get('reused') else ''}"
                   f", {len(row['folds'])}/{row['n_folds']} folds, acc {row['pooled']['accuracy']:.3f}, "
                   f"edit {row['pooled']['edit']:.1f}", file=sys.stderr, flush=True)
     return rows
@@ -216,6 +264,8 @@ def main() -> None:
     parser.add_argument("--models", default=",".join(MODELS), help=f"comma list of {', '.join(MODELS)}")
     parser.add_argument("--epochs", type=int, default=None, help="override every model's recipe epochs")
     parser.add_argument("--jobs", type=int, default=2, help="folds trained at once (worker processes)")
+    parser.add_argument("--report-only", action="store_true",
+                        help="train nothing: rows from what the run folders hold now (unfinished runs: their folds)")
     args = parser.parse_args()
     tasks, models = args.tasks.split(","), args.models.split(",")
     unknown = sorted(set(tasks) - set(TASKS)) + sorted(set(models) - set(MODELS))

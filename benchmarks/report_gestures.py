@@ -14,17 +14,28 @@ def _pct(value: float) -> str:
     return f"{100 * value:.1f}"
 
 
+def _span(low: float, high: float) -> str:
+    """Seconds as a range in s (under two minutes) or min."""
+    return f"{low:.0f}–{high:.0f} s" if high < 120 else f"{low / 60:.1f}–{high / 60:.1f} min"
+
+
 def _minutes(row: dict[str, Any]) -> str:
-    t = row["timing"]
+    """Wall time of the run that trained the row, and the span of its folds' own training times."""
+    t, secs = row["timing"], list((row.get("fold_seconds") or {}).values())
+    folds = f"; a fold {_span(min(secs), max(secs))}" if secs else ""
     if row["trained_in"] != row["model"]:
-        return f"in the {TITLES[row['trained_in']]} run"
+        return f"in the {TITLES[row['trained_in']]} run{folds}"
+    if t.get("wall_s") is None:
+        return f"unfinished (started {t.get('started') or '?'}){folds}"
     resumed = " (resumed: later folds only)" if t.get("resumed") else ""
-    return f"{t['wall_s'] / 60:.1f} min, --jobs {t['jobs']}{resumed}"
+    return f"{t['wall_s'] / 60:.1f} min, --jobs {t['jobs']}{resumed}{folds}"
 
 
 def _meets(row: dict[str, Any], target_accuracy: float, target_edit: float) -> str:
+    if row["missing_folds"]:
+        return "— (not all folds)"
     ok = row["pooled"]["accuracy"] >= target_accuracy and row["pooled"]["edit"] >= target_edit
-    return "yes" if ok and not row["missing_folds"] else "no"
+    return "yes" if ok else "no"
 
 
 def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
