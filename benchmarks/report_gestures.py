@@ -51,8 +51,8 @@ def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
         if not rows:
             out += ["Not measured yet.", ""]
             continue
-        out += ["| model | epochs | folds | acc | edit | F1@10 | F1@25 | F1@50 | per video: acc | edit | F1@10 | "
-                "F1@25 | F1@50 | acc over folds, mean ± sd | per-fold acc | wall time | target met |",
+        out += ["| model | epochs | folds | acc | edit | F1@10 | F1@25 | F1@50 | video acc | video edit | video F1@10 | "
+                "video F1@25 | video F1@50 | acc over folds, mean ± sd | per-fold acc | wall time | target met |",
                 "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             p, v, m, s = r["pooled"], r["per_video"], r["fold_mean"], r["fold_sd"]
@@ -97,12 +97,13 @@ def gestures_jigsaws_section(report: dict[str, Any]) -> list[str]:
            f"{m['date_utc']}, {m['cpu_model']}, {m['affinity_cpus']} usable CPUs of {m['cpus']} (shared with "
            f"other engineers' jobs), torch {report['torch']}, --jobs {report['jobs']} with "
            f"{report['threads_per_worker']} thread(s) per worker, nice {report['niceness']}.", "",
-           "acc in %, edit and F1@k 0-100. *Pooled*: every test frame / segment of every fold counted together "
-           "(F1@k from TP/FP/FN summed over all test videos, the MS-TCN way); *per video*: each test video scored "
-           "alone, then the mean over videos. The literature figures (jigsaws-dev README) are for orientation: "
-           "published LOUO frame accuracy from kinematics only; the targets are issue 27's. The baseline row "
-           "comes from the first neural model's run (the CLI trains it there by default); its wall time is "
-           "inside that run's.", ""]
+           "acc in %, edit and F1@k 0-100. acc, edit, F1@k: *pooled*, every test frame / segment of every fold "
+           "counted together (F1@k from TP/FP/FN summed over all test videos, the MS-TCN way); *video* columns: "
+           "each test video scored alone, then the mean over videos (cv.json's `per_video`). The literature "
+           "figures (jigsaws-dev README) are for orientation: published LOUO frame accuracy from kinematics only; "
+           "the targets are issue 27's. A baseline trained inside a neural model's run (the CLI's default) has "
+           "its wall time inside that run's; *a fold* is the span of the folds' own training times (one worker "
+           "each).", ""]
     out += gestures_jigsaws_table(report)
     if missing:
         out += [f"Not yet measured (at the defaults, all folds): {', '.join(missing)}.", ""]
