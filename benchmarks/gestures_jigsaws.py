@@ -273,16 +273,22 @@ def main() -> None:
         parser.error(f"unknown task/model {', '.join(unknown)}" if unknown else "--jobs and --epochs must be >= 1")
     args.work.mkdir(parents=True, exist_ok=True)
     facts = {"machine": machine_info(), **torch_facts(args.jobs)}
-    rows = [{**row, **facts} for name in tasks for row in run_task(args.data, name, models, args)]
+    report: dict[str, Any] = {}
+    for name in tasks:  # saved after each task: an interrupted run keeps what finished
+        report = save([{**row, **facts} for row in run_task(args.data, name, models, args)], facts, args.data)
+    print("\n".join(gestures_jigsaws_table(report)))
+
+
+def save(rows: list[dict[str, Any]], facts: dict[str, Any], data: Path) -> dict[str, Any]:
+    """Merge ``rows`` into results/gestures_jigsaws.json (and its .md table); the whole report."""
     path = RESULTS / f"{NAME}.json"
     old = json.loads(path.read_text(encoding="utf-8")).get("rows", []) if path.is_file() else []
-    report = {**facts, "data": str(args.data),
-              "tasks": {k: vars(v) for k, v in TASKS.items()}, "target_edit": TARGET_EDIT,
-              "rows": merge(old, rows)}
+    report = {**facts, "data": str(data), "tasks": {k: vars(v) for k, v in TASKS.items()},
+              "target_edit": TARGET_EDIT, "rows": merge(old, rows)}
     RESULTS.mkdir(exist_ok=True)
     path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     (RESULTS / f"{NAME}.md").write_text("\n".join(gestures_jigsaws_table(report)) + "\n", encoding="utf-8")
-    print("\n".join(gestures_jigsaws_table(report)))
+    return report
 
 
 if __name__ == "__main__":
