@@ -188,9 +188,12 @@ def unfinished_timing(out: Path) -> dict[str, Any]:
     """--report-only: the timing of a completed run, or what an unfinished one can say (its start)."""
     if (out / "timing.json").is_file() and (out / "cv.json").is_file():
         return dict(json.loads((out / "timing.json").read_text(encoding="utf-8")))
-    plan = out / "jobs" / "plan.json"
-    started = json.loads(plan.read_text(encoding="utf-8")).get("created") if plan.is_file() else None
-    return {"wall_s": None, "unfinished": True, "started": started, "reported_utc": utc_now()}
+    try:  # the local executor's record of each submission: when, and how many workers
+        subs = json.loads((out / "jobs" / "submissions.json").read_text(encoding="utf-8"))
+        started, jobs = str(subs[0]["submitted"]), int(subs[-1]["jobs"])
+    except (OSError, ValueError, KeyError, IndexError, TypeError):
+        started, jobs = None, None
+    return {"wall_s": None, "unfinished": True, "started": started, "jobs": jobs, "reported_utc": utc_now()}
 
 
 def utc_now() -> str:

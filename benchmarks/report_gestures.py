@@ -26,7 +26,7 @@ def _minutes(row: dict[str, Any]) -> str:
     if row["trained_in"] != row["model"]:
         return f"in the {TITLES[row['trained_in']]} run{folds}"
     if t.get("wall_s") is None:
-        return f"unfinished (started {t.get('started') or '?'}){folds}"
+        return f"unfinished (started {t.get('started') or '?'}, --jobs {t.get('jobs') or '?'}){folds}"
     resumed = " (resumed: later folds only)" if t.get("resumed") else ""
     return f"{t['wall_s'] / 60:.1f} min, --jobs {t['jobs']}{resumed}{folds}"
 
@@ -95,8 +95,8 @@ def gestures_jigsaws_section(report: dict[str, Any]) -> list[str]:
            f"per model at its defaults (inputs as the CLI picks them for robot data: {_inputs(report)}). Trials "
            "without a transcription are skipped by the CLI (unlabelled). Last run: "
            f"{m['date_utc']}, {m['cpu_model']}, {m['affinity_cpus']} usable CPUs of {m['cpus']} (shared with "
-           f"other engineers' jobs), torch {report['torch']}, --jobs {report['jobs']} with "
-           f"{report['threads_per_worker']} thread(s) per worker, nice {report['niceness']}.", "",
+           f"other engineers' jobs), torch {report['torch']}, nice {report['niceness']}; threads per worker: "
+           "cores / --jobs (the local executor's OMP_NUM_THREADS).", "",
            "acc in %, edit and F1@k 0-100. acc, edit, F1@k: *pooled*, every test frame / segment of every fold "
            "counted together (F1@k from TP/FP/FN summed over all test videos, the MS-TCN way); *video* columns: "
            "each test video scored alone, then the mean over videos (cv.json's `per_video`). The literature "
