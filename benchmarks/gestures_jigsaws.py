@@ -77,7 +77,8 @@ TASKS = {"knot_tying": Task("knot_tying.tar.xz", "Knot_Tying", "Knot Tying", 0.7
 
 
 def midas(*args: str, jobs: int | None = None) -> str:
-    """Run ``python -m midas_cli ARGS`` (the repository's code first on the path); stdout, or raise."""
+    """Run ``python -m midas_cli ARGS`` (the repository's code first on the path); stdout, or raise
+    RuntimeError with the command's last stderr lines."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     extra = [OPT_JOBS, str(jobs)] if jobs else []
     proc = subprocess.run([sys.executable, "-m", "midas_cli", *args, *extra], capture_output=True, text=True,
@@ -115,11 +116,14 @@ def prepare(data: Path, name: str, work: Path, jobs: int) -> tuple[Path, dict[st
     """Extract, import and align one task (each step skipped where done); the sessions folder and times."""
     sessions_dir = work / "sessions" / name
     times: dict[str, Any] = {}
-    if not sessions_in(sessions_dir):
-        source = extract(data, TASKS[name], work)
+    if not sessions_dir.exists():  # imported beside it, then renamed: an interrupted import is redone
+        source, staging = extract(data, TASKS[name], work), sessions_dir.with_name(f".{name}.importing")
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
-        midas(*CLI_IMPORT, str(source), OPT_OUT, str(sessions_dir), OPT_JSON)
+        midas(*CLI_IMPORT, str(source), OPT_OUT, str(staging), OPT_JSON)
         times["import_s"] = round(time.monotonic() - t0, 1)
+        staging.rename(sessions_dir)
     todo = [s for s in sessions_in(sessions_dir) if not (s / "derived" / "aligned.npz").is_file()]
     if todo:
         t0 = time.monotonic()
@@ -224,7 +228,11 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
         if args.report_only:
             timing = {**unfinished_timing(out), "reused": True}
         else:
-            timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
+            try:
+                timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
+            except RuntimeError as exc:  # a failed fold: said, and the other models still run
+                print(f"{name} {model}: FAILED, see {out}/jobs/logs: {exc}", file=sys.stderr, flush=True)
+                continue
         wanted = [model] + (["baseline"] if "baseline" in models and model != "baseline" else [])
         for row_model in wanted:
             part = cross_validation(out, None if row_model == model else "baseline")
