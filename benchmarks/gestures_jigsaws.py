@@ -37,6 +37,7 @@ import tarfile
 import tempfile
 import time
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -144,9 +145,9 @@ def finished_folds(root: Path) -> int:
 
 def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, baseline: bool) -> dict[str, Any]:
     """One LOUO cross-validation through the CLI, or the timing recorded when it last completed."""
-    timing_path = out / "timing.json"
-    if timing_path.is_file() and (out / "cv.json").is_file() and (not baseline or (out / "baseline").is_dir()):
-        return {**json.loads(timing_path.read_text(encoding="utf-8")), "reused": True}
+    done = recorded_timing(out)
+    if done and (not baseline or (out / "baseline").is_dir()):
+        return {**done, "reused": True}
     args = [*CLI_TRAIN, str(sessions), OPT_MODEL, model, OPT_OUT, str(out)]
     args += [OPT_EPOCHS, str(epochs)] if epochs is not None else []
     args += [] if baseline and model != "baseline" else [OPT_NO_BASELINE]
@@ -156,7 +157,7 @@ def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, 
               "folds_done_before": before, "load_average_before_after": [load_before, load_average()],
               "command": "midas " + " ".join(args + [OPT_JOBS, str(jobs)]),
               "finished_utc": utc_now()}
-    timing_path.write_text(json.dumps(timing, indent=2) + "\n", encoding="utf-8")
+    (out / "timing.json").write_text(json.dumps(timing, indent=2) + "\n", encoding="utf-8")
     return timing
 
 
@@ -188,15 +189,35 @@ def cross_validation(out: Path, part: str | None = None) -> dict[str, Any] | Non
     return cv_lib.collect(root) if any(root.glob("fold-*/metrics.json")) else None
 
 
-def unfinished_timing(out: Path) -> dict[str, Any]:
-    """--report-only: the timing of a completed run, or what an unfinished one can say (its start)."""
-    if (out / "timing.json").is_file() and (out / "cv.json").is_file():
-        return dict(json.loads((out / "timing.json").read_text(encoding="utf-8")))
-    try:  # the local executor's record of each submission: when, and how many workers
+def submissions(out: Path) -> tuple[str | None, int | None]:
+    """When the run's first submission went to the local executor, and the last one's --jobs."""
+    try:
         subs = json.loads((out / "jobs" / "submissions.json").read_text(encoding="utf-8"))
-        started, jobs = str(subs[0]["submitted"]), int(subs[-1]["jobs"])
+        return str(subs[0]["submitted"]), int(subs[-1]["jobs"])
     except (OSError, ValueError, KeyError, IndexError, TypeError):
-        started, jobs = None, None
+        return None, None
+
+
+def recorded_timing(out: Path) -> dict[str, Any] | None:
+    """A finished run's timing: the one this script recorded, else (a run started by hand) its first
+    submission to its cv.json; None while cv.json is missing."""
+    if not (out / "cv.json").is_file():
+        return None
+    if (out / "timing.json").is_file():
+        return dict(json.loads((out / "timing.json").read_text(encoding="utf-8")))
+    started, jobs = submissions(out)
+    if started is None:
+        return None
+    wall = (out / "cv.json").stat().st_mtime - datetime.fromisoformat(started).timestamp()
+    return {"wall_s": round(wall, 1), "jobs": jobs, "started": started, "wall_from": "submission to cv.json"}
+
+
+def unfinished_timing(out: Path) -> dict[str, Any]:
+    """--report-only: the timing of a finished run, or what an unfinished one can say (its start)."""
+    done = recorded_timing(out)
+    if done:
+        return done
+    started, jobs = submissions(out)
     return {"wall_s": None, "unfinished": True, "started": started, "jobs": jobs, "reported_utc": utc_now()}
 
 

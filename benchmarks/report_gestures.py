@@ -28,6 +28,7 @@ def _minutes(row: dict[str, Any]) -> str:
     if t.get("wall_s") is None:
         return f"unfinished (started {t.get('started') or '?'}, --jobs {t.get('jobs') or '?'}){folds}"
     resumed = " (resumed: later folds only)" if t.get("resumed") else ""
+    resumed += f" ({t['wall_from']})" if t.get("wall_from") else ""
     load = "–".join(f"{x:g}" for x in t.get("load_average_before_after") or [])
     return f"{t['wall_s'] / 60:.1f} min, --jobs {t['jobs']}{resumed}{folds}{f'; load {load}' if load else ''}"
 
