@@ -296,6 +296,7 @@ def main() -> None:
     parser.add_argument("--models", default=",".join(MODELS), help=f"comma list of {', '.join(MODELS)}")
     parser.add_argument("--epochs", type=int, default=None, help="override every model's recipe epochs")
     parser.add_argument("--jobs", type=int, default=2, help="folds trained at once (worker processes)")
+    parser.add_argument("--note", help="a dated remark on this run for the report (e.g. the machine's load)")
     parser.add_argument("--report-only", action="store_true",
                         help="train nothing: rows from what the run folders hold now (unfinished runs: their folds)")
     args = parser.parse_args()
@@ -305,18 +306,21 @@ def main() -> None:
         parser.error(f"unknown task/model {', '.join(unknown)}" if unknown else "--jobs and --epochs must be >= 1")
     args.work.mkdir(parents=True, exist_ok=True)
     facts = {"machine": machine_info(), **torch_facts(args.jobs)}
+    note = [f"{facts['machine']['date_utc'][:10]}: {args.note}"] if args.note else []
     report: dict[str, Any] = {}
     for name in tasks:  # saved after each task: an interrupted run keeps what finished
-        report = save([{**row, **facts} for row in run_task(args.data, name, models, args)], facts, args.data)
+        report = save([{**row, **facts} for row in run_task(args.data, name, models, args)], facts, args.data, note)
+        note = []
     print("\n".join(gestures_jigsaws_table(report)))
 
 
-def save(rows: list[dict[str, Any]], facts: dict[str, Any], data: Path) -> dict[str, Any]:
-    """Merge ``rows`` into results/gestures_jigsaws.json (and its .md table); the whole report."""
+def save(rows: list[dict[str, Any]], facts: dict[str, Any], data: Path, note: list[str]) -> dict[str, Any]:
+    """Merge ``rows`` (and ``note``) into results/gestures_jigsaws.json (and its .md table); the report."""
     path = RESULTS / f"{NAME}.json"
-    old = json.loads(path.read_text(encoding="utf-8")).get("rows", []) if path.is_file() else []
+    old = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
     report = {**facts, "data": str(data), "tasks": {k: vars(v) for k, v in TASKS.items()},
-              "target_edit": TARGET_EDIT, "rows": merge(old, rows)}
+              "target_edit": TARGET_EDIT, "rows": merge(old.get("rows", []), rows),
+              "notes": old.get("notes", []) + note}
     RESULTS.mkdir(exist_ok=True)
     path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     (RESULTS / f"{NAME}.md").write_text("\n".join(gestures_jigsaws_table(report)) + "\n", encoding="utf-8")

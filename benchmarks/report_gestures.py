@@ -109,4 +109,4 @@ def gestures_jigsaws_section(report: dict[str, Any]) -> list[str]:
     out += gestures_jigsaws_table(report)
     if missing:
         out += [f"Not yet measured (at the defaults, all folds): {', '.join(missing)}.", ""]
-    return out
+    return out + [f"* {note}" for note in report.get("notes", [])] + ([""] if report.get("notes") else [])
