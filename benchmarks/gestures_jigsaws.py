@@ -16,7 +16,9 @@ and averaged per video, mean and sd of accuracy and edit over folds, and each fo
 wall time, the load average and the machine (cores, CPU model, torch version, threads per worker).
 Results accumulate in ``results/gestures_jigsaws.json`` (rows keyed by task, model and epochs, so parts
 can be run one at a time) and ``results/gestures_jigsaws.md``; ``report.py`` puts the table into
-BENCHMARKS.md. One progress line per finished (task, model) on stderr.
+BENCHMARKS.md. One progress line per finished (task, model) on stderr. ``--report-only`` trains nothing and
+reads the run folders as they are (an unfinished run: its finished folds, marked so); ``--note`` keeps a
+dated remark (e.g. the machine's load) under the tables.
 
 Run it niced on a shared machine:
 
