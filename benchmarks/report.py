@@ -13,6 +13,7 @@ from report_align import align_section  # noqa: E402
 from report_reference import reference_section  # noqa: E402
 from report_batch import batch_section, export_section, foxglove_live_section  # noqa: E402
 from report_executor import executor_section  # noqa: E402
+from report_gestures import gestures_jigsaws_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 from report_timestamp import timestamp_section  # noqa: E402
 
@@ -45,6 +46,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_train.py      # simulate + align 15 trials; MS-TCN++ / transformer",
             ".venv/bin/python benchmarks/bench_train.py --louo   # one JIGSAWS-sized LOUO fold of MS-TCN++",
             ".venv/bin/python benchmarks/bench_mstcn_reference.py --threads 1   # MS-TCN++ vs a reference loop",
+            "nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --jobs 2   # LOUO on real JIGSAWS kinematics",
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
             ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
             ".venv/bin/python benchmarks/bench_export.py     # export to MCAP / Parquet / XDF, 10 and 60 min",
@@ -325,6 +327,8 @@ def main() -> None:
             lines += train_louo_section(load("train_louo"))
         if name == "train" and load("mstcn_reference"):
             lines += reference_section(load("mstcn_reference"))
+        if name == "train" and load("gestures_jigsaws"):
+            lines += gestures_jigsaws_section(load("gestures_jigsaws"))
     lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     startup = load("startup")
     lines += startup_section(startup) if startup else ["## startup: no results yet (run its script)", ""]

@@ -1,0 +1,65 @@
+"""The JIGSAWS gesture benchmark's own bookkeeping (no training, no timing asserted): rows from several
+runs accumulate, fold times come only from the model's own done markers, and the table puts pooled and
+per-video figures in their columns and never calls a partial or low-edit run a target met."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import gestures_jigsaws as bench  # noqa: E402
+from report_gestures import gestures_jigsaws_table  # noqa: E402
+
+
+def _row(model: str, acc: float, edit: float, missing: list[int] | None = None) -> dict[str, Any]:
+    pooled = {"accuracy": acc, "edit": edit, "f1@10": 91.0, "f1@25": 89.0, "f1@50": 80.0}
+    per_video = {"accuracy": 0.5, "edit": 55.5, "f1@10": 66.6, "f1@25": 44.4, "f1@50": 22.2}
+    return {"task": "knot_tying", "model": model, "epochs_option": None, "epochs": 100, "trained_in": model,
+            "pooled": pooled, "per_video": per_video, "fold_mean": {"accuracy": acc, "edit": edit},
+            "fold_sd": {"accuracy": 0.01, "edit": 1.0}, "missing_folds": missing or [], "n_folds": 2,
+            "folds": [{"fold": 0, "user": "B", "accuracy": 0.7}, {"fold": 1, "user": "C", "accuracy": 0.9}],
+            "timing": {"wall_s": 600.0, "jobs": 2}, "fold_seconds": {"0": 290.0, "1": 310.0}}
+
+
+def _report(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    return {"tasks": {k: vars(v) for k, v in bench.TASKS.items()}, "target_edit": bench.TARGET_EDIT, "rows": rows}
+
+
+def test_merge_replaces_only_the_same_task_model_and_epochs() -> None:
+    old = [_row("mstcn", 0.7, 80.0), _row("transformer", 0.6, 70.0), {**_row("mstcn", 0.1, 1.0), "epochs_option": 1}]
+    merged = bench.merge(old, [_row("mstcn", 0.8, 86.0)])
+    assert sorted((r["model"], r["epochs_option"] or 0, r["pooled"]["accuracy"]) for r in merged) == [
+        ("mstcn", 0, 0.8), ("mstcn", 1, 0.1), ("transformer", 0, 0.6)]
+
+
+def test_fold_seconds_reads_the_models_done_markers_and_skips_broken_ones(tmp_path: Path) -> None:
+    units = tmp_path / "jobs" / "units"
+    markers = {"0": {"name": "mstcn fold 0 (louo B)", "seconds": 61.04}, "1": {"name": "mstcn fold 1 (louo C)"},
+               "2": {"name": "baseline fold 0 (louo B)", "seconds": 5.0}, "3": "{not json",
+               "4": {"name": "mstcn fold 3 (louo E)", "seconds": "soon"}, "5": {"name": "mstcn fold 5", "seconds": 7}}
+    for unit, marker in markers.items():
+        (units / unit).mkdir(parents=True)
+        text = marker if isinstance(marker, str) else json.dumps(marker)
+        (units / unit / "done.json").write_text(text, encoding="utf-8")
+    assert bench.fold_seconds(tmp_path, "mstcn") == {0: 61.0, 5: 7.0}
+    assert bench.fold_seconds(tmp_path, "baseline") == {0: 5.0}
+
+
+def test_table_columns_and_target_verdicts() -> None:
+    rows = [_row("mstcn", 0.81, 86.0), _row("transformer", 0.85, 84.9), _row("baseline", 0.9, 99.0, missing=[1])]
+    lines = gestures_jigsaws_table(_report(rows))
+    cells = {line.split(" | ")[0].lstrip("| "): line.strip("| ").split(" | ") for line in lines if line.startswith("| ")}
+    header = cells["model"]
+    mstcn = dict(zip(header, cells["MS-TCN++"]))
+    assert (mstcn["acc"], mstcn["edit"], mstcn["F1@50"], mstcn["video acc"], mstcn["video edit"]) == (
+        "81.0", "86.0", "80.0", "50.0", "55.5")
+    assert cells["MS-TCN++"][-1] == "yes"
+    assert cells["transformer"][-1] == "no"  # accuracy above the target, edit below 85
+    assert cells["baseline (per-frame logistic regression)"][-1].startswith("—")  # a fold missing
+    assert "B 70.0 C 90.0" in cells["MS-TCN++"] and "10.0 min, --jobs 2; a fold 4.8–5.2 min" in cells["MS-TCN++"]
+    assert any("Needle Passing" in line for line in lines) and "Not measured yet." in lines
