@@ -13,19 +13,16 @@ The draws are derandomised (the same on every run); MIDAS_PROPERTY_EXAMPLES rais
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
-import signal
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from helpers.inprocess import captured
 
 EXAMPLES = int(os.environ.get("MIDAS_PROPERTY_EXAMPLES", "200"))
 HANG_S = 30
@@ -124,45 +121,9 @@ special = st.one_of(
 bad_configs = st.one_of(wrong_type, outside_grammar, control_in_path, deep, encoded, odd_names, special)
 
 
-class Hung(Exception):
-    pass
-
-
 def run_midas(args: list[str], env: dict[str, str]) -> tuple[int | None, str, str]:
     """``midas ARGS`` in this process with ``env`` set: (exit code or None when it hung, stdout, stderr)."""
-    from midas_cli.commands.common import STDERR_LOG
-    from midas_cli.commands.main import run
-
-    def _alarm(_signum, _frame):
-        raise Hung()
-
-    out, err = io.StringIO(), io.StringIO()
-    saved_env = {k: os.environ.get(k) for k in env}
-    argv, previous = sys.argv, signal.signal(signal.SIGALRM, _alarm)
-    sys.argv = ["midas", *args]
-    os.environ.update(env)
-    log_stream = STDERR_LOG.setStream(err)
-    code: int | None
-    try:
-        signal.alarm(HANG_S)
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            run()
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    except Hung:
-        code = None
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
-        sys.argv = argv
-        STDERR_LOG.setStream(log_stream)
-        for k, v in saved_env.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    return code, out.getvalue(), err.getvalue()
+    return captured(args, HANG_S, env)
 
 
 @pytest.fixture(scope="module")

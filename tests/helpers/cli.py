@@ -95,3 +95,18 @@ def write_session(root: Path, rows: int = 50, status: str = "complete", seq_step
     extra = {"demo": {"missing_explained": {"outage": (seq_step - 1) * (rows - 1)}}}
     writer.finalize(status, "test", t0 + rows * 10_000_000, extra)
     return writer.folder
+
+
+def simulate_trial(out: Path, *options: str) -> Path:
+    """One 5-s simulated Raven-II trial (seed 3) under ``out`` (``options``: more `simulate dataset`
+    options); its session folder."""
+    result = midas("simulate", "dataset", "--platform", "raven-ii", "--trials", "1", "--max-seconds", "5",
+                   "--seed", "3", *options, "--out", str(out), check=True)
+    return Path(result.stdout.strip().splitlines()[-1])
+
+
+def copy_session(session: Path, into: Path) -> Path:
+    """A copy of ``session`` in the folder ``into`` (a test may then damage it)."""
+    import shutil
+
+    return Path(shutil.copytree(session, into / session.name))

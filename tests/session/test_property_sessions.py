@@ -25,9 +25,7 @@ import io
 import json
 import os
 import shutil
-import signal
 import stat
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +35,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from helpers.cli import midas
+from helpers.inprocess import run_in_process
 
 # SIGALRM is this module's hang detector (run_midas), so the suite's timeout must not use it too: the
 # thread method keeps pytest-timeout's guard over the whole module's examples
@@ -62,10 +61,6 @@ STRUCTURAL = [("schema_version",), ("session_id",), ("status",), ("metadata",), 
               ("start",), ("start", "host_ns"), ("devices",), ("streams",)]
 STREAM_FIELDS = [(), ("file",), ("columns",), ("samples",), ("sha256",), ("first_t_host_ns",),
                  ("last_t_host_ns",), ("device",)]
-
-
-class Hung(BaseException):
-    """Raised by the alarm: BaseException, so midas's own `except Exception` cannot swallow it."""
 
 
 @dataclass(frozen=True)
@@ -227,33 +222,9 @@ def _release_fifos(root: Path) -> None:
 
 def run_midas(args: list[str], release: Path) -> tuple[int | None, str]:
     """Run the `midas` entry point in this process; (exit code or None if hung, stdout + stderr)."""
-    from midas_cli.commands.common import STDERR_LOG
-    from midas_cli.commands.main import run
-
-    def _alarm(_signum, _frame):
-        raise Hung()
-
-    captured = io.StringIO()
-    argv, previous = sys.argv, signal.signal(signal.SIGALRM, _alarm)
-    sys.argv = ["midas", *args]
-    log_stream = STDERR_LOG.setStream(captured)  # library warnings, as `midas` prints them on stderr
-    code: int | None
-    try:
-        signal.alarm(HANG_S)
-        with contextlib.redirect_stdout(captured), contextlib.redirect_stderr(captured):
-            run()
-        code = 0
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    except Hung:
-        code = None
-        _release_fifos(release)
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
-        sys.argv = argv
-        STDERR_LOG.setStream(log_stream)
-    return code, captured.getvalue()
+    both = io.StringIO()
+    code = run_in_process(args, both, both, HANG_S, on_hang=lambda: _release_fifos(release))
+    return code, both.getvalue()
 
 
 def snapshot(root: Path, skip: Path | None = None) -> dict[str, str]:

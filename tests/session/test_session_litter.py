@@ -16,7 +16,7 @@ from midas_cli.clock import HostClock
 from midas_cli.errors import SessionError
 from midas_cli.session.reader import Session
 from midas_cli.session.writer import SessionMetadata, SessionWriter
-from helpers.cli import REPO, SPEC, midas, write_session
+from helpers.cli import REPO, SPEC, copy_session, midas, simulate_trial, write_session
 
 # what a kill or a full disk leaves, one per writer of the session format (find_temporaries' list)
 PLANTED = {
@@ -33,17 +33,12 @@ PLANTED = {
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("sim")
-    result = midas("simulate", "dataset", "--platform", "raven-ii", "--trials", "1", "--max-seconds", "5",
-                   "--seed", "3", "--out", str(out), check=True)
-    return Path(result.stdout.strip().splitlines()[-1])
+    return simulate_trial(tmp_path_factory.mktemp("sim"))
 
 
 @pytest.fixture
 def session(simulated: Path, tmp_path: Path) -> Path:
-    copy = tmp_path / simulated.name
-    shutil.copytree(simulated, copy)
-    return copy
+    return copy_session(simulated, tmp_path)
 
 
 def _digests(folder: Path) -> dict[str, str]:

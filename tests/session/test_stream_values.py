@@ -7,28 +7,22 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 from pathlib import Path
 
 import pytest
 
-from helpers.cli import midas
+from helpers.cli import copy_session, midas, simulate_trial
 
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("sim")
     # easy: the line counts asserted below are those of this exact trial (the uniform simulator's)
-    result = midas("simulate", "dataset", "--platform", "raven-ii", "--trials", "1", "--max-seconds", "5",
-                   "--seed", "3", "--difficulty", "easy", "--out", str(out), check=True)
-    return Path(result.stdout.strip().splitlines()[-1])
+    return simulate_trial(tmp_path_factory.mktemp("sim"), "--difficulty", "easy")
 
 
 @pytest.fixture
 def session(simulated: Path, tmp_path: Path) -> Path:
-    copy = tmp_path / simulated.name
-    shutil.copytree(simulated, copy)
-    return copy
+    return copy_session(simulated, tmp_path)
 
 
 def _set_field(session: Path, stream: str, line: int, column: int, text: bytes) -> None:
