@@ -66,6 +66,8 @@ def statement(folder: Path | str, manifest: dict[str, Any]) -> dict[str, Any]:
     for name, entry in document["streams"].items():
         fit = fits.get(name) if isinstance(fits, dict) else None
         entry["fit"] = fit if isinstance(fit, dict) else NOT_MEASURED
+        if isinstance(fit, dict) and isinstance(fit.get("clock"), str):
+            entry["device_clock"] = fit["clock"]  # what the fit used: a declared column no row filled gave way
     rows = _json_entry(folder / "derived" / "eval" / "sync.json", "rows")
     offsets: Any = rows.get("sync") if isinstance(rows, dict) else None
     document["measured_offsets"] = [{k: r.get(k) for k in ("pair", "evidence", "offset_ms", "spread_ms", "drift_ppm",

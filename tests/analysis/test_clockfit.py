@@ -71,6 +71,21 @@ def test_the_clock_source_is_the_device_column_else_seq_at_the_nominal_rate() ->
     assert clock_source([SEQ, T_HOST, Column("text", "text")], None) is None  # markers: no clock to fit
 
 
+def test_the_sync_statement_names_the_clock_the_fit_used_not_an_empty_declared_column(tmp_path: Path) -> None:
+    """A FOB stream declares t_device_s (never filled): once align has fitted it, the statement says
+    seq at the nominal rate, as the fit did, not a device clock the records never carried."""
+    from midas_cli.session.sync_statement import recorded_statement, statement
+
+    manifest = {"streams": {"emht": {"nominal_rate_hz": 220.0, "columns": [
+        {"name": "seq"}, {"name": "t_host_ns"}, {"name": "t_device_s", "clock": "device"}]}}}
+    assert recorded_statement(manifest)["streams"]["emht"]["device_clock"] == "t_device_s"  # as declared
+    (tmp_path / "derived").mkdir()
+    fit = {"clock": "seq at 220 Hz (no device clock)", "samples": 10, "drift_ppm": 1.0}
+    (tmp_path / "derived" / "aligned.json").write_text(json.dumps({"clock_fit": {"emht": fit}}), encoding="utf-8")
+    entry = statement(tmp_path, manifest)["streams"]["emht"]
+    assert entry["device_clock"] == "seq at 220 Hz (no device clock)" and entry["fit"] == fit
+
+
 def test_an_empty_device_clock_column_gives_way_to_seq_at_the_nominal_rate() -> None:
     """fob:// declares t_device_s but its records carry no time: the fit uses seq at the nominal rate."""
     host_ns, _, true_host_s = _stamps(20, drift_ppm=0, jitter_ms=0.3)
