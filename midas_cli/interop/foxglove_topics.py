@@ -6,12 +6,13 @@ live WebSocket view (``midas record --foxglove``), built with the ``foxglove-sdk
   ``["number", "null"]``); a missing value is left out of the message (JSON has no NaN), so only
   ``seq`` and ``t_host_ns`` are required;
 * the operator's markers (stream ``events``) are ``foxglove.Log`` messages on ``/events``;
-* a stream with 6-DoF sensors (columns ``<p>_{x,y,z}_mm`` and ``<p>_{azimuth,elevation,roll}_deg``, the
-  EmHT layout) also has ``/<stream>/transforms`` (``foxglove.FrameTransforms``: parent frame = the
-  position columns' frame, e.g. ``emht_transmitter``, child frame ``<stream>/<p>``; metres and unit
-  quaternions), so the 3-D panel shows the sensors moving; a sensor with a missing value is left out
-  of that row's message. (No ``PosesInFrame`` copy of the same poses: it doubled the file and the
-  export time.)
+* a stream with 6-DoF sensors (columns ``<p>_{x,y,z}_mm`` and either ``<p>_{azimuth,elevation,roll}_deg``,
+  the EmHT layout, or a quaternion ``<p>_q{x,y,z,w}``, the robot arms' layout of ``mtm``/``psm``) also
+  has ``/<stream>/transforms`` (``foxglove.FrameTransforms``: parent frame = the position columns'
+  frame, e.g. ``emht_transmitter`` or ``psm``, child frame ``<stream>/<p>``; metres and unit
+  quaternions), so the 3-D panel shows the sensors and the arms moving; a sensor with a missing value
+  (or a zero quaternion) is left out of that row's message. (No ``PosesInFrame`` copy of the same
+  poses: it doubled the file and the export time.)
 """
 
 from __future__ import annotations
@@ -31,16 +32,26 @@ REQUIRED = ("seq", "t_host_ns")
 
 @dataclass(frozen=True)
 class SensorColumns:
-    """The columns of one 6-DoF sensor of a stream: position (mm) and azimuth/elevation/roll (deg)."""
+    """The columns of one 6-DoF sensor of a stream: position (mm) and orientation, either azimuth,
+    elevation, roll (deg; 3 columns) or a quaternion x, y, z, w (4 columns)."""
 
     name: str
     position: tuple[str, str, str]
-    angles: tuple[str, str, str]
+    orientation: tuple[str, ...]
     parent_frame: str
 
 
+def _orientation(prefix: str, names: set[str]) -> tuple[str, ...] | None:
+    """The orientation columns of sensor ``prefix``: its angles (EmHT) or its quaternion (robot arms)."""
+    for columns in ((f"{prefix}_azimuth_deg", f"{prefix}_elevation_deg", f"{prefix}_roll_deg"),
+                    tuple(f"{prefix}_q{a}" for a in "xyzw")):
+        if names.issuperset(columns):
+            return columns
+    return None
+
+
 def sensor_columns(spec: StreamSpec) -> list[SensorColumns]:
-    """The stream's 6-DoF sensors, in column order (none for a stream without the EmHT layout)."""
+    """The stream's 6-DoF sensors, in column order (none for a stream with positions only)."""
     names = set(spec.column_names)
     sensors = []
     for column in spec.columns:
@@ -48,9 +59,9 @@ def sensor_columns(spec: StreamSpec) -> list[SensorColumns]:
             continue
         prefix = column.name[: -len("_x_mm")]
         position = (f"{prefix}_x_mm", f"{prefix}_y_mm", f"{prefix}_z_mm")
-        angles = (f"{prefix}_azimuth_deg", f"{prefix}_elevation_deg", f"{prefix}_roll_deg")
-        if names.issuperset(position + angles):
-            sensors.append(SensorColumns(prefix, position, angles, column.frame or spec.name))
+        orientation = _orientation(prefix, names)
+        if names.issuperset(position) and orientation is not None:
+            sensors.append(SensorColumns(prefix, position, orientation, column.frame or spec.name))
     return sensors
 
 
@@ -83,11 +94,16 @@ Pose = tuple[Sequence[float], Sequence[float]]  # position (m) x, y, z; quaterni
 
 
 def sensor_poses(sensor: SensorColumns, table: dict[str, np.ndarray]) -> list[Pose | None]:
-    """Each row's pose of one sensor from column arrays (mm, deg): position in metres and unit quaternion,
-    None where a value is missing."""
+    """Each row's pose of one sensor from column arrays (mm; deg or quaternion): position in metres and
+    unit quaternion, None where a value is missing (or the quaternion is zero)."""
     position_mm = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.position])
-    angles_deg = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.angles])
-    positions, quaternions = position_mm / 1000.0, quaternions_from_angles(angles_deg)
+    orientation = np.column_stack([np.asarray(table[c], dtype=np.float64) for c in sensor.orientation])
+    if orientation.shape[1] == 3:
+        quaternions = quaternions_from_angles(orientation)
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):  # a zero quaternion: inf/NaN, left out below
+            quaternions = orientation / np.linalg.norm(orientation, axis=1, keepdims=True)
+    positions = position_mm / 1000.0
     complete = (np.isfinite(positions).all(axis=1) & np.isfinite(quaternions).all(axis=1)).tolist()
     return [(p, q) if ok else None for p, q, ok in zip(positions.tolist(), quaternions.tolist(), complete)]
 

@@ -4,8 +4,8 @@ Topics (see :mod:`midas_cli.interop.foxglove_topics` for the schemas):
 
 * ``/<stream>``: one JSON message per CSV row, single-typed fields, a missing value left out;
   ``/events`` (the operator's markers) as ``foxglove.Log``;
-* ``/<stream>/transforms`` for streams with 6-DoF sensors (EmHT): metres,
-  quaternions, frames ``<stream>/<sensor>`` in the transmitter's frame;
+* ``/<stream>/transforms`` for streams with 6-DoF sensors (EmHT, the robot arms of ``mtm``/``psm``):
+  metres, quaternions, frames ``<stream>/<sensor>`` in the position columns' frame;
 * with ``with_video``: ``/<stream>/image`` (``foxglove.CompressedImage``, JPEG, frame id ``<stream>``)
   for each stream of RGB-D frames (columns ``file`` and ``frame`` into ``video/<device>_NNN.mkv``): one
   message per recorded frame, the side-by-side stereo pair as recorded, re-encoded as JPEG; and the
@@ -106,7 +106,7 @@ def _write_transforms(name: str, sensors: list, chunk: Any, times: list[int], ch
                       counts: dict[str, int]) -> None:
     """One FrameTransforms message per row of a piece of a 6-DoF stream."""
     table = {column: chunk[column].to_numpy(np.float64, na_value=np.nan)
-             for sensor in sensors for column in sensor.position + sensor.angles}
+             for sensor in sensors for column in sensor.position + sensor.orientation}
     counts.setdefault(channel.topic(), 0)
     for t, poses in zip(times, zip(*(sensor_poses(sensor, table) for sensor in sensors))):
         message = transforms_message(name, sensors, t, poses)

@@ -10,7 +10,7 @@ holds and never in the workers' way. Publishing costs nothing while no client is
 operator's markers are published once fsynced (record/markers.py ``MarkerLog(publish=...)``).
 
 Topics and messages are those of the MCAP export (interop/foxglove_topics.py): ``/<stream>`` JSON,
-``/events`` as ``foxglove.Log``, ``/<stream>/transforms`` for EmHT.
+``/events`` as ``foxglove.Log``, ``/<stream>/transforms`` for EmHT and robot arms.
 Publishing never stops a recording: a failure is one warning and that stream is no longer published.
 """
 

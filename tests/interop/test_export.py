@@ -300,14 +300,48 @@ def test_mcap_with_video_has_the_rgbd_frames_as_images(tmp_path: Path) -> None:
 
 
 def test_only_six_dof_sensors_become_transforms() -> None:
+    from midas_cli.analysis.kinematics_schema import kinematics_spec
     from midas_cli.devices.emht_layout import emht_stream
     from midas_cli.analysis.handkp import handkp_spec
     from midas_cli.interop.foxglove_topics import sensor_columns
 
     sensors = sensor_columns(emht_stream("emht", 2, 240.0))
     assert [(s.name, s.parent_frame) for s in sensors] == [("s1", "emht_transmitter"), ("s2", "emht_transmitter")]
-    assert sensors[1].angles == ("s2_azimuth_deg", "s2_elevation_deg", "s2_roll_deg")
+    assert sensors[1].orientation == ("s2_azimuth_deg", "s2_elevation_deg", "s2_roll_deg")
+    arms = sensor_columns(kinematics_spec("psm"))
+    assert [(s.name, s.parent_frame) for s in arms] == [("left", "psm"), ("right", "psm")]
+    assert arms[1].orientation == ("right_qx", "right_qy", "right_qz", "right_qw")
     assert sensor_columns(handkp_spec("handkp", 30.0)) == []  # positions without orientation: a time series only
+
+
+def test_mcap_robot_arms_are_transforms_foxglove_reads(tmp_path: Path) -> None:
+    """The robot arms (``mtm``/``psm`` kinematics: mm and a quaternion) are frames ``psm/left``,
+    ``psm/right`` in ``psm`` for the 3-D panel; a zero or missing quaternion leaves that arm out."""
+    from midas_cli.analysis.kinematics_schema import kinematics_spec, side_columns
+    from midas_cli.clock import HostClock
+    from midas_cli.interop.mcap_export import write_mcap
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    spec = kinematics_spec("psm")
+    clock = HostClock.anchored_now()
+    writer = SessionWriter.create(tmp_path / "in", SessionMetadata("1", "pegs", 1), clock, {}, [spec])
+    t0 = clock.now_ns()
+    left = [10.0, -20.0, 30.0, 0.0, 0.0, 0.6, 0.8, 0.0, 0.0, 0.0, 5.0]  # quaternion already unit
+    right = [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 5.0]  # |q| = 2: sent normalised
+    rows = [(0, t0, 0.0, *left, *right, 0), (1, t0 + 10_000_000, 0.01, *left, *right[:3], 0.0, 0.0, 0.0, 0.0,
+                                               *right[7:], 0)]
+    writer.append("psm", spec.format_rows(rows))
+    writer.finalize("complete", "test", t0 + 10**9, {})
+    write_mcap(Session.open(writer.folder), tmp_path / "s.mcap")
+    transforms = read_with_foxglove(tmp_path / "s.mcap")["topics"]["/psm/transforms"]
+    assert transforms["schema"] == "foxglove.FrameTransforms" and transforms["count"] == 2
+    first, last = transforms["first"]["transforms"], transforms["last"]["transforms"]
+    assert [(t["parent_frame_id"], t["child_frame_id"]) for t in first] == [("psm", "psm/left"), ("psm", "psm/right")]
+    assert [first[0]["translation"][a] for a in "xyz"] == pytest.approx([0.01, -0.02, 0.03])
+    assert [first[0]["rotation"][a] for a in "xyzw"] == pytest.approx([0.0, 0.0, 0.6, 0.8])
+    assert [first[1]["rotation"][a] for a in "xyzw"] == pytest.approx([0.0, 0.0, 0.0, 1.0])
+    assert [t["child_frame_id"] for t in last] == ["psm/left"]  # the right arm's zero quaternion: left out
+    assert len(side_columns("left")) == len(left)
 
 
 def _session_with_console_video(root: Path, colours: list[tuple[int, int, int]]) -> Path:
