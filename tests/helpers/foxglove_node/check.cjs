@@ -1,7 +1,8 @@
 // Reads an MCAP file the way Foxglove does: @mcap/core's indexed reader with @mcap/support's
 // decompressors and protobuf descriptor loader; decodes every message with its channel's schema and
-// checks it. Prints one JSON object: per topic the schema name and encoding, the message count, and the
-// first and last decoded message (for the Python test to compare with the session).
+// checks it (a Foxglove message also against @foxglove/schemas' definition of its type). Prints one
+// JSON object: per topic the schema name and encoding, the message count, and the first and last
+// decoded message (for the Python test to compare with the session).
 // Usage: node check.cjs FILE.mcap
 "use strict";
 const fs = require("fs");
@@ -35,6 +36,30 @@ function jsonDecoder(schema, topic) {
   };
 }
 
+// A decoded protobuf message against @foxglove/schemas' own definition of its type (not the file's
+// descriptor): the same fields, each of the type Foxglove declares. Protobuf carries a `time` as
+// {seconds, nanos}, 64-bit integers as decimal strings and bytes as base64 strings.
+function conform(value, definition, where) {
+  const isInteger = (v) => Number.isInteger(v) || (typeof v === "string" && /^-?\d+$/.test(v));
+  if (definition.title === "time" || definition.title === "duration") {
+    if (!value || Object.keys(value).sort().join() !== "nanos,seconds" || !isInteger(value.seconds) ||
+        !isInteger(value.nanos)) fail(`${where}: ${JSON.stringify(value)} is not a ${definition.title}`);
+  } else if (definition.oneOf) {
+    if (!definition.oneOf.some((option) => option.const === value)) fail(`${where}: ${value} is not one of ${definition.title}`);
+  } else if (definition.type === "object") {
+    const expected = Object.keys(definition.properties).sort().join();
+    if (Object.keys(value).sort().join() !== expected) fail(`${where}: fields ${Object.keys(value)} are not ${expected}`);
+    for (const [name, property] of Object.entries(definition.properties)) conform(value[name], property, `${where}.${name}`);
+  } else if (definition.type === "array") {
+    if (!Array.isArray(value)) fail(`${where}: not an array`);
+    value.forEach((item, index) => conform(item, definition.items, `${where}[${index}]`));
+  } else {
+    const checks = { integer: isInteger, number: (v) => typeof v === "number", string: (v) => typeof v === "string",
+                     boolean: (v) => typeof v === "boolean" };
+    if (!checks[definition.type] || !checks[definition.type](value)) fail(`${where}: ${JSON.stringify(value)} is not ${definition.type}`);
+  }
+}
+
 function protobufDecoder(schema, topic) {
   const shortName = schema.name.replace(/^foxglove\./, "");
   if (!schema.name.startsWith("foxglove.") || !wellKnown[shortName]) fail(`${topic}: ${schema.name} is not a Foxglove schema`);
@@ -43,7 +68,9 @@ function protobufDecoder(schema, topic) {
     const message = type.decode(data);
     const problem = type.verify(message);
     if (problem) fail(`${topic}: ${problem}`);
-    return type.toObject(message, { longs: String, defaults: true, bytes: String });
+    const decoded = type.toObject(message, { longs: String, defaults: true, bytes: String, arrays: true });
+    conform(decoded, wellKnown[shortName], topic);
+    return decoded;
   };
 }
 
