@@ -98,11 +98,20 @@ def _check_parquet(session_path: Path, out: Path) -> None:
 def _check_xdf(session_path: Path, out: Path) -> None:
     import pyxdf
 
+    from midas_cli.interop.lsl_replay import describe, plan_replay
+
     session = Session.open(session_path)
     path = out / f"{session.manifest['session_id']}.xdf"
+    replayed = {d["name"]: d for d in describe(plan_replay(session_path, delay_s=0.0))}
     for sync in (False, True):
         streams, header = pyxdf.load_xdf(str(path), synchronize_clocks=sync, dejitter_timestamps=False)
         by_name = {s["info"]["name"][0]: s for s in streams}
+        for name, outlet in replayed.items():  # one scheme: what LabRecorder would have recorded from replay
+            info = by_name[name]["info"]
+            assert info["source_id"] == [outlet["source_id"]] == [f"midas:{session_path.name}:{name}"]
+            assert info["type"] == [outlet["type"]] and int(info["channel_count"][0]) == outlet["channels"]
+        if "emht" in replayed:
+            assert by_name["emht"]["info"]["type"] == ["MoCap"]
         for name in session.stream_names:
             frame, spec, stream = session.read_stream(name), session.stream_spec(name), by_name[name]
             channels = stream["info"]["desc"][0]["channels"][0]["channel"]
