@@ -207,3 +207,20 @@ def test_completion_script_is_offered() -> None:
     env = {**os.environ, "_MIDAS_COMPLETE": "source_bash"}
     result = subprocess.run([sys.executable, "-m", "midas_cli"], capture_output=True, text=True, env=env, timeout=120)
     assert result.returncode == 0 and "_MIDAS_COMPLETE=complete_bash" in result.stdout, result.stderr
+
+
+def test_install_completion_wires_bash_to_the_commands(tmp_path: Path) -> None:
+    """`midas --install-completion` (from bash, as a user's terminal runs it) writes a script that
+    ~/.bashrc sources; that script, as bash calls it for `midas exp<TAB>`, completes `export`."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "midas").write_text(f'#!/bin/sh\nexec {shlex.quote(sys.executable)} -m midas_cli "$@"\n')
+    (bin_dir / "midas").chmod(0o755)
+    env = {**os.environ, "HOME": str(tmp_path), "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    installed = subprocess.run(["bash", "-c", "midas --install-completion; true"], capture_output=True, text=True,
+                               env=env, timeout=120)
+    assert "bash completion installed" in installed.stdout, installed.stderr
+    tab = ('source ~/.bashrc; COMP_WORDS=(midas exp); COMP_CWORD=1; _midas_completion midas; '
+           'printf "%s\\n" "${COMPREPLY[@]}"')
+    completed = subprocess.run(["bash", "-c", tab], capture_output=True, text=True, env=env, timeout=120)
+    assert completed.stdout.split() == ["export"], completed.stderr
