@@ -213,6 +213,9 @@ def test_parquet_of_many_sessions_reads_as_one_table_in_duckdb(tmp_path: Path) -
     types = dict(duckdb.sql(f"select column_name, column_type from (describe select * from read_parquet("
                             f"'{out}/*/events.parquet'))").fetchall())
     assert types["text"] == types["source"] == types["subject"] == "VARCHAR" and types["trial"] == "BIGINT"
+    import pyarrow.parquet as pq
+    without_markers = pq.read_schema(out / Session.open(sessions[1]).manifest["session_id"] / "events.parquet")
+    assert [str(without_markers.field(c).type) for c in ("seq", "text", "source")] == ["int64", "string", "string"]
 
 
 def test_mcap_opens_with_foxglove_readers(simulated: tuple[Path, Path]) -> None:
