@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import inspect
 import os
+import re
 import shlex
 import subprocess
 import sys
 import tempfile
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -224,3 +226,13 @@ def test_install_completion_wires_bash_to_the_commands(tmp_path: Path) -> None:
            'printf "%s\\n" "${COMPREPLY[@]}"')
     completed = subprocess.run(["bash", "-c", tab], capture_output=True, text=True, env=env, timeout=120)
     assert completed.stdout.split() == ["export"], completed.stderr
+
+
+def test_torch_is_only_in_the_train_extra_and_make_installs_it() -> None:
+    """`pip install midas-cli` (the console laptop) pulls no torch; `[train]` does, and `make demo`/`make
+    test` install it with the dev tools."""
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    names = [re.split(r"[<>=!~\[ ;]", d, maxsplit=1)[0].lower() for d in project["dependencies"]]
+    assert not any(n.startswith("torch") for n in names), names
+    assert any(d.startswith("torch") for d in project["optional-dependencies"]["train"])
+    assert "-e '.[dev,train]'" in (REPO / "Makefile").read_text()
