@@ -4,6 +4,7 @@ overlaps/gaps/clipping, export round trips, JIGSAWS/COMPASS transcriptions and s
 from __future__ import annotations
 
 import json
+import os
 import statistics
 from pathlib import Path
 
@@ -338,3 +339,16 @@ def test_stats_on_the_real_compass_suturing_transcriptions() -> None:
         assert row["mean_s"] == pytest.approx(statistics.mean(expected), abs=1e-3)
         assert row["std_s"] == pytest.approx(statistics.stdev(expected), abs=1e-3)
     assert data["total_min"] == pytest.approx(sum(map(sum, durations.values())) / 60, abs=1e-2)
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo"])
+def test_a_label_set_file_that_is_no_regular_file_is_named_as_such(tmp_path: Path, kind: str) -> None:
+    """Not 'no label set gestures (label sets: gestures)': the file is there, but nothing to read."""
+    csv = tmp_path / "labels" / "gestures.csv"
+    csv.parent.mkdir()
+    if kind == "folder":
+        csv.mkdir()
+    else:
+        os.mkfifo(csv)  # nobody writes to it: a read would hang
+    with pytest.raises(SessionError, match=f"{csv}: not a regular file"):
+        read_frame_labels(tmp_path)
