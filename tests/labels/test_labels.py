@@ -14,7 +14,7 @@ import pytest
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.labels.sessions import ImportOptions, export_labels, import_transcription, import_via, load_recordings
-from midas_cli.labels.stats import gesture_stats
+from midas_cli.labels.stats import gesture_stats, transition_heatmap
 from midas_cli.labels.taxonomy import load_taxonomy, parse_taxonomy
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
@@ -305,6 +305,9 @@ def test_stats_counts_durations_and_transitions(tmp_path: Path) -> None:
 
     image = cv2.imread(str(plot))
     assert image is not None and image.shape[0] > 100
+    with pytest.raises(ConfigError, match="name it .png"):  # OpenCV has no encoder for .csv: it raised (exit 1)
+        transition_heatmap(without, tmp_path / "transitions.csv")
+    assert not (tmp_path / "transitions.csv").exists()
 
 
 def test_stats_on_a_session_uses_its_taxonomy_and_frame_rate(tmp_path: Path) -> None:
