@@ -172,11 +172,11 @@ class RunDir:
 
     def read_plan(self, missing_ok: bool = False) -> Plan | None:
         """The plan; ConfigError when there is none (not a run folder), SessionError when it is malformed."""
-        data = read_json(self.path / PLAN)
-        if data is None:
-            if missing_ok and not (self.path / PLAN).exists():
+        data: Any = read_json(self.path / PLAN)  # None: missing, unreadable or not JSON
+        if data is None and not (self.path / PLAN).exists():
+            if missing_ok:
                 return None
-            raise ConfigError(f"{self.path} is not a midas run folder (no readable {PLAN})")
+            raise ConfigError(f"{self.path} is not a midas run folder (no {PLAN})")
         problem = _plan_problem(data)
         if problem:
             raise SessionError(f"{self.path / PLAN} is malformed ({problem}); remove the run folder and run again")

@@ -128,7 +128,10 @@ def transition_heatmap(stats: GestureStats, path: Path, cell_px: int = 56,
     image[top:top + bar_h, bar_x:bar_x + bar_w] = ramp.reshape(bar_h, 1, 3)
     cv2.putText(image, str(peak), (bar_x + bar_w + 4, top + 10), font, 0.4, ink_black, 1, cv2.LINE_AA)
     cv2.putText(image, "0", (bar_x + bar_w + 4, top + bar_h), font, 0.4, ink_black, 1, cv2.LINE_AA)
-    ok, encoded = cv2.imencode(Path(path).suffix or ".png", image)
+    try:
+        ok, encoded = cv2.imencode(Path(path).suffix or ".png", image)
+    except cv2.error:  # a suffix OpenCV has no encoder for (.csv) raises rather than returning False
+        ok = False
     if not ok:
         raise ConfigError(f"cannot write the heatmap to {path}: name it .png")
     return write_bytes(out_target(path, "--plot"), encoded.tobytes())

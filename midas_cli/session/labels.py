@@ -67,6 +67,8 @@ def read_frame_labels(session_path: Path | str, name: str = "gestures") -> Frame
     """Label set ``name`` of the session (SessionError when it is missing, misnamed or malformed)."""
     csv_path, meta_path = label_set_files(session_path, name)
     if not csv_path.is_file():
+        if csv_path.exists():  # a folder, FIFO or device: never opened (a read could block for ever)
+            raise SessionError(f"{csv_path}: not a regular file (a label set is a frame,label CSV)")
         have = ", ".join(list_label_sets(session_path)) or "none"
         raise SessionError(f"{session_path} has no label set {name!r} (label sets: {have})")
     frame = _read_label_csv(csv_path)

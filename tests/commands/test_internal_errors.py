@@ -114,10 +114,11 @@ def test_jobs_status_reads_the_undamaged_run_folder(run_folder):
     ("plan.json", {"task": "align", "units": [{"index": 0, "name": "a", "args": {}}]}, "unit 0: no fingerprint"),
     ("plan.json", {"task": "align", "units": [{"index": 3, "name": "a", "args": {}, "fingerprint": "f"}]},
      "unit 0 says index 3"),
+    ("plan.json", b'{"task": "align", "units": [', "plan.json is malformed"),  # cut short: not JSON
 ])
 def test_jobs_status_refuses_a_run_folder_with_wrong_types(run_folder, tmp_path, file, content, needle):
     run = Path(shutil.copytree(run_folder, tmp_path / "run"))
-    (run / file).write_text(json.dumps(content), encoding="utf-8")
+    (run / file).write_bytes(content if isinstance(content, bytes) else json.dumps(content).encode())
     line = one_error_line(midas("jobs", "status", str(run), "--json"), 4)
     assert needle in line and file.split("/")[-1] in line
 

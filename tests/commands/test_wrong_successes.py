@@ -1,6 +1,6 @@
 """Issue 23 item 4: commands that exited 0 on data they should have refused. A broken manifest under
 `calibrate fps-optimize`; a host time far outside the session that `verify` passed and `replay` waited
-on for ever; `eval` / `calibrate fps-optimize` on a derived/aligned table older than its streams."""
+on for ever; `eval` / `train` / `calibrate fps-optimize` on a derived/aligned table older than its streams."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import pytest
 from midas_cli.analysis.align import align_and_write
 from midas_cli.errors import SessionError
 from midas_cli.session.derived import read_aligned
+from midas_cli.session.labels import write_frame_labels
 from midas_cli.session.manifest import write_manifest
 from midas_cli.session.reader import Session
 from midas_cli.session.streamfile import summarize_stream
@@ -68,12 +69,15 @@ def _edit_keeping_size(session: Path, rel: str) -> None:
     _touch_after_table(session, rel)
 
 
-def test_eval_and_fps_optimize_refuse_a_table_older_than_its_streams_until_aligned_again(aligned: Path,
+def test_eval_train_and_fps_optimize_refuse_a_table_older_than_its_streams_until_realigned(aligned: Path,
                                                                                            tmp_path: Path) -> None:
     session = copy_session(aligned, tmp_path)
+    frames = Session.open(session).read_stream("video")["seq"].to_numpy()
+    write_frame_labels(session, frames, ["G1"] * len(frames), {"taxonomy": "test"})  # what train reads first
     _edit_keeping_size(session, "streams/fps.csv")
     for args in (("eval", "pedals", str(session), "--out", str(tmp_path / "eval"), "--no-plots"),
-                 ("calibrate", "fps-optimize", str(session))):
+                 ("calibrate", "fps-optimize", str(session)),
+                 ("train", "gestures", str(session), "--epochs", "1", "--out", str(tmp_path / "train"))):
         assert_one_error(midas(*args), 4, "streams/fps.csv", f"`midas align {session}`")
     assert not (session / "calib" / "fps_optimized.json").exists()
     midas("align", str(session), check=True)

@@ -4,6 +4,7 @@ overlaps/gaps/clipping, export round trips, JIGSAWS/COMPASS transcriptions and s
 from __future__ import annotations
 
 import json
+import os
 import statistics
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import pytest
 from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.labels.sessions import ImportOptions, export_labels, import_transcription, import_via, load_recordings
-from midas_cli.labels.stats import gesture_stats
+from midas_cli.labels.stats import gesture_stats, transition_heatmap
 from midas_cli.labels.taxonomy import load_taxonomy, parse_taxonomy
 from midas_cli.session.labels import read_frame_labels
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
@@ -304,6 +305,9 @@ def test_stats_counts_durations_and_transitions(tmp_path: Path) -> None:
 
     image = cv2.imread(str(plot))
     assert image is not None and image.shape[0] > 100
+    with pytest.raises(ConfigError, match="name it .png"):  # OpenCV has no encoder for .csv: it raised (exit 1)
+        transition_heatmap(without, tmp_path / "transitions.csv")
+    assert not (tmp_path / "transitions.csv").exists()
 
 
 def test_stats_on_a_session_uses_its_taxonomy_and_frame_rate(tmp_path: Path) -> None:
@@ -338,3 +342,16 @@ def test_stats_on_the_real_compass_suturing_transcriptions() -> None:
         assert row["mean_s"] == pytest.approx(statistics.mean(expected), abs=1e-3)
         assert row["std_s"] == pytest.approx(statistics.stdev(expected), abs=1e-3)
     assert data["total_min"] == pytest.approx(sum(map(sum, durations.values())) / 60, abs=1e-2)
+
+
+@pytest.mark.parametrize("kind", ["folder", "fifo"])
+def test_a_label_set_file_that_is_no_regular_file_is_named_as_such(tmp_path: Path, kind: str) -> None:
+    """Not 'no label set gestures (label sets: gestures)': the file is there, but nothing to read."""
+    csv = tmp_path / "labels" / "gestures.csv"
+    csv.parent.mkdir()
+    if kind == "folder":
+        csv.mkdir()
+    else:
+        os.mkfifo(csv)  # nobody writes to it: a read would hang
+    with pytest.raises(SessionError, match=f"{csv}: not a regular file"):
+        read_frame_labels(tmp_path)

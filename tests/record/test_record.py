@@ -362,8 +362,10 @@ def test_a_full_disk_stops_cleanly_and_keeps_whole_lines(tmp_path: Path) -> None
     assert result.returncode == 4, result.stderr
     assert "writing the session failed" in result.stderr.splitlines()[-1]
     path = _only_session(tmp_path)
+    assert result.stdout.splitlines()[-1] == str(path)  # `path=$(midas record ... | tail -n 1)` still works
     session = Session.open(path)
     assert session.status == "interrupted" and "File too large" in session.manifest["stop_reason"]
+    assert sum(entry.get("dropped", 0) for entry in session.manifest["streams"].values()) >= 1  # the row it could not write
     assert midas("session", "verify", str(path)).returncode == 0
     assert len(session.read_stream("emht")) > 240
     assert not list((path / "streams").glob("*.tmp")), "a binary copy that did not fit leaves nothing behind"
