@@ -135,9 +135,11 @@ def prepare(data: Path, name: str, work: Path, jobs: int) -> tuple[Path, dict[st
     return sessions_dir, {"sessions": len(sessions_in(sessions_dir)), **times}
 
 
-def run_dir(work: Path, name: str, model: str, epochs: int | None) -> Path:
-    """Where one (task, model) cross-validation lives; runs at other epochs than the recipe's apart."""
-    return work / "runs" / name / (model if epochs is None else f"{model}-e{epochs}")
+def run_dir(work: Path, name: str, model: str, epochs: int | None, variant: str = "") -> Path:
+    """Where one (task, model) cross-validation lives; runs at other epochs than the recipe's, or of a
+    named variant (other training options), apart."""
+    folder = model if epochs is None else f"{model}-e{epochs}"
+    return work / "runs" / name / (f"{folder}--{variant}" if variant else folder)
 
 
 def finished_folds(root: Path) -> int:
@@ -145,7 +147,8 @@ def finished_folds(root: Path) -> int:
     return sum(1 for f in root.glob("fold-*/metrics.json")) if root.is_dir() else 0
 
 
-def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, baseline: bool) -> dict[str, Any]:
+def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, baseline: bool,
+          extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """One LOUO cross-validation through the CLI, or the timing recorded when it last completed."""
     done = recorded_timing(out)
     if done and (not baseline or (out / "baseline").is_dir()):
@@ -153,6 +156,7 @@ def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, 
     args = [*CLI_TRAIN, str(sessions), OPT_MODEL, model, OPT_OUT, str(out)]
     args += [OPT_EPOCHS, str(epochs)] if epochs is not None else []
     args += [] if baseline and model != "baseline" else [OPT_NO_BASELINE]
+    args += list(extra)
     before, load_before, t0 = finished_folds(out), load_average(), time.monotonic()
     midas(*args, jobs=jobs)
     timing = {"wall_s": round(time.monotonic() - t0, 1), "jobs": jobs, "resumed": before > 0,
@@ -247,12 +251,13 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
     neural = [m for m in NEURAL if m in models]
     rows = []
     for i, model in enumerate(neural or ["baseline"]):
-        out = run_dir(args.work, name, model, args.epochs)
+        out = run_dir(args.work, name, model, args.epochs, args.variant)
         if args.report_only:
             timing = {**unfinished_timing(out), "reused": True}
         else:
             try:
-                timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
+                timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models,
+                               extra=tuple(args.train_args.split()))
             except RuntimeError as exc:  # a failed fold: said, and the other models still run
                 print(f"{name} {model}: FAILED, see {out}/jobs/logs: {exc}", file=sys.stderr, flush=True)
                 continue
@@ -263,6 +268,7 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
                 continue
             shared = "" if row_model == model else f" (trained inside the {model} run)"
             row = {"task": name, "model": row_model, "epochs_option": args.epochs, "run_dir": str(out),
+                   "variant": args.variant if row_model == model else "", "train_args": args.train_args,
                    "timing": timing, "trained_in": model, "prepare": prep, **figures(part),
                    "fold_seconds": fold_seconds(out, row_model)}
             rows.append(row)
@@ -285,7 +291,7 @@ def torch_facts(jobs: int) -> dict[str, Any]:
 
 def merge(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Earlier rows kept unless this run measured the same (task, model, epochs) again."""
-    key = lambda r: (r["task"], r["model"], r["epochs_option"])  # noqa: E731
+    key = lambda r: (r["task"], r["model"], r["epochs_option"], r.get("variant", ""))  # noqa: E731
     fresh = {key(r) for r in new}
     return [r for r in old if key(r) not in fresh] + new
 
@@ -298,12 +304,16 @@ def main() -> None:
     parser.add_argument("--models", default=",".join(MODELS), help=f"comma list of {', '.join(MODELS)}")
     parser.add_argument("--epochs", type=int, default=None, help="override every model's recipe epochs")
     parser.add_argument("--jobs", type=int, default=2, help="folds trained at once (worker processes)")
+    parser.add_argument("--variant", default="", help="name of a variant: rows and run folders of its own")
+    parser.add_argument("--train-args", default="", help="extra options for train gestures (with --variant)")
     parser.add_argument("--note", help="a dated remark on this run for the report (e.g. the machine's load)")
     parser.add_argument("--report-only", action="store_true",
                         help="train nothing: rows from what the run folders hold now (unfinished runs: their folds)")
     args = parser.parse_args()
     tasks, models = args.tasks.split(","), args.models.split(",")
     unknown = sorted(set(tasks) - set(TASKS)) + sorted(set(models) - set(MODELS))
+    if bool(args.variant) != bool(args.train_args):
+        parser.error("--variant and --train-args go together")
     if unknown or args.jobs < 1 or (args.epochs is not None and args.epochs < 1):
         parser.error(f"unknown task/model {', '.join(unknown)}" if unknown else "--jobs and --epochs must be >= 1")
     args.work.mkdir(parents=True, exist_ok=True)
