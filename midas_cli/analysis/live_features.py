@@ -3,7 +3,7 @@ columns its features read, its frame clock, and each frame's model input built b
 
 A frame's input: at frame time t (host ns) every needed stream is associated with the three times
 t - s, t, t + s by ``analysis.sync.associate`` (align's causal method: the latest sample at or before,
-masked when further than 3 nominal periods, 1 s for a stream of unknown rate), the three rows become
+masked when further than 3 nominal periods where the caller gives the rate, else 1 s), the three rows become
 an ``AlignedTable`` and ``models.data.modality_features`` (what training runs on an aligned table)
 computes the features; the middle row is frame t's. So a velocity is the central difference
 training's ``np.gradient`` takes at an interior frame, over s = one frame of the 30 Hz video clock

@@ -161,13 +161,16 @@ def _prediction(seq: int, t_ns: int, logits: np.ndarray, classes: tuple[str, ...
 def load_live_model(run: Path, nominal_rates_hz: Mapping[str, float | None] | None = None) -> LiveFeed:
     """RUN = a training run folder (or its checkpoint.pt); ConfigError (exit 2, one line) when it cannot run
     live. ``nominal_rates_hz`` (stream -> its nominal rate, None = events) sets how old a sample may be
-    and still count, as align's (3 periods; 1 s for a stream not given)."""
+    and still count, as align's (3 periods; 1 s for a stream not given: the latest sample is held through
+    an outage shorter than that)."""
     return LiveFeed(load_run(run), nominal_rates_hz)
 
 
-def offline_predictions(session: Path, run: Path, times_ns: np.ndarray) -> list[Prediction]:
+def offline_predictions(session: Path, run: Path, times_ns: np.ndarray,
+                        nominal_rates_hz: Mapping[str, float | None] | None = None) -> list[Prediction]:
     """The same causal model run offline (the whole sequence, one forward pass) on features built from the
-    session's recorded streams at the frame times ``times_ns`` (ascending host ns), seq = their index."""
+    session's recorded streams at the frame times ``times_ns`` (ascending host ns), seq = their index.
+    ``nominal_rates_hz`` as for ``load_live_model``: give both the same (or neither) for equal frames."""
     recorded = Session.open(session)
     live = load_run(run)
     missing = [s for s in live.streams if s not in recorded.stream_names]
@@ -184,7 +187,7 @@ def offline_predictions(session: Path, run: Path, times_ns: np.ndarray) -> list[
         t = np.asarray(data["t_host_ns"], dtype=np.int64)
         order = np.argsort(t, kind="stable")
         values = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in columns])[order]
-        blocks.append(associated(t[order], values, around, stale_ns(recorded.stream_spec(stream).nominal_rate_hz)))
+        blocks.append(associated(t[order], values, around, stale_ns((nominal_rates_hz or {}).get(stream))))
     rows = np.concatenate(blocks, axis=1).reshape(len(times), 3, -1)  # (3T, C) -> (T, 3, C)
     x = np.stack([inputs(int(t), r) for t, r in zip(times, rows)])  # (T, D) float32, frames in order
     with torch.no_grad():
