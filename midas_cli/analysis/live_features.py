@@ -165,9 +165,9 @@ class FrameClock:
         return int(k * self.period.numerator // self.period.denominator)
 
     def first_at_or_after(self, t_ns: int) -> int:
-        """The index of the first frame at or after ``t_ns``."""
-        k = int(-(-t_ns * self.period.denominator // self.period.numerator))  # ceil
-        return k if self.time(k) >= t_ns else k + 1
+        """The index of the first frame at or after ``t_ns``: ceil(t / period) (then k x period >= t, so its
+        floor, an integer, is too; and (k - 1) x period < t)."""
+        return int(-(-t_ns * self.period.denominator // self.period.numerator))
 
 
 def associated(sample_ns: np.ndarray, values: np.ndarray, times_ns: np.ndarray, stale: int) -> np.ndarray:

@@ -135,3 +135,12 @@ def test_what_cannot_run_live_is_refused_naming_why(sessions, runs, tmp_path):
     with pytest.raises(ConfigError, match="not a usable gesture run"):
         load_live_model(tmp_path / "hostile.pt")
     assert json.loads((runs["mstcn"] / "run.json").read_text())["train_config"]["causal"] is True
+
+
+@pytest.mark.parametrize("rate", [10.0, 30.0, 29.97, 240.0])
+def test_the_frame_clock_finds_the_first_frame_at_or_after_any_host_time(rate):
+    clock = FrameClock(rate)
+    for t in np.random.default_rng(0).integers(1_700_000_000_000_000_000, 1_800_000_000_000_000_000, 2000).tolist():
+        k = clock.first_at_or_after(t)
+        assert clock.time(k) >= t > clock.time(k - 1)
+    assert FrameClock(30.0).time(3) == 100_000_000 and FrameClock(30.0).time(1) == 33_333_333
