@@ -23,6 +23,7 @@ from midas_cli.jobs.rundir import Unit, fingerprint
 from midas_cli.jobs.tasks import task_name
 from midas_cli.models import cv
 from midas_cli.models.data import DatasetConfig, build_dataset
+from midas_cli.models.registry import LEGACY_TRAIN_CONFIG
 from midas_cli.models.splits import GROUP_SPLITS, fold_groups
 from midas_cli.session.outputs import out_folder
 
@@ -63,7 +64,7 @@ def _same_run(run_dir: Path, args: dict[str, Any]) -> bool:
     except (OSError, ValueError):
         return False
     wanted = asdict(TrainConfig(**args["train_config"]).resolved())
-    recorded = {k: v for k, v in record.get("train_config", {}).items() if k != "device"}
+    recorded = {k: v for k, v in {**LEGACY_TRAIN_CONFIG, **record.get("train_config", {})}.items() if k != "device"}
     return ((run_dir / "metrics.json").is_file() and record.get("data_fingerprint") == args["data_fingerprint"]
             and recorded == {k: v for k, v in wanted.items() if k != "device"})
 
