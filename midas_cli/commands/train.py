@@ -55,7 +55,7 @@ FOLD_BATCH_OPT = typer.Option("auto", "--fold-batch", help="--fold all, --execut
                               "in this one process, one stacked model per step (on), each alone (off); auto "
                               "(default): on with --accelerator cuda.")
 MODEL_RATE_OPT = typer.Option(None, "--model-rate", callback=positive, help="Rate (Hz) the models see the aligned "
-                              "table at (default: Raven-II 10, otherwise 30).")
+                              "table at (default: Raven-II 10; robot-arm kinematics alone, mtm/psm, 10; otherwise 30).")
 EXCLUDE_OPT = typer.Option(False, "--exclude-clutch", help="Drop frames with the clutch pressed (train and test).")
 SIDES_OPT = typer.Option("both", "--sides", help="Arms / hands to use: left, right or both (left,right).")
 ROTATION_OPT = typer.Option("matrix", "--rotation", help="Robot orientation as a rotation matrix (9 per arm) or "

@@ -48,6 +48,15 @@ def test_raven_resampled_to_10_hz_and_clutch_windows_dropped(tmp_path):
     assert len(cut.trials[0].frames) < len(full.trials[0].frames)
 
 
+def test_robot_arm_kinematics_alone_default_to_10_hz(sessions):
+    """JIGSAWS-style inputs (mtm/psm only) are resampled to 10 Hz on a da Vinci; with the EmHT beside them
+    the aligned 30 Hz stays (the paper's inputs); --model-rate always wins."""
+    arms = build_dataset(sessions[:1], DatasetConfig(("mtm",), ("pos", "vel", "grasper")))
+    assert arms.trials[0].rate_hz == 10.0 and np.all(np.diff(arms.trials[0].frames) == 3)
+    assert build_dataset(sessions[:1], DatasetConfig(("emht", "mtm"), ("pos",))).trials[0].rate_hz == 30.0
+    assert build_dataset(sessions[:1], DatasetConfig(("mtm",), ("pos",), rate_hz=30.0)).trials[0].rate_hz == 30.0
+
+
 def test_missing_feature_sets_are_reported_not_silent(sessions):
     with pytest.raises(ConfigError, match="modality"):
         DatasetConfig(("emht", "kinect"), ("pos",))
