@@ -59,7 +59,9 @@ def recognition_main(job: RecognitionJob, sender: Connection, feeds: list[Connec
         if job.lsl_out:
             output.outlets = LiveOutlets(job.session, RECOGNITION_KIND, job.anchor_ns,
                                          lambda message: output.event("warning", message))
-        output.event("finished", info=Recognition(job, output).run(feeds))
+        model = load_checked(job.plan)
+        output.event("opened", info={"run_id": model.spec.run_id, "model": model.spec.model})
+        output.event("finished", info=Recognition(job, output).run(model, feeds))
     except StreamWriteFailed as exc:
         output.event("write_failed", str(exc), {"stream": exc.stream, "rows": exc.rows})
     except Exception:  # a bug or a model that fails: the recording goes on without it
@@ -70,6 +72,17 @@ def recognition_main(job: RecognitionJob, sender: Connection, feeds: list[Connec
     link.close()
     if status:
         sys.exit(status)
+
+
+def load_checked(plan: LivePlan) -> Any:
+    """The run's ``LiveFeed`` (its modules are preloaded), refused if its checkpoint changed since the
+    recording was planned (the manifest would name the wrong one)."""
+    from midas_cli.analysis.live_gestures import load_live_model
+
+    model = load_live_model(Path(plan.run))
+    if model.spec.checkpoint_sha256 != plan.checkpoint_sha256:
+        raise RuntimeError(f"{plan.run}: the checkpoint changed since the recording was planned")
+    return model
 
 
 class Recognition:
@@ -83,14 +96,8 @@ class Recognition:
         self._warned_ns = 0
         self._warned_skipped = 0
 
-    def run(self, feeds: list[Connection]) -> dict[str, Any]:
-        """Until every feed has closed; the counts for the manifest."""
-        from midas_cli.analysis.live_gestures import load_live_model
-
-        model = load_live_model(Path(self.job.plan.run))
-        if model.spec.checkpoint_sha256 != self.job.plan.checkpoint_sha256:
-            raise RuntimeError(f"{self.job.plan.run}: the checkpoint changed since the recording was planned")
-        self.output.event("opened", info={"run_id": model.spec.run_id, "model": model.spec.model})
+    def run(self, model: Any, feeds: list[Connection]) -> dict[str, Any]:
+        """Feed ``model`` (a ``LiveFeed``) until every feed has closed; the counts for the manifest."""
         open_feeds = list(feeds)
         while open_feeds and process_alive(self.job.parent_pid):
             for conn in wait(open_feeds, POLL_S):
