@@ -24,6 +24,8 @@ GESTURES_STREAM = "gestures_live"
 RECOGNITION_DEVICE = "recognition"
 RECOGNITION_KIND = "gestures"
 MODEL_MODULE = "midas_cli.analysis.live_gestures"  # preloaded by the workers' fork server (torch: once)
+LATENCY_DEFINITION = ("the frame's time (t_host_ns) -> its prediction handed to the OS: the inputs' arrival, "
+                      "the feed's batching and the model, upper edge of 50 us bins")
 MAX_LAG_S = 1.0  # a frame older than this when it could be predicted is skipped (counted), not predicted
 
 
@@ -75,6 +77,18 @@ def check_rig_streams(plan: LivePlan, specs: Mapping[str, StreamSpec], devices: 
     if missing:
         raise ConfigError(f"--live-model {plan.run} (run {plan.run_id}) needs what this rig does not record: "
                           f"{'; '.join(missing)} (EmHT comes from the rig, MTM/PSM from raven://, any from lsl://)")
+
+
+def live_stream_extra(plan: LivePlan, info: Mapping[str, Any], extra: dict[str, Any]) -> None:
+    """Complete the recorder's facts about ``gestures_live`` (``extra``, changed in place) at the stop:
+    ``live_model`` (the run, its checkpoint, and the recognition's counts from its ``finished`` event,
+    ``info``: frames skipped, input rows it never got), the skipped frames as explained seq gaps, and
+    what its latency measures."""
+    counts = {key: info.get(key) for key in ("frames_skipped", "input_rows_dropped")}
+    extra["live_model"] = {**plan.manifest(), **counts}
+    extra["missing_explained"] = {**extra.get("missing_explained", {}), "skipped": counts["frames_skipped"] or 0}
+    if extra.get("latency_ms"):
+        extra["latency_ms"]["definition"] = LATENCY_DEFINITION
 
 
 def gestures_spec(plan: LivePlan) -> StreamSpec:

@@ -26,7 +26,8 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.foxglove_live import FoxgloveLive
 from midas_cli.record.link import Inbox, StopLine
 from midas_cli.record.live_model import (GESTURES_STREAM, MODEL_MODULE, RECOGNITION_DEVICE, RECOGNITION_KIND,
-                                         GestureTracker, LivePlan, check_rig_streams, gestures_spec)
+                                         GestureTracker, LivePlan, check_rig_streams, gestures_spec,
+                                         live_stream_extra)
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.priority import denied_warning
@@ -377,9 +378,7 @@ class Recorder:
             self.live.close()
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
         if self.plan.live_model is not None:
-            counts = self.devices[RECOGNITION_DEVICE].info
-            extra[GESTURES_STREAM]["live_model"] = {**self.plan.live_model.manifest(),
-                                                    **{k: counts.get(k) for k in ("frames_skipped", "input_rows_dropped")}}
+            live_stream_extra(self.plan.live_model, self.devices[RECOGNITION_DEVICE].info, extra[GESTURES_STREAM])
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
         try:
             manifest = self.writer.finalize(status, reason, stop_ns, extra)
