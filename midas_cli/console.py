@@ -15,6 +15,7 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from midas_cli.record.live_model import RECOGNITION_KIND
 from midas_cli.record.outcome import stream_outcomes
 from midas_cli.record.status import DeviceStatus, GestureStatus, RecorderSnapshot, StreamStatus
 
@@ -123,12 +124,19 @@ def _device_table(snapshot: RecorderSnapshot) -> Table:
     for device in snapshot.devices:
         for stream in device.streams:
             table.add_row(
-                device.name if stream.name == device.name else f"{device.name}/{stream.name}",
+                _row_label(device, stream),
                 Text(device.state, STATE_STYLE.get(device.state, "")), _rate_text(stream), str(stream.samples),
                 _age_text(stream.last_age_s), str(stream.dropped), str(stream.corrupt), str(stream.seq_missing),
                 str(device.reconnects),
             )
     return table
+
+
+def _row_label(device: DeviceStatus, stream: StreamStatus) -> str:
+    """``device/stream``, or the one name where that says it all (the live recognition: its stream)."""
+    if stream.name == device.name or device.kind == RECOGNITION_KIND:
+        return stream.name
+    return f"{device.name}/{stream.name}"
 
 
 def _device_errors(snapshot: RecorderSnapshot) -> Text:

@@ -82,7 +82,8 @@ def record(
     live_model: Optional[Path] = typer.Option(None, "--live-model", metavar="RUN", help="Recognise gestures "
                                               "while recording with this causal model run (`train gestures "
                                               "--causal`): the stream gestures_live, shown live; refused "
-                                              "before recording if the rig lacks a stream it needs."),
+                                              "before recording if the rig lacks a stream it needs "
+                                              "(default: the rig file's [live] model)."),
 ) -> None:
     """Record a session from the rig's devices into a new session folder.
 
@@ -107,10 +108,11 @@ def record(
         priority = default_priority() if priority is None else checked_priority(priority, "--priority")
         rig_config = _choose_rig(simulate, rig, device)
         live_plan = None
+        live_model = live_model if live_model is not None else rig_config.live_model  # the rig's [live] model
         if live_model is not None:
             from midas_cli.record.live_model import plan_live_model
 
-            live_plan = plan_live_model(live_model)  # a run that cannot run live: one line, nothing created
+            live_plan = plan_live_model(Path(live_model))  # a run that cannot run live: one line, nothing created
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
                           rig_config.to_manifest(), lsl_out, foxglove=live_address, extra_streams=(events_spec(),),
