@@ -20,6 +20,7 @@ from rich.console import Console
 
 from midas_cli.clock import HostClock
 from midas_cli.console import dashboard, gesture_line, status_line
+from midas_cli.devices.rigconfig import parse_rig
 from midas_cli.errors import ConfigError
 from midas_cli.record.feed import RowFeed
 from midas_cli.record.live_model import GestureTracker, LivePlan, check_rig_streams, gestures_spec
@@ -216,3 +217,12 @@ def test_the_live_screen_and_status_line_show_the_gesture_on_one_line() -> None:
     assert "gesture: waiting for the first frame" in _screen(waiting)
     assert "gesture" not in _screen(RecorderSnapshot("/s", "s", 5.0, None, 10**9, 0.0, 0, devices[:1]))
     assert "STALE 3.0 s" in gesture_line(GestureStatus("G3", 0.87, 2.4, 12.0, 3.0)).plain
+
+
+def test_the_rig_files_live_model_is_relative_to_the_rig_file_and_checked_strictly() -> None:
+    base = {"rig": {"name": "r", "platform": "davinci-xi"}, "devices": {"fps": {"url": "sim://fps"}}}
+    rig = parse_rig({**base, "live": {"model": "runs/r1"}}, "/etc/midas/rig.toml")
+    assert rig.live_model == "/etc/midas/runs/r1"
+    assert parse_rig(base, "/etc/midas/rig.toml").live_model is None
+    with pytest.raises(ConfigError, match="unknown key live.modle"):
+        parse_rig({**base, "live": {"modle": "runs/r1"}}, "/etc/midas/rig.toml")
