@@ -45,6 +45,9 @@ BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", rich_help_panel=TR
                             "every table.")
 EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=0, help="Training epochs (default: "
                           "the model's recipe, mstcn 100, transformer 50).")
+CAUSAL_OPT = typer.Option(False, "--causal", rich_help_panel=TRAINING_PANEL, help="Causal sequence models (frame t "
+                          "sees frames <= t only: causal convolutions, masked attention), trained as such: the models "
+                          "`record --live-model` can run. Per-frame baselines are causal as they are.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -70,18 +73,20 @@ class Training:
     baseline: bool
     epochs: Optional[int]
     seed: int
+    causal: bool
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
         from midas_cli.models.train import TrainConfig
 
-        return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed, **fields)
+        return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
+                           causal=self.causal, **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
 training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
-    ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int)))
+    ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool)))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:
@@ -192,6 +197,9 @@ def gestures(
     from midas_cli.models.train import evaluate_checkpoint, train_run
 
     model_rate = take_renamed(model_rate, rate, "--rate", "--model-rate", error_line)
+    if training.causal and normalise == "trial":
+        raise ConfigError("--causal cannot use --normalise trial (it scales each trial by its whole recording, "
+                          "the future included): use --normalise train or none")
     fold_index = _parse_fold(fold)
     if fold_batch not in FOLD_BATCH_MODES:
         raise ConfigError(f"--fold-batch must be one of {', '.join(FOLD_BATCH_MODES)}, got {fold_batch!r}")

@@ -24,7 +24,7 @@ from midas_cli.jobs.tasks import task_name
 from midas_cli.models.ablation import GridRow, run_cell
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.registry import MODELS
-from midas_cli.models.train import TrainConfig
+from midas_cli.models.train import LEGACY_TRAIN_CONFIG, TrainConfig
 
 TASK = task_name(__name__)  # registered in jobs/tasks.py
 log = logging.getLogger(__name__)
@@ -65,7 +65,8 @@ def _trained_otherwise(run_dir: Path, config: TrainConfig, cv: bool, sessions: S
         return False
     ignore = ("device", "fold")
     wanted = {k: v for k, v in asdict(config.resolved()).items() if k not in ignore}
-    if any({k: v for k, v in r.get("train_config", {}).items() if k not in ignore} != wanted for r in recorded):
+    if any({k: v for k, v in {**LEGACY_TRAIN_CONFIG, **r.get("train_config", {})}.items() if k not in ignore} != wanted
+           for r in recorded):
         return True
     try:
         data = build_dataset(sessions, DatasetConfig(row.modalities, row.features, exclude_clutch=row.exclude_clutch))

@@ -56,14 +56,14 @@ def plan_units(sessions: Sequence[Path], data_config: DatasetConfig, config: Any
 
 def _same_run(run_dir: Path, args: dict[str, Any]) -> bool:
     """``run_dir`` holds a finished run of this data and training configuration."""
-    from midas_cli.models.train import TrainConfig
+    from midas_cli.models.train import LEGACY_TRAIN_CONFIG, TrainConfig
 
     try:
         record = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return False
     wanted = asdict(TrainConfig(**args["train_config"]).resolved())
-    recorded = {k: v for k, v in record.get("train_config", {}).items() if k != "device"}
+    recorded = {k: v for k, v in {**LEGACY_TRAIN_CONFIG, **record.get("train_config", {})}.items() if k != "device"}
     return ((run_dir / "metrics.json").is_file() and record.get("data_fingerprint") == args["data_fingerprint"]
             and recorded == {k: v for k, v in wanted.items() if k != "device"})
 

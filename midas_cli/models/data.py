@@ -265,7 +265,7 @@ def _read_session(path: Path, config: DatasetConfig) -> _RawTrial:
     times_s = table.times_s()
     inputs, names, filled, skipped = {}, {}, {}, []
     for modality in config.modalities:
-        values, cols = _modality_features(path, table, times_s, modality, config, skipped)
+        values, cols = modality_features(path, table, times_s, modality, config, skipped)
         if not cols:
             raise ConfigError(f"{path}: modality {modality!r} has none of the feature sets {','.join(config.features)}")
         filled[modality] = float(np.isnan(values[rows]).mean())
@@ -306,8 +306,8 @@ def _frame_labels(path: Path, frames: np.ndarray, label_set: str) -> np.ndarray:
     return np.array([lookup.get(f, "") for f in frames.tolist()], dtype=object)
 
 
-def _modality_features(path: Path, table: AlignedTable, times_s: np.ndarray, modality: str,
-                       config: DatasetConfig, skipped: list[str]) -> tuple[np.ndarray, list[str]]:
+def modality_features(path: Path, table: AlignedTable, times_s: np.ndarray, modality: str,
+                      config: DatasetConfig, skipped: list[str]) -> tuple[np.ndarray, list[str]]:
     """(N, D) float64 with NaN = missing, and the D names, for one modality at the full frame rate."""
     if modality == "image":
         return _image_features(path, table.frame, config.image_features)

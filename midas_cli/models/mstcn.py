@@ -16,6 +16,12 @@ batch size 1, 100 epochs, the last epoch's weights. Two deliberate differences, 
 size 1: the official model masks nothing (its batches of one have no padding) and its smoothing term
 is a mean over every position of the padded batch, padding included; here padding is masked and the
 mean is over the real frame pairs, so a batch of several sequences trains like the same sequences alone.
+
+Causal variant (``causal=True``, ``midas train gestures --causal``): every dilated convolution looks only
+back, its taps at t - 2d, t - d and t (zero padding on the left only), so the output at frame t depends on
+frames <= t alone and the model can run live, one frame at a time (``models/streaming.py``). The 1x1
+convolutions, the softmax between stages and the mask are per frame already; padding frames sit at the
+end of a sequence, after every real frame, so they never reach a real frame's output.
 """
 
 from __future__ import annotations
@@ -38,29 +44,37 @@ class MSTCNConfig:
     dropout: float = 0.5
     smoothing_weight: float = 0.15
     tau: float = 4.0
+    causal: bool = False  # taps at t - 2d, t - d, t instead of t - d, t, t + d
 
 
 class DilatedConv(nn.Conv1d):
-    """3-tap dilated convolution with zero "same" padding. When the dilation reaches the sequence
-    length, both outer taps only ever see padding, so the result equals the centre tap alone: computing
-    it that way gives identical outputs without convolving over 2 x dilation padding frames."""
+    """3-tap dilated convolution with zero "same" padding (taps t - d, t, t + d), or with ``causal`` zero
+    padding on the left only (taps t - 2d, t - d, t). When the dilation reaches the sequence length, every
+    tap but the one at t only ever sees padding, so the result equals that tap alone (the centre tap, or
+    the last one when causal): computing it that way gives identical outputs without convolving over
+    2 x dilation padding frames."""
 
-    def __init__(self, maps: int, dilation: int) -> None:
-        super().__init__(maps, maps, 3, padding=dilation, dilation=dilation)
+    def __init__(self, maps: int, dilation: int, causal: bool = False) -> None:
+        super().__init__(maps, maps, 3, padding=0 if causal else dilation, dilation=dilation)
+        self.causal = causal
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        current = 2 if self.causal else 1  # the tap at frame t
         if self.dilation[0] >= x.shape[-1]:
-            return F.conv1d(x, self.weight[:, :, 1:2], self.bias)
+            return F.conv1d(x, self.weight[:, :, current:current + 1], self.bias)
+        if self.causal:
+            x = F.pad(x, (2 * self.dilation[0], 0))  # (B, M, T) -> (B, M, 2d + T): the past only
         return super().forward(x)
 
 
 class DualDilatedLayer(nn.Module):
     """Prediction-generation layer: two dilations (one shrinking, one growing with depth) fused by 1x1."""
 
-    def __init__(self, maps: int, dilation_small: int, dilation_large: int, dropout: float) -> None:
+    def __init__(self, maps: int, dilation_small: int, dilation_large: int, dropout: float,
+                 causal: bool = False) -> None:
         super().__init__()
-        self.conv_large = DilatedConv(maps, dilation_large)
-        self.conv_small = DilatedConv(maps, dilation_small)
+        self.conv_large = DilatedConv(maps, dilation_large, causal)
+        self.conv_small = DilatedConv(maps, dilation_small, causal)
         self.fusion = nn.Conv1d(2 * maps, maps, 1)
         self.dropout = nn.Dropout(dropout)
 
@@ -72,9 +86,9 @@ class DualDilatedLayer(nn.Module):
 class DilatedResidualLayer(nn.Module):
     """Refinement layer: dilated 3-tap convolution, ReLU, 1x1, dropout, residual."""
 
-    def __init__(self, maps: int, dilation: int, dropout: float) -> None:
+    def __init__(self, maps: int, dilation: int, dropout: float, causal: bool = False) -> None:
         super().__init__()
-        self.conv_dilated = DilatedConv(maps, dilation)
+        self.conv_dilated = DilatedConv(maps, dilation, causal)
         self.conv_1x1 = nn.Conv1d(maps, maps, 1)
         self.dropout = nn.Dropout(dropout)
 
@@ -88,7 +102,7 @@ class PredictionGeneration(nn.Module):
         n = cfg.pg_layers
         self.conv_in = nn.Conv1d(cfg.in_features, cfg.feature_maps, 1)
         self.layers = nn.ModuleList(
-            DualDilatedLayer(cfg.feature_maps, 2 ** i, 2 ** (n - 1 - i), cfg.dropout) for i in range(n))
+            DualDilatedLayer(cfg.feature_maps, 2 ** i, 2 ** (n - 1 - i), cfg.dropout, cfg.causal) for i in range(n))
         self.conv_out = nn.Conv1d(cfg.feature_maps, cfg.n_classes, 1)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -103,7 +117,8 @@ class Refinement(nn.Module):
         super().__init__()
         self.conv_in = nn.Conv1d(cfg.n_classes, cfg.feature_maps, 1)
         self.layers = nn.ModuleList(
-            DilatedResidualLayer(cfg.feature_maps, 2 ** i, cfg.dropout) for i in range(cfg.refinement_layers))
+            DilatedResidualLayer(cfg.feature_maps, 2 ** i, cfg.dropout, cfg.causal)
+            for i in range(cfg.refinement_layers))
         self.conv_out = nn.Conv1d(cfg.feature_maps, cfg.n_classes, 1)
 
     def forward(self, probs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "midas-gesture-run/1"
 SELECTIONS = ("last", "best-val")
+LEGACY_TRAIN_CONFIG = {"causal": False}  # what a run.json written before these TrainConfig fields meant
 RECIPES = {name: asdict(entry.recipe) for name, entry in MODELS.items()}  # each model's recipe, as run.json has it
 
 
@@ -63,6 +64,7 @@ class TrainConfig:
     device: str = "cpu"
     shuffle_labels: bool = False  # control: permute the classes of the training gesture instances
     model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
+    causal: bool = False  # sequence models see frames <= t only (per-frame baselines always do)
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
@@ -138,7 +140,7 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
 def seeded_model(dataset: GestureDataset, config: TrainConfig) -> tuple[torch.nn.Module, dict]:
     """The untrained network of ``config`` (on the CPU), its weights drawn after ``torch.manual_seed(seed)``."""
     torch.manual_seed(config.seed)
-    return build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options)
+    return build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options, config.causal)
 
 
 def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, config: TrainConfig,
@@ -168,7 +170,8 @@ def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pat
     name = saved["model"]
     if name == "transformer" and "refinement_stages" not in saved.get("model_config", {}):
         name = "transformer-plain"  # a checkpoint from before the refinement stages existed
-    model, _ = build_model(name, dataset.modality_dims, len(dataset.classes), saved["model_options"])
+    model, _ = build_model(name, dataset.modality_dims, len(dataset.classes), saved["model_options"],
+                           bool(saved.get("model_config", {}).get("causal", False)))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
     result = {"test": _evaluate(model, test, dataset.classes, device)}
@@ -178,9 +181,13 @@ def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pat
     return RunResult(out_dir, result, saved.get("history", []))
 
 
-def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict) -> tuple[torch.nn.Module, dict]:
-    """The network and its config as a plain dict; ``options`` override config fields."""
+def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict,
+                causal: bool = False) -> tuple[torch.nn.Module, dict]:
+    """The network and its config as a plain dict; ``options`` override config fields; ``causal`` sets the
+    config's ``causal`` where the model has one (a per-frame model has none: it is causal as it is)."""
     model_cls, cfg = model_entry(name).build(modality_dims, n_classes)
+    if causal and "causal" in asdict(cfg):
+        options = {**options, "causal": True}
     unknown = set(options) - set(asdict(cfg))
     if unknown:
         raise ConfigError(f"model options {', '.join(sorted(unknown))} do not exist for {name} "

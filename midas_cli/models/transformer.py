@@ -31,6 +31,13 @@ with two and 0.78 with three (three stages still at 0.78 after 16 epochs); one s
 much of the flicker on a noisy toy task (tests/models/test_models_recipe.py).
 The plain variant (``refinement_stages=0, smoothing_weight=0``) is the model above alone, trained with
 cross-entropy only, kept for the ablation.
+
+Causal variant (``causal=True``, ``midas train gestures --causal``): the CNN encoders pad on the left only
+(a frame's embedding sees the ``kernel_size`` - 1 frames before it), attention is masked to the frames of
+the window at or before the query (window position p attends to positions 0..p of its own window, so a
+frame costs at most ``window`` attention terms, live as offline) and the refinement stages are MS-TCN++'s
+causal ones: the output at frame t depends on frames <= t alone (``models/streaming.py`` runs it frame by
+frame).
 """
 
 from __future__ import annotations
@@ -64,6 +71,7 @@ class TransformerConfig:
     refinement_dropout: float = 0.5
     smoothing_weight: float = 0.15  # MS-TCN++ smoothing loss weight (lambda); 0 = cross-entropy only
     tau: float = 4.0
+    causal: bool = False  # frame t sees frames <= t only (left-padded convolutions, masked attention)
 
     def __post_init__(self) -> None:
         if not self.modality_order:
@@ -71,18 +79,21 @@ class TransformerConfig:
 
 
 class ModalityEncoder(nn.Module):
-    """1-D CNN over time for one modality: (B, D_m, T) -> (B, cnn_channels, T); padding stays zero."""
+    """1-D CNN over time for one modality: (B, D_m, T) -> (B, cnn_channels, T); padding stays zero.
+    Same padding, or with ``causal`` kernel - 1 zeros on the left only (frame t sees t - kernel + 1 .. t)."""
 
-    def __init__(self, in_features: int, channels: int, kernel: int, dropout: float, depth: int = 3) -> None:
+    def __init__(self, in_features: int, channels: int, kernel: int, dropout: float, depth: int = 3,
+                 causal: bool = False) -> None:
         super().__init__()
         self.convs = nn.ModuleList(nn.Conv1d(in_features if i == 0 else channels, channels, kernel,
-                                             padding=kernel // 2) for i in range(depth))
+                                             padding=0 if causal else kernel // 2) for i in range(depth))
         self.dropout = nn.Dropout(dropout)
+        self.left_pad = kernel - 1 if causal else 0
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         h = x * mask  # mask (B, 1, T)
         for conv in self.convs:
-            h = self.dropout(F.relu(conv(h))) * mask
+            h = self.dropout(F.relu(conv(F.pad(h, (self.left_pad, 0))))) * mask  # (B, K, pad + T) -> (B, K, T)
         return h
 
 
@@ -105,14 +116,14 @@ class GestureTransformer(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoders = nn.ModuleDict({name: ModalityEncoder(cfg.modality_dims[name], cfg.cnn_channels,
-                                                             cfg.kernel_size, cfg.dropout)
+                                                             cfg.kernel_size, cfg.dropout, causal=cfg.causal)
                                        for name in cfg.modality_order})
         self.fusion = nn.Linear(cfg.cnn_channels * len(cfg.modality_order), cfg.d_model)
         layer = nn.TransformerEncoderLayer(cfg.d_model, cfg.n_heads, cfg.ff_dim, cfg.dropout, batch_first=True)
         self.encoder = nn.TransformerEncoder(layer, cfg.n_layers, enable_nested_tensor=False)
         self.head = nn.Linear(cfg.d_model, cfg.n_classes)
         refine = MSTCNConfig(0, cfg.n_classes, refinement_layers=cfg.refinement_layers,
-                             feature_maps=cfg.refinement_maps, dropout=cfg.refinement_dropout)
+                             feature_maps=cfg.refinement_maps, dropout=cfg.refinement_dropout, causal=cfg.causal)
         self.refinements = nn.ModuleList(Refinement(refine) for _ in range(cfg.refinement_stages))
         self.register_buffer("positions", sinusoidal_positions(cfg.window, cfg.d_model), persistent=False)
 
@@ -130,7 +141,10 @@ class GestureTransformer(nn.Module):
         h = h.reshape(b * n_windows, w, -1) + self.positions  # (B, T', d) -> (B * nW, W, d)
         valid = valid.reshape(b * n_windows, w)  # (B * nW, W)
         empty = ~valid.any(dim=1)  # windows of pure padding would give NaN attention: unmask them
-        h = self.encoder(h, src_key_padding_mask=~(valid | empty.unsqueeze(1)))  # attends over W frames
+        # (W, W), True = a key after its query; made here, not a buffer: vmap (fold batching) stacks buffers
+        future = torch.ones(w, w, dtype=torch.bool, device=x.device).triu(1) if self.cfg.causal else None
+        h = self.encoder(h, mask=future,  # attends over W frames (causal: those at or before the query)
+                         src_key_padding_mask=~(valid | empty.unsqueeze(1)))
         h = h.reshape(b, n_windows * w, -1)[:, :t]  # (B * nW, W, d) -> (B, T', d) -> (B, T, d)
         logits = self.head(h).transpose(1, 2) * m  # (B, T, C) -> (B, C, T)
         stages = [logits]

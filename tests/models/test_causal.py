@@ -1,0 +1,94 @@
+"""Causal sequence models (issue 28 item 4): with ``causal`` the output at frame t of MS-TCN++ and of the
+transformer does not depend on later frames (the dilation shortcut included), and ``train gestures
+--causal`` trains, records and re-evaluates such a model through the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from helpers.cli import midas
+from helpers.gesture_sessions import write_gesture_session
+from midas_cli.models.train import build_model
+
+DIMS, CLASSES = {"emht": 4, "mtm": 3}, 3
+SMALL = {"mstcn": {"pg_layers": 6, "refinement_stages": 2, "refinement_layers": 5, "feature_maps": 8},
+         "transformer": {"cnn_channels": 8, "d_model": 16, "n_heads": 2, "ff_dim": 16, "window": 8,
+                         "refinement_layers": 5, "refinement_maps": 8}}
+
+
+def _model(name: str, causal: bool) -> torch.nn.Module:
+    torch.manual_seed(0)
+    model = build_model(name, DIMS, CLASSES, SMALL[name], causal=causal)[0]
+    return model.eval()
+
+
+def _logits(model: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    with torch.no_grad():
+        return model(x, torch.ones(x.shape[0], x.shape[2], dtype=torch.bool))  # (S, B, C, T)
+
+
+@pytest.mark.parametrize("name", ["mstcn", "transformer"])
+def test_a_causal_model_at_frame_t_ignores_later_frames(name):
+    x = torch.randn(1, 7, 60, generator=torch.Generator().manual_seed(1))
+    later = x.clone()
+    later[:, :, 37:] = torch.randn(1, 7, 23, generator=torch.Generator().manual_seed(2))
+    causal = _model(name, causal=True)
+    assert causal.cfg.causal
+    before, after = _logits(causal, x), _logits(causal, later)
+    assert torch.allclose(before[..., :37], after[..., :37], atol=1e-6)
+    assert not torch.allclose(before[..., 37:], after[..., 37:], atol=1e-3)
+    # a prefix alone gives the same outputs: the convolutions whose dilation (up to 32) reaches its length
+    # take the shortcut (the tap at t alone), which must equal the padded convolution
+    for length in (3, 20, 45):
+        assert torch.allclose(_logits(causal, x[..., :length]), before[..., :length], atol=1e-5)
+    plain = _model(name, causal=False)  # the check can fail: the offline model sees the future
+    assert not torch.allclose(_logits(plain, x)[..., :37], _logits(plain, later)[..., :37], atol=1e-3)
+
+
+def test_a_per_frame_baseline_has_no_causal_option_and_stays_as_it_is():
+    model, config = build_model("baseline", DIMS, CLASSES, {}, causal=True)
+    assert "causal" not in config and type(model).__name__ == "FrameBaseline"
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("causal") / "data"
+    for i, (user, trial) in enumerate((u, t) for u in "BC" for t in (1, 2)):
+        write_gesture_session(root, user, trial, n_frames=120, seed=i)
+    return root
+
+
+def test_train_gestures_causal_records_it_and_re_evaluates_the_same(data, tmp_path):
+    run = midas("train", "gestures", str(data), "--causal", "--modalities", "emht", "--features", "pos,vel",
+                "--epochs", "1", "--out", str(tmp_path / "run"), "--json", check=True)
+    record = json.loads((tmp_path / "run" / "run.json").read_text(encoding="utf-8"))
+    assert record["train_config"]["causal"] is True and record["model_config"]["causal"] is True
+    saved = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+    assert saved["model_config"]["causal"] is True and saved["train_config"]["causal"] is True
+    again = midas("train", "gestures", str(data), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
+                  "--out", str(tmp_path / "eval"), "--json", check=True)
+    assert json.loads(again.stdout)["test"] == json.loads(run.stdout)["test"]  # rebuilt causal, as trained
+
+
+def test_causal_cross_validation_batched_trains_causal_folds_and_per_frame_baselines(data, tmp_path):
+    out = tmp_path / "cv"
+    result = midas("train", "gestures", str(data), "--causal", "--model", "transformer", "--modalities", "emht",
+                   "--features", "pos", "--split", "louo", "--fold", "all", "--epochs", "1", "--fold-batch", "on",
+                   "--out", str(out), "--json")
+    assert result.returncode == 0, result.stderr
+    for k in (0, 1):
+        fold = json.loads((out / f"fold-{k}" / "run.json").read_text(encoding="utf-8"))
+        assert fold["model_config"]["causal"] is True and fold["train_config"]["causal"] is True
+        baseline = json.loads((out / "baseline" / f"fold-{k}" / "run.json").read_text(encoding="utf-8"))
+        assert baseline["train_config"]["causal"] is True and "causal" not in baseline["model_config"]
+
+
+def test_causal_with_per_trial_normalisation_is_refused_in_one_line(data, tmp_path):
+    result = midas("train", "gestures", str(data), "--causal", "--normalise", "trial", "--out", str(tmp_path / "x"))
+    assert result.returncode == 2 and result.stderr.strip().count("\n") == 0
+    assert "--causal" in result.stderr and "--normalise trial" in result.stderr
+    assert not (tmp_path / "x").exists()
