@@ -8,9 +8,10 @@ as every stream: whole lines, fsynced by the recorder about once a second; publi
 
 Input: the device workers' ``RowFeed`` pipes (record/feed.py). It ends when every one of them has
 closed (their workers finished, so every row recorded that reached it has been seen), or when the
-recorder is gone. A frame that could only be predicted more than ``LivePlan.max_lag_s`` after its time
-is skipped (``LiveFeed.drop_until``, counted): a slow model falls behind by at most that much, and the
-recording never waits for it.
+recorder is gone. Once it has predicted its first frame (what came while the model loaded is caught up
+on), a frame that could only be predicted more than ``LivePlan.max_lag_s`` after its time is skipped
+(``LiveFeed.drop_until``, counted): a slow model falls behind by at most that much, and the recording
+never waits for it.
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ class Recognition:
         self.job, self.output = job, output
         self.spec = gestures_spec(job.plan)
         self.skipped = 0
+        self.predicted = False  # until the first prediction nothing is skipped: what came while loading is not late
         self.rows_dropped: dict[int, int] = {}  # per feed: its running total
         self._warned_ns = 0
         self._warned_skipped = 0
@@ -119,9 +121,11 @@ class Recognition:
     def _predict(self, model: Any) -> None:
         """Skip frames too old to be worth predicting, predict the rest, write them."""
         clock = self.output.clock
-        self.skipped += model.drop_until(clock.now_ns() - int(self.job.plan.max_lag_s * 1e9))
+        if self.predicted:
+            self.skipped += model.drop_until(clock.now_ns() - int(self.job.plan.max_lag_s * 1e9))
         predictions = model.ready()
         if predictions:
+            self.predicted = True
             t_pred = clock.now_ns()
             rows = [(p.seq, p.t_host_ns, t_pred, p.label, round(float(p.probability), 4)) for p in predictions]
             self.output.write(self.spec, rows, 0)

@@ -160,24 +160,25 @@ def test_the_recognition_writes_a_row_per_frame_and_counts_what_it_skipped(tmp_p
     out: queue.Queue = queue.Queue()
     output = WorkerOutput("recognition", out, HostClock.anchored_now(), every_s=0.0)
     output.open({spec.name: str(path)})
-    feeds = []
-    for dropped, rows in ((3, _rows(0, 120)), (0, _rows(120, 130))):  # two device workers' feeds
-        receiver, sender = mp.Pipe(duplex=False)
+    feed, sender = mp.Pipe(duplex=False)  # one worker's feed: two messages, read one per pass of the loop
+    for dropped, rows in ((3, _rows(0, 250)), (5, _rows(250, 400))):
         sender.send(([("emht", np.array([r[1] for r in rows]), np.array([[r[4], r[2]] for r in rows]))], dropped))
-        sender.close()
-        feeds.append(receiver)
+    sender.close()
+    idle, sender = mp.Pipe(duplex=False)  # another worker's, closed without a row
+    sender.close()
     job = RecognitionJob(PLAN, output.clock.anchor_ns, os.getpid(), str(path), "session")
-    model = _Model(skip_before_ns=50_000_000)  # frame 0 is skipped
-    counts = Recognition(job, output).run(model, feeds)
+    model = _Model(skip_before_ns=450_000_000)  # frames 3 and 4 are skipped once it has predicted
+    counts = Recognition(job, output).run(model, [feed, idle])
     output.close()
-    assert counts == {"frames_skipped": 1, "input_rows_dropped": 3}
+    assert counts == {"frames_skipped": 2, "input_rows_dropped": 5}
     lines = path.read_text().splitlines()
     assert lines[0] == "seq,t_host_ns,t_pred_ns,class,probability"
     rows = [line.split(",") for line in lines[1:]]
-    assert [int(r[0]) for r in rows] == list(range(1, 3))  # frames 1 and 2 (< 249 ms of emht); 0 skipped
-    assert all(int(r[2]) >= output.clock.anchor_ns for r in rows) and rows[0][3] == '"G2"'
+    # what came before the first prediction is predicted (frames 0-2 of 249 ms of rows), never skipped
+    assert [int(r[0]) for r in rows] == [0, 1, 2, 5, 6] and [int(r[1]) for r in rows][-1] == 600_000_000
+    assert all(int(r[2]) >= output.clock.anchor_ns for r in rows) and rows[1][3] == '"G2"'
     batches = [m for m in _all(out) if isinstance(m, DataBatch)]
-    assert batches and batches[-1].last_row[3] == "G1" and batches[-1].stream == "gestures_live"
+    assert batches and batches[-1].last_row[:4:3] == (6, "G1") and batches[-1].stream == "gestures_live"
 
 
 def _all(out: queue.Queue) -> list:
