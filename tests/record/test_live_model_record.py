@@ -124,7 +124,9 @@ def test_the_live_screen_shows_the_current_gesture(trained, tmp_path: Path) -> N
         from midas_cli.analysis.live_gestures import load_live_model
 
         assert line.split()[1] in load_live_model(run).spec.classes and (" p 0." in line or " p 1.00" in line)
-        assert "latency" in line and max(len(text) for text in screen.splitlines()) <= 80
+        lines = screen.splitlines()
+        top = next(i for i, text in enumerate(lines) if text.startswith("● REC elapsed"))  # under the socket's line
+        assert "latency" in line and max(len(text) for text in lines[top:]) <= 80, screen
         subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
         _wait_for_screen(name, lambda _: _status(tmp_path) == "complete")
         rows = Session.open(next(p for p in tmp_path.iterdir() if p.is_dir())).read_stream("gestures_live")
