@@ -6,6 +6,7 @@ the current gesture."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -90,6 +91,14 @@ def test_live_gestures_from_a_replay_equal_the_offline_causal_models(trained, tm
     agree = slice(None) if live["frames_skipped"] == 0 else slice(0, int(np.argmax(steps > 1)) + 1)
     assert [p.label for p in offline][agree] == rows["class"].tolist()[agree]
     assert [p.seq for p in offline][agree] == seq.tolist()[agree]
+
+    evaluated = json.loads(midas("eval", "live", str(session.path), "--run", str(run), "--json", check=True,
+                                 timeout=300).stdout)[0]
+    offline_agreement = next(a for a in evaluated["agreements"] if a["reference"] == "offline")
+    assert evaluated["frames"] == len(rows) and offline_agreement["frames"] == len(rows)
+    if live["frames_skipped"] == 0:
+        assert offline_agreement["accuracy"] == 1.0 and offline_agreement["edit"] == 100.0
+        assert offline_agreement["detected"] == offline_agreement["segments"] and offline_agreement["delay_ms"]["max"] == 0
 
     gesture = status[0]["gesture"]
     assert status[0]["ok"] and gesture["label"] in spec.classes and 0 <= gesture["probability"] <= 1
