@@ -40,7 +40,7 @@ class RowFeed:
         self.columns = columns
         self.every_s = every_s
         self.dropped = 0
-        self._index: dict[str, list[int]] = {}
+        self._index: dict[str, tuple[StreamSpec, list[int]]] = {}
         self._gone = False
         self._queue: queue.Queue = queue.Queue(maxsize)
         self._thread = threading.Thread(target=self._feed, name="midas-feed", daemon=True)
@@ -48,22 +48,27 @@ class RowFeed:
 
     def offer(self, spec: StreamSpec, rows: list[tuple]) -> None:
         """Queue the needed columns of ``rows`` (seq, t_host_ns, ...); count them as dropped if there is
-        no room. Never waits, never raises for a full queue."""
+        no room, or if they cannot be taken (a reopened device whose columns changed). Never waits,
+        never raises: the worker's own recording goes on whatever happens here."""
         columns = self.columns.get(spec.name)
         if columns is None or not rows:
             return
-        if self._gone:
-            self.dropped += len(rows)
-            return
-        index = self._index.get(spec.name)
-        if index is None:
-            index = self._index[spec.name] = [spec.column_names.index(c) for c in columns]
-        times = np.fromiter((row[1] for row in rows), dtype=np.int64, count=len(rows))
-        values = np.array([[row[i] for i in index] for row in rows], dtype=np.float64).reshape(len(rows), len(index))
         try:
+            if self._gone:
+                raise BrokenPipeError("the recognition is gone")
+            index = self._columns_of(spec, columns)
+            times = np.fromiter((row[1] for row in rows), dtype=np.int64, count=len(rows))
+            values = np.array([[row[i] for i in index] for row in rows], dtype=np.float64).reshape(len(rows), len(index))
             self._queue.put_nowait((spec.name, times, values))
-        except queue.Full:
+        except Exception:  # noqa: BLE001 - queue.Full, a missing column, a value that is no number: counted
             self.dropped += len(rows)
+
+    def _columns_of(self, spec: StreamSpec, columns: tuple[str, ...]) -> list[int]:
+        """Where ``columns`` are in ``spec``'s rows (kept per stream while the device's spec is the same)."""
+        cached = self._index.get(spec.name)
+        if cached is None or cached[0] is not spec:
+            cached = self._index[spec.name] = (spec, [spec.column_names.index(c) for c in columns])
+        return cached[1]
 
     def _feed(self) -> None:
         """Send what gathered, then wait FEED_EVERY_S; end at close or when the recognition is gone."""

@@ -227,3 +227,13 @@ def test_the_rig_files_live_model_is_relative_to_the_rig_file_and_checked_strict
     assert parse_rig(base, "/etc/midas/rig.toml").live_model is None
     with pytest.raises(ConfigError, match="unknown key live.modle"):
         parse_rig({**base, "live": {"modle": "runs/r1"}}, "/etc/midas/rig.toml")
+
+
+def test_rows_the_feed_cannot_take_are_counted_and_never_raise_into_the_worker() -> None:
+    receiver, sender = mp.Pipe(duplex=False)
+    feed = RowFeed(sender, {"emht": ("s1_x_mm", "s9_x_mm")}, every_s=0.0)  # a column a reopened device lacks
+    feed.offer(EMHT, _rows(0, 4))
+    feed.offer(EMHT, [(4, 4_000_000, "not a number", 1.0, 2.0)])
+    assert feed.dropped == 5
+    feed.close()
+    assert _drain(receiver) == ([], 5)
