@@ -12,7 +12,7 @@ the streams it needs by the device workers (record/feed.py) without ever making 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -42,6 +42,7 @@ class LivePlan:
     streams: dict[str, tuple[str, ...]]
     classes: tuple[str, ...]
     max_lag_s: float = MAX_LAG_S
+    nominal_rates_hz: dict[str, float | None] = field(default_factory=dict)  # the rig's, of ``streams``: staleness
 
     def manifest(self) -> dict[str, Any]:
         """The ``live_model`` entry of the ``gestures_live`` stream (counts are added at the stop)."""
@@ -60,9 +61,11 @@ def plan_live_model(run: Path) -> LivePlan:
                     {name: tuple(columns) for name, columns in spec.streams.items()}, tuple(spec.classes))
 
 
-def check_rig_streams(plan: LivePlan, specs: Mapping[str, StreamSpec], devices: Mapping[str, str]) -> None:
-    """ConfigError (one line) naming every stream or column the model needs and the rig does not record.
-    ``specs``: the rig's streams by name; ``devices``: its device names (neither may take the recognition's)."""
+def check_rig_streams(plan: LivePlan, specs: Mapping[str, StreamSpec], devices: Mapping[str, Any]) -> LivePlan:
+    """``plan`` with the rig's nominal rates of its streams (how old a sample may be and still count, as
+    in ``align``); ConfigError (one line) naming every stream or column the model needs and the rig does
+    not record. ``specs``: the rig's streams by name; ``devices``: its device names (neither may take the
+    recognition's)."""
     if GESTURES_STREAM in specs or RECOGNITION_DEVICE in devices:
         raise ConfigError(f"--live-model writes the stream {GESTURES_STREAM!r} of device {RECOGNITION_DEVICE!r}: "
                           f"rename the rig's device or stream of that name")
@@ -77,6 +80,7 @@ def check_rig_streams(plan: LivePlan, specs: Mapping[str, StreamSpec], devices: 
     if missing:
         raise ConfigError(f"--live-model {plan.run} (run {plan.run_id}) needs what this rig does not record: "
                           f"{'; '.join(missing)} (EmHT comes from the rig, MTM/PSM from raven://, any from lsl://)")
+    return replace(plan, nominal_rates_hz={name: specs[name].nominal_rate_hz for name in plan.streams})
 
 
 def live_stream_extra(plan: LivePlan, info: Mapping[str, Any], extra: dict[str, Any]) -> None:

@@ -80,7 +80,7 @@ def load_checked(plan: LivePlan) -> Any:
     recording was planned (the manifest would name the wrong one)."""
     from midas_cli.analysis.live_gestures import load_live_model
 
-    model = load_live_model(Path(plan.run))
+    model = load_live_model(Path(plan.run), plan.nominal_rates_hz)
     if model.spec.checkpoint_sha256 != plan.checkpoint_sha256:
         raise RuntimeError(f"{plan.run}: the checkpoint changed since the recording was planned")
     return model

@@ -111,7 +111,7 @@ class Recorder:
     def _add_recognition(self, plan: LivePlan) -> list[str]:
         """The recognition as one more worker (device ``recognition``, stream ``gestures_live``); the
         modules its process needs (preloaded by the fork server: torch is imported once)."""
-        check_rig_streams(plan, {name: stats.spec for name, stats in self.streams.items()}, self.devices)
+        plan = self.plan.live_model = check_rig_streams(plan, {n: s.spec for n, s in self.streams.items()}, self.devices)
         spec = gestures_spec(plan)
         self.devices[RECOGNITION_DEVICE] = DeviceRecord(RECOGNITION_DEVICE, RECOGNITION_KIND, plan.run,
                                                         plan.manifest(), [spec.name])

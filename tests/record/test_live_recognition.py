@@ -107,7 +107,8 @@ def test_a_model_needing_streams_or_columns_the_rig_lacks_is_refused_naming_them
         check_rig_streams(plan, {"emht": EMHT}, {"emht": "sim://emht"})
     assert "stream mtm" in str(error.value) and "emht columns s9_x_mm" in str(error.value)
     assert "s1_x_mm" not in str(error.value) and "\n" not in str(error.value)
-    check_rig_streams(PLAN, {"emht": EMHT}, {"emht": "sim://emht"})  # all there: no error
+    checked = check_rig_streams(PLAN, {"emht": EMHT}, {"emht": "sim://emht"})  # all there: no error
+    assert checked.nominal_rates_hz == {"emht": 240.0}  # how old a sample may be, as align's
     with pytest.raises(ConfigError, match="rename"):
         check_rig_streams(PLAN, {"emht": EMHT}, {"emht": "sim://emht", "recognition": "sim://emht"})
 
