@@ -34,7 +34,7 @@ from midas_cli.record.priority import denied_warning
 from midas_cli.record.recognition import RecognitionJob, recognition_main
 from midas_cli.record.stats import DeviceRecord, StreamStats, device_health, device_labels
 from midas_cli.record.spawn import (reap_workers, start_worker, start_worker_server, stop_signals_blocked,
-                                    worker_context)
+                                    warm_worker_server, worker_context)
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.schema import StreamSpec
@@ -145,6 +145,8 @@ class Recorder:
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         if self.plan.foxglove is not None:  # a port in use is refused before anything is on disk
             self.live = FoxgloveLive(self.plan.foxglove, specs, f"midas record {self.plan.metadata.subject}")
+        if self.plan.live_model is not None:  # the model's modules (torch) load before the session starts
+            warm_worker_server(self._ctx)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
                                            self.plan.rig, extra={"lsl_out": lsl_out_manifest(self.plan.lsl_out)})
