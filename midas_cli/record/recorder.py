@@ -25,9 +25,8 @@ from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.foxglove_live import FoxgloveLive
 from midas_cli.record.link import Inbox, StopLine
-from midas_cli.record.live_model import (GESTURES_STREAM, MODEL_MODULE, RECOGNITION_DEVICE, RECOGNITION_KIND,
-                                         GestureTracker, LivePlan, check_rig_streams, gestures_spec,
-                                         live_stream_extra)
+from midas_cli.record.live_model import (GESTURES_STREAM, MODEL_MODULE, RECOGNITION_DEVICE, RECOGNITION_KIND, GestureTracker,
+                                         LivePlan, check_rig_streams, gestures_spec, live_stream_extra)
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.priority import denied_warning
@@ -327,6 +326,7 @@ class Recorder:
         now_ns = self.clock.now_ns()
         with self._lock:
             devices = tuple(self._device_status(record, now_ns) for record in self.devices.values())
+            gesture = None if self.gesture is None else self.gesture.status(now_ns)
         elapsed = time.monotonic() - self._started_mono
         return RecorderSnapshot(
             session_path=str(self.path),
@@ -339,7 +339,7 @@ class Recorder:
             devices=devices,
             stopping=stopping,
             recognising=self.gesture is not None,
-            gesture=None if self.gesture is None else self.gesture.status(now_ns),
+            gesture=gesture,
         )
 
     def _write_rate(self) -> float:
