@@ -14,8 +14,10 @@ run resumed after an interruption is marked ``resumed`` (its wall time covers on
 From each run's ``cv.json``: accuracy, edit and F1@{10,25,50} pooled over all test videos (the MS-TCN way)
 and averaged per video, mean and sd of accuracy and edit over folds, and each fold's accuracy; with the
 wall time, the load average and the machine (cores, CPU model, torch version, threads per worker).
-Results accumulate in ``results/gestures_jigsaws.json`` (rows keyed by task, model and epochs, so parts
-can be run one at a time) and ``results/gestures_jigsaws.md``; ``report.py`` puts the table into
+``--causal`` trains the sequence models' causal variants instead (``train gestures --causal``, the models
+``record --live-model`` runs) into ``<model>-causal``: their rows sit beside the offline ones, with the
+accuracy difference. Results accumulate in ``results/gestures_jigsaws.json`` (rows keyed by task, model,
+epochs and causal, so parts can be run one at a time) and ``results/gestures_jigsaws.md``; ``report.py`` puts the table into
 BENCHMARKS.md. One progress line per finished (task, model) on stderr. ``--report-only`` trains nothing and
 reads the run folders as they are (an unfinished run: its finished folds, marked so); ``--note`` keeps a
 dated remark (e.g. the machine's load) under the tables.
@@ -25,6 +27,7 @@ Run it niced on a shared machine:
     nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --jobs 2
     nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --tasks knot_tying --models baseline,mstcn
     .venv/bin/python benchmarks/gestures_jigsaws.py --tasks knot_tying --models mstcn --epochs 1   # smoke
+    nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --jobs 2 --causal --models mstcn,transformer
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ CLI_IMPORT = ("import", "jigsaws")
 CLI_ALIGN = ("align",)
 CLI_TRAIN = ("train", "gestures", "--split", "louo", "--fold", "all")
 OPT_OUT, OPT_JOBS, OPT_MODEL, OPT_EPOCHS = "--out", "--jobs", "--model", "--epochs"
-OPT_NO_BASELINE, OPT_JSON = "--no-baseline", "--json"
+OPT_NO_BASELINE, OPT_JSON, OPT_CAUSAL = "--no-baseline", "--json", "--causal"
 
 
 @dataclass(frozen=True)
@@ -135,9 +138,11 @@ def prepare(data: Path, name: str, work: Path, jobs: int) -> tuple[Path, dict[st
     return sessions_dir, {"sessions": len(sessions_in(sessions_dir)), **times}
 
 
-def run_dir(work: Path, name: str, model: str, epochs: int | None) -> Path:
-    """Where one (task, model) cross-validation lives; runs at other epochs than the recipe's apart."""
-    return work / "runs" / name / (model if epochs is None else f"{model}-e{epochs}")
+def run_dir(work: Path, name: str, model: str, epochs: int | None, causal: bool = False) -> Path:
+    """Where one (task, model) cross-validation lives; runs at other epochs than the recipe's, and causal
+    runs, apart."""
+    stem = f"{model}-causal" if causal else model
+    return work / "runs" / name / (stem if epochs is None else f"{stem}-e{epochs}")
 
 
 def finished_folds(root: Path) -> int:
@@ -145,7 +150,8 @@ def finished_folds(root: Path) -> int:
     return sum(1 for f in root.glob("fold-*/metrics.json")) if root.is_dir() else 0
 
 
-def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, baseline: bool) -> dict[str, Any]:
+def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, baseline: bool,
+          causal: bool = False) -> dict[str, Any]:
     """One LOUO cross-validation through the CLI, or the timing recorded when it last completed."""
     done = recorded_timing(out)
     if done and (not baseline or (out / "baseline").is_dir()):
@@ -153,6 +159,7 @@ def train(sessions: Path, model: str, out: Path, epochs: int | None, jobs: int, 
     args = [*CLI_TRAIN, str(sessions), OPT_MODEL, model, OPT_OUT, str(out)]
     args += [OPT_EPOCHS, str(epochs)] if epochs is not None else []
     args += [] if baseline and model != "baseline" else [OPT_NO_BASELINE]
+    args += [OPT_CAUSAL] if causal else []
     before, load_before, t0 = finished_folds(out), load_average(), time.monotonic()
     midas(*args, jobs=jobs)
     timing = {"wall_s": round(time.monotonic() - t0, 1), "jobs": jobs, "resumed": before > 0,
@@ -245,29 +252,32 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
     sessions, prep = (args.work / "sessions" / name, {}) if args.report_only else prepare(data, name, args.work,
                                                                                           args.jobs)
     neural = [m for m in NEURAL if m in models]
+    with_baseline = "baseline" in models and not args.causal  # the per-frame baseline is causal as it is
     rows = []
     for i, model in enumerate(neural or ["baseline"]):
-        out = run_dir(args.work, name, model, args.epochs)
+        out = run_dir(args.work, name, model, args.epochs, args.causal)
         if args.report_only:
             timing = {**unfinished_timing(out), "reused": True}
         else:
             try:
-                timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and "baseline" in models)
+                timing = train(sessions, model, out, args.epochs, args.jobs, baseline=i == 0 and with_baseline,
+                               causal=args.causal)
             except RuntimeError as exc:  # a failed fold: said, and the other models still run
                 print(f"{name} {model}: FAILED, see {out}/jobs/logs: {exc}", file=sys.stderr, flush=True)
                 continue
-        wanted = [model] + (["baseline"] if "baseline" in models and model != "baseline" else [])
+        wanted = [model] + (["baseline"] if with_baseline and model != "baseline" else [])
         for row_model in wanted:
             part = cross_validation(out, None if row_model == model else "baseline")
             if part is None:
                 continue
             shared = "" if row_model == model else f" (trained inside the {model} run)"
-            row = {"task": name, "model": row_model, "epochs_option": args.epochs, "run_dir": str(out),
+            row = {"task": name, "model": row_model, "epochs_option": args.epochs, "causal": args.causal,
+                   "run_dir": str(out),
                    "timing": timing, "trained_in": model, "prepare": prep, **figures(part),
                    "fold_seconds": fold_seconds(out, row_model)}
             rows.append(row)
             wall = "unfinished" if timing["wall_s"] is None else f"{timing['wall_s']:g} s"
-            print(f"{name} {row_model}: {wall}{shared}{' (reused)' if timing.get('reused') else ''}"
+            print(f"{name} {row_model}{' (causal)' if args.causal else ''}: {wall}{shared}{' (reused)' if timing.get('reused') else ''}"
                   f", {len(row['folds'])}/{row['n_folds']} folds, acc {row['pooled']['accuracy']:.3f}, "
                   f"edit {row['pooled']['edit']:.1f}", file=sys.stderr, flush=True)
     return rows
@@ -284,8 +294,8 @@ def torch_facts(jobs: int) -> dict[str, Any]:
 
 
 def merge(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Earlier rows kept unless this run measured the same (task, model, epochs) again."""
-    key = lambda r: (r["task"], r["model"], r["epochs_option"])  # noqa: E731
+    """Earlier rows kept unless this run measured the same (task, model, epochs, causal) again."""
+    key = lambda r: (r["task"], r["model"], r["epochs_option"], bool(r.get("causal")))  # noqa: E731
     fresh = {key(r) for r in new}
     return [r for r in old if key(r) not in fresh] + new
 
@@ -297,6 +307,8 @@ def main() -> None:
     parser.add_argument("--tasks", default=",".join(TASKS), help=f"comma list of {', '.join(TASKS)}")
     parser.add_argument("--models", default=",".join(MODELS), help=f"comma list of {', '.join(MODELS)}")
     parser.add_argument("--epochs", type=int, default=None, help="override every model's recipe epochs")
+    parser.add_argument("--causal", action="store_true",
+                        help="train the sequence models' causal variants (rows beside the offline ones; no baseline)")
     parser.add_argument("--jobs", type=int, default=2, help="folds trained at once (worker processes)")
     parser.add_argument("--note", help="a dated remark on this run for the report (e.g. the machine's load)")
     parser.add_argument("--report-only", action="store_true",

@@ -33,6 +33,18 @@ def _minutes(row: dict[str, Any]) -> str:
     return f"{t['wall_s'] / 60:.1f} min, --jobs {t['jobs']}{resumed}{folds}{f'; load {load}' if load else ''}"
 
 
+def _title(row: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    """The model's title; a causal row's says so, with its pooled accuracy minus the offline row's (same
+    task and epochs) where that one is there."""
+    if not row.get("causal"):
+        return TITLES[row["model"]]
+    offline = [r for r in rows if r["model"] == row["model"] and not r.get("causal")
+               and r["epochs_option"] == row["epochs_option"]]
+    delta = (f"; acc {100 * (row['pooled']['accuracy'] - offline[0]['pooled']['accuracy']):+.1f} vs offline"
+             if offline else "")
+    return f"{TITLES[row['model']]} (causal{delta})"
+
+
 def _meets(row: dict[str, Any], target_accuracy: float, target_edit: float) -> str:
     if row["missing_folds"]:
         return "— (not all folds)"
@@ -45,7 +57,7 @@ def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
     out: list[str] = []
     for name, task in report["tasks"].items():
         rows = sorted((r for r in report["rows"] if r["task"] == name),
-                      key=lambda r: (ORDER.index(r["model"]), r["epochs_option"] or 0))
+                      key=lambda r: (ORDER.index(r["model"]), r["epochs_option"] or 0, bool(r.get("causal"))))
         out += [f"**{task['title']}** (leave one user out, users "
                 f"{', '.join(str(f['user']) for f in rows[0]['folds']) if rows else 'B..I'}; literature, kinematics "
                 f"only: accuracy ~{task['literature_accuracy']:.2f}; target at the defaults: accuracy >= "
@@ -60,7 +72,7 @@ def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
             p, v, m, s = r["pooled"], r["per_video"], r["fold_mean"], r["fold_sd"]
             sd = "" if s["accuracy"] is None else f" ± {_pct(s['accuracy'])}"
             folds = " ".join(f"{f['user']} {_pct(f['accuracy'])}" for f in r["folds"])
-            out.append(f"| {TITLES[r['model']]} | {r['epochs']} | {len(r['folds'])}/{r['n_folds']} | "
+            out.append(f"| {_title(r, rows)} | {r['epochs']} | {len(r['folds'])}/{r['n_folds']} | "
                        f"{_pct(p['accuracy'])} | {p['edit']:.1f} | {p['f1@10']:.1f} | {p['f1@25']:.1f} | "
                        f"{p['f1@50']:.1f} | {_pct(v['accuracy'])} | {v['edit']:.1f} | {v['f1@10']:.1f} | "
                        f"{v['f1@25']:.1f} | {v['f1@50']:.1f} | {_pct(m['accuracy'])}{sd} | {folds} | {_minutes(r)} | "
@@ -70,7 +82,8 @@ def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
 
 
 def _not_measured(report: dict[str, Any]) -> list[str]:
-    have = {(r["task"], r["model"]) for r in report["rows"] if r["epochs_option"] is None and not r["missing_folds"]}
+    have = {(r["task"], r["model"]) for r in report["rows"]
+            if r["epochs_option"] is None and not r["missing_folds"] and not r.get("causal")}
     return [f"{report['tasks'][t]['title']} {TITLES[m]}" for t in report["tasks"] for m in ORDER if (t, m) not in have]
 
 

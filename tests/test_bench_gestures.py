@@ -63,3 +63,15 @@ def test_table_columns_and_target_verdicts() -> None:
     assert cells["baseline (per-frame logistic regression)"][-1].startswith("—")  # a fold missing
     assert "B 70.0 C 90.0" in cells["MS-TCN++"] and "10.0 min, --jobs 2; a fold 4.8–5.2 min" in cells["MS-TCN++"]
     assert any("Needle Passing" in line for line in lines) and "Not measured yet." in lines
+
+
+def test_causal_rows_coexist_with_the_offline_ones_and_show_the_accuracy_difference(tmp_path: Path) -> None:
+    causal = {**_row("mstcn", 0.78, 84.0), "causal": True}
+    merged = bench.merge([_row("mstcn", 0.81, 86.0), causal], [{**_row("mstcn", 0.77, 83.0), "causal": True}])
+    assert sorted((bool(r.get("causal")), r["pooled"]["accuracy"]) for r in merged) == [(False, 0.81), (True, 0.77)]
+    lines = gestures_jigsaws_table(_report(merged))
+    titles = [line.split(" | ")[0].lstrip("| ") for line in lines if line.startswith("| ") and "MS-TCN" in line]
+    assert titles == ["MS-TCN++", "MS-TCN++ (causal; acc -4.0 vs offline)"]  # offline first, then causal
+    assert bench.run_dir(tmp_path, "knot_tying", "mstcn", None, causal=True).name == "mstcn-causal"
+    assert bench.run_dir(tmp_path, "knot_tying", "mstcn", 3, causal=True).name == "mstcn-causal-e3"
+    assert bench.run_dir(tmp_path, "knot_tying", "mstcn", None).name == "mstcn"

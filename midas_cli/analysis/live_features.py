@@ -3,7 +3,7 @@ columns its features read, its frame clock, and each frame's model input built b
 
 A frame's input: at frame time t (host ns) every needed stream is associated with the three times
 t - s, t, t + s by ``analysis.sync.associate`` (align's causal method: the latest sample at or before,
-masked when further than 3 nominal periods, 1 s for a stream of unknown rate), the three rows become
+masked when further than 3 nominal periods where the caller gives the rate, else 1 s), the three rows become
 an ``AlignedTable`` and ``models.data.modality_features`` (what training runs on an aligned table)
 computes the features; the middle row is frame t's. So a velocity is the central difference
 training's ``np.gradient`` takes at an interior frame, over s = one frame of the 30 Hz video clock
@@ -165,9 +165,9 @@ class FrameClock:
         return int(k * self.period.numerator // self.period.denominator)
 
     def first_at_or_after(self, t_ns: int) -> int:
-        """The index of the first frame at or after ``t_ns``."""
-        k = int(-(-t_ns * self.period.denominator // self.period.numerator))  # ceil
-        return k if self.time(k) >= t_ns else k + 1
+        """The index of the first frame at or after ``t_ns``: ceil(t / period) (then k x period >= t, so its
+        floor, an integer, is too; and (k - 1) x period < t)."""
+        return int(-(-t_ns * self.period.denominator // self.period.numerator))
 
 
 def associated(sample_ns: np.ndarray, values: np.ndarray, times_ns: np.ndarray, stale: int) -> np.ndarray:

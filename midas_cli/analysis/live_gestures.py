@@ -4,8 +4,9 @@ rows as they arrive, predicts each frame of its own clock once that frame's inpu
 ``load_live_model(run)`` checks the run can run live and returns a ``LiveFeed``; ``LiveFeed.add`` takes
 rows of a stream (host ns, values in the columns ``spec.streams`` names), ``ready()`` returns every frame
 that can now be predicted, in order, each in constant time (``models/streaming.py``: incremental
-state, no window re-run), and ``drop_until`` skips frames a slow model cannot catch up with (the model
-then continues as if those frames had not been: its later predictions may differ from offline ones).
+state, no window re-run), and ``drop_until`` skips frames a slow model cannot catch up with (their seq
+numbers are left out; the model then continues as if those frames had not been, so its later
+predictions may differ from offline ones).
 
 The frame clock: multiples of 1 / ``rate_hz`` on the host clock (ns), starting at the first one whose
 inputs every stream has (a sample at or before t - s, see ``analysis/live_features.py`` for s and how a
@@ -35,7 +36,7 @@ from midas_cli.session.reader import Session
 
 @dataclass(frozen=True)
 class Prediction:
-    seq: int  # 0, 1, 2, ... per frame of the live frame clock
+    seq: int  # 0, 1, 2, ... per frame of the live frame clock (frames skipped by drop_until leave gaps)
     t_host_ns: int  # the frame's time (host clock) on the model's frame clock
     class_index: int
     label: str  # class name, e.g. "G1"
@@ -93,8 +94,8 @@ class LiveFeed:
         self._stepper = frame_stepper(live.model)
         self._inputs = FrameInputs(live)
         self._clock = FrameClock(live.rate_hz)
+        self._first: int | None = None  # clock index of the first frame (seq 0)
         self._next: int | None = None  # clock index of the next frame to predict
-        self._seq = 0
 
     def add(self, stream: str, t_host_ns: np.ndarray, values: np.ndarray) -> None:
         """Rows of one stream as recorded (t_host_ns (n,), values (n, len(spec.streams[stream])) in that
@@ -102,22 +103,21 @@ class LiveFeed:
         if stream not in self._buffers:
             return
         t = np.asarray(t_host_ns, dtype=np.int64).reshape(-1)
-        v = np.asarray(values, dtype=np.float64).reshape(len(t), -1)
-        if v.shape[1] != len(self.spec.streams[stream]):
-            raise ConfigError(f"live gestures: {stream} rows have {v.shape[1]} values, the model needs "
-                              f"{len(self.spec.streams[stream])} ({', '.join(self.spec.streams[stream])})")
-        self._buffers[stream].add(t, v)
+        v = np.asarray(values, dtype=np.float64)
+        columns = self.spec.streams[stream]
+        if v.size != len(t) * len(columns):
+            raise ConfigError(f"live gestures: {len(t)} {stream} rows came with {v.size} values, the model needs "
+                              f"{len(columns)} a row ({', '.join(columns)})")
+        self._buffers[stream].add(t, v.reshape(len(t), len(columns)))
 
     def ready(self) -> list[Prediction]:
         """Every frame that can now be computed, predicted in order."""
-        if self._next is None:
-            firsts = [b.first_ns for b in self._buffers.values()]
-            if any(f is None for f in firsts):
-                return []
-            self._next = self._clock.first_at_or_after(max(f for f in firsts if f is not None) + self._inputs.step_ns)
+        known = [b.first_ns for b in self._buffers.values() if b.first_ns is not None]
+        if self._next is None and len(known) == len(self._buffers):
+            self._first = self._next = self._clock.first_at_or_after(max(known) + self._inputs.step_ns)
         out = []
-        while self._computable(self._clock.time(self._next)):
-            out.append(self._predict(self._clock.time(self._next)))
+        while self._next is not None and self._computable(self._clock.time(self._next)):
+            out.append(self._predict(self._next))
             self._next += 1
         self._forget()
         return out
@@ -137,19 +137,26 @@ class LiveFeed:
         last = [b.last_ns() for b in self._buffers.values()]
         return all(x is not None and x > t_ns + self._inputs.step_ns for x in last)
 
-    def _predict(self, t_ns: int) -> Prediction:
+    def _predict(self, k: int) -> Prediction:
+        t_ns = self._clock.time(k)
         times = t_ns + np.array([-self._inputs.step_ns, 0, self._inputs.step_ns], dtype=np.int64)
         rows = np.concatenate([associated(b.t_ns, b.values, times, self._stale[s]) for s, b in self._buffers.items()],
                               axis=1)  # (3, C): the streams' columns in spec order
         logits = self._stepper.step(self._inputs(t_ns, rows))
-        prediction = _prediction(self._seq, t_ns, logits, self.spec.classes)
-        self._seq += 1
-        return prediction
+        return _prediction(k - (self._first or 0), t_ns, logits, self.spec.classes)
 
     def _forget(self) -> None:
+        """Drop rows no frame to come needs: before the next frame's first row time, or before the first
+        sample of the stream that started last (frames start after it)."""
         if self._next is not None:
-            for buffer in self._buffers.values():
-                buffer.forget_before(self._clock.time(self._next) - self._inputs.step_ns)
+            keep_from = self._clock.time(self._next) - self._inputs.step_ns
+        else:
+            known = [b.first_ns for b in self._buffers.values() if b.first_ns is not None]
+            if not known:
+                return
+            keep_from = max(known)
+        for buffer in self._buffers.values():
+            buffer.forget_before(keep_from)
 
 
 def _prediction(seq: int, t_ns: int, logits: np.ndarray, classes: tuple[str, ...]) -> Prediction:
@@ -161,13 +168,16 @@ def _prediction(seq: int, t_ns: int, logits: np.ndarray, classes: tuple[str, ...
 def load_live_model(run: Path, nominal_rates_hz: Mapping[str, float | None] | None = None) -> LiveFeed:
     """RUN = a training run folder (or its checkpoint.pt); ConfigError (exit 2, one line) when it cannot run
     live. ``nominal_rates_hz`` (stream -> its nominal rate, None = events) sets how old a sample may be
-    and still count, as align's (3 periods; 1 s for a stream not given)."""
+    and still count, as align's (3 periods; 1 s for a stream not given: the latest sample is held through
+    an outage shorter than that)."""
     return LiveFeed(load_run(run), nominal_rates_hz)
 
 
-def offline_predictions(session: Path, run: Path, times_ns: np.ndarray) -> list[Prediction]:
+def offline_predictions(session: Path, run: Path, times_ns: np.ndarray,
+                        nominal_rates_hz: Mapping[str, float | None] | None = None) -> list[Prediction]:
     """The same causal model run offline (the whole sequence, one forward pass) on features built from the
-    session's recorded streams at the frame times ``times_ns`` (ascending host ns), seq = their index."""
+    session's recorded streams at the frame times ``times_ns`` (ascending host ns), seq = their index.
+    ``nominal_rates_hz`` as for ``load_live_model``: give both the same (or neither) for equal frames."""
     recorded = Session.open(session)
     live = load_run(run)
     missing = [s for s in live.streams if s not in recorded.stream_names]
@@ -184,7 +194,7 @@ def offline_predictions(session: Path, run: Path, times_ns: np.ndarray) -> list[
         t = np.asarray(data["t_host_ns"], dtype=np.int64)
         order = np.argsort(t, kind="stable")
         values = np.column_stack([np.asarray(data[c], dtype=np.float64) for c in columns])[order]
-        blocks.append(associated(t[order], values, around, stale_ns(recorded.stream_spec(stream).nominal_rate_hz)))
+        blocks.append(associated(t[order], values, around, stale_ns((nominal_rates_hz or {}).get(stream))))
     rows = np.concatenate(blocks, axis=1).reshape(len(times), 3, -1)  # (3T, C) -> (T, 3, C)
     x = np.stack([inputs(int(t), r) for t, r in zip(times, rows)])  # (T, D) float32, frames in order
     with torch.no_grad():

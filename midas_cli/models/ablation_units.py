@@ -23,8 +23,8 @@ from midas_cli.jobs.rundir import Unit, file_digest, fingerprint
 from midas_cli.jobs.tasks import task_name
 from midas_cli.models.ablation import GridRow, run_cell
 from midas_cli.models.data import DatasetConfig, build_dataset
-from midas_cli.models.registry import MODELS
-from midas_cli.models.train import LEGACY_TRAIN_CONFIG, TrainConfig
+from midas_cli.models.registry import LEGACY_TRAIN_CONFIG, MODELS
+from midas_cli.models.train import TrainConfig
 
 TASK = task_name(__name__)  # registered in jobs/tasks.py
 log = logging.getLogger(__name__)

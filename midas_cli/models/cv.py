@@ -35,6 +35,7 @@ import numpy as np
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models.data import DatasetConfig, build_dataset
+from midas_cli.models.registry import LEGACY_TRAIN_CONFIG
 from midas_cli.models.splits import GROUP_SPLITS, fold_groups
 from midas_cli.session.outputs import out_folder, out_target, write_text
 
@@ -160,7 +161,8 @@ def collect(root: Path) -> dict:
     first = records[min(records)]
     same = ("dataset_config", "data_fingerprint", "classes", "model")
     # the fold differs by design; the device (cpu/cuda) a cluster job ran on does not change what is trained
-    train_keys = lambda r: {k: v for k, v in r["train_config"].items() if k not in ("fold", "device")}  # noqa: E731
+    train_keys = lambda r: {k: v for k, v in {**LEGACY_TRAIN_CONFIG, **r["train_config"]}.items()  # noqa: E731
+                            if k not in ("fold", "device")}
     for k, record in records.items():
         differs = [key for key in same if record.get(key) != first.get(key)]
         differs += ["train_config"] if train_keys(record) != train_keys(first) else []

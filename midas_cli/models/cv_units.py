@@ -23,6 +23,7 @@ from midas_cli.jobs.rundir import Unit, fingerprint
 from midas_cli.jobs.tasks import task_name
 from midas_cli.models import cv
 from midas_cli.models.data import DatasetConfig, build_dataset
+from midas_cli.models.registry import LEGACY_TRAIN_CONFIG
 from midas_cli.models.splits import GROUP_SPLITS, fold_groups
 from midas_cli.session.outputs import out_folder
 
@@ -56,7 +57,7 @@ def plan_units(sessions: Sequence[Path], data_config: DatasetConfig, config: Any
 
 def _same_run(run_dir: Path, args: dict[str, Any]) -> bool:
     """``run_dir`` holds a finished run of this data and training configuration."""
-    from midas_cli.models.train import LEGACY_TRAIN_CONFIG, TrainConfig
+    from midas_cli.models.train import TrainConfig
 
     try:
         record = json.loads((run_dir / "run.json").read_text(encoding="utf-8"))

@@ -61,25 +61,23 @@ class Ring:
         self.pos = (self.pos + 1) % len(self.values)
         self.values[self.pos] = v
 
-    def back(self, k: int) -> np.ndarray:
-        """The vector pushed ``k`` pushes ago (0 = the last one); zeros before the first push."""
-        return self.values[(self.pos - k) % len(self.values)]
-
 
 class StepConv:
     """A causal convolution (``DilatedConv`` or a left-padded encoder ``nn.Conv1d``) over a ring of its
     inputs: y_t = b + sum_j W[:, :, j] @ x_(t - (k - 1 - j) d)."""
 
     def __init__(self, conv: nn.Conv1d) -> None:
-        self.taps = [_array(conv.weight[:, :, j]) for j in range(conv.weight.shape[2])]  # each (out, in)
-        self.bias = _array(conv.bias) if conv.bias is not None else np.zeros(conv.weight.shape[0])
-        self.dilation = int(conv.dilation[0])
-        self.ring = Ring((len(self.taps) - 1) * self.dilation + 1, conv.weight.shape[1])
+        out, width, taps = conv.weight.shape
+        self.weight = _array(conv.weight).transpose(0, 2, 1).reshape(out, taps * width)  # (out, in, k) -> (out, k * in)
+        self.bias = _array(conv.bias) if conv.bias is not None else np.zeros(out)
+        dilation = int(conv.dilation[0])
+        self.lags = (taps - 1 - np.arange(taps)) * dilation  # tap j reads the input (k - 1 - j) d frames back
+        self.ring = Ring((taps - 1) * dilation + 1, width)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         self.ring.push(x)
-        last = len(self.taps) - 1
-        return self.bias + sum(w @ self.ring.back((last - j) * self.dilation) for j, w in enumerate(self.taps))
+        inputs = self.ring.values[(self.ring.pos - self.lags) % len(self.ring.values)]  # (k, in), oldest first
+        return self.weight @ inputs.reshape(-1) + self.bias
 
 
 def _linear(layer: nn.Module) -> Callable[[np.ndarray], np.ndarray]:

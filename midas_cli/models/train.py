@@ -45,7 +45,6 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "midas-gesture-run/1"
 SELECTIONS = ("last", "best-val")
-LEGACY_TRAIN_CONFIG = {"causal": False}  # what a run.json written before these TrainConfig fields meant
 RECIPES = {name: asdict(entry.recipe) for name, entry in MODELS.items()}  # each model's recipe, as run.json has it
 
 

@@ -12,6 +12,8 @@ import torch
 
 from helpers.cli import midas
 from helpers.gesture_sessions import write_gesture_session
+from midas_cli.errors import ConfigError
+from midas_cli.models import cv
 from midas_cli.models.train import build_model
 
 DIMS, CLASSES = {"emht": 4, "mtm": 3}, 3
@@ -85,6 +87,21 @@ def test_causal_cross_validation_batched_trains_causal_folds_and_per_frame_basel
         assert fold["model_config"]["causal"] is True and fold["train_config"]["causal"] is True
         baseline = json.loads((out / "baseline" / f"fold-{k}" / "run.json").read_text(encoding="utf-8"))
         assert baseline["train_config"]["causal"] is True and "causal" not in baseline["model_config"]
+    # a fold written before --causal existed has no such key, which meant "not causal"
+    _set_causal(out / "fold-0" / "run.json", None)
+    with pytest.raises(ConfigError, match="trained differently"):
+        cv.summarise(out)  # not the same training as the causal fold 1
+    _set_causal(out / "fold-1" / "run.json", False)
+    assert cv.summarise(out)["n_folds"] == 2  # an old fold and a new non-causal one: one cross-validation
+
+
+def _set_causal(run_json: Path, causal: bool | None) -> None:
+    """Rewrite a run.json's train_config.causal (None: leave the key out, as runs before it did)."""
+    record = json.loads(run_json.read_text(encoding="utf-8"))
+    record["train_config"] = {k: v for k, v in record["train_config"].items() if k != "causal"}
+    if causal is not None:
+        record["train_config"]["causal"] = causal
+    run_json.write_text(json.dumps(record), encoding="utf-8")
 
 
 def test_causal_with_per_trial_normalisation_is_refused_in_one_line(data, tmp_path):
