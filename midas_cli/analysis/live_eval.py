@@ -7,7 +7,8 @@ segment's first frame to the first live frame inside it with its class (frame ti
 predicted in its span is "missed"). The recognition's own latency (``t_pred_ns - t_host_ns``) comes
 beside. The labels are per video frame (labels/<set>.csv: frame = seq of the video stream); a live frame
 takes the label of the latest video frame at or before it. The offline reference is
-``live_gestures.offline_predictions`` on the recorded streams, with the run the manifest names.
+``live_gestures.offline_predictions`` on the recorded streams, with the run the manifest names and the
+nominal rates the live model was given (how old a sample may be and still count).
 """
 
 from __future__ import annotations
@@ -80,7 +81,11 @@ def _offline(session: Session, run: Path | None, model: dict[str, Any], times: n
     named = run if run is not None else model.get("run")
     if not isinstance(named, (str, Path)) or not Path(named).exists():
         raise ConfigError(f"{session.path}: the run of its live model ({named!r}) is not here: give --run RUN")
-    return np.asarray([p.label for p in offline_predictions(session.path, Path(named), times)], dtype=object)
+    rates = model.get("nominal_rates_hz")  # what the live model was given: the same for equal frames
+    if not (isinstance(rates, dict) and all(isinstance(r, (int, float, type(None))) for r in rates.values())):
+        rates = None
+    predictions = offline_predictions(session.path, Path(named), times, rates)
+    return np.asarray([p.label for p in predictions], dtype=object)
 
 
 def labels_at(session: Session, times: np.ndarray, label_set: str) -> np.ndarray:

@@ -49,7 +49,7 @@ class LivePlan:
         return {"run": self.run, "run_id": self.run_id, "checkpoint_sha256": self.checkpoint_sha256,
                 "model": self.model, "rate_hz": self.rate_hz, "classes": list(self.classes),
                 "inputs": {name: list(columns) for name, columns in self.streams.items()},
-                "max_lag_s": self.max_lag_s}
+                "nominal_rates_hz": dict(self.nominal_rates_hz), "max_lag_s": self.max_lag_s}
 
 
 def plan_live_model(run: Path) -> LivePlan:

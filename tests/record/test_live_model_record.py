@@ -87,7 +87,8 @@ def test_live_gestures_from_a_replay_equal_the_offline_causal_models(trained, tm
     assert (rows["t_pred_ns"].to_numpy(np.int64) >= times).all()
     assert set(rows["class"]) <= set(spec.classes)
 
-    offline = offline_predictions(session.path, run, times)
+    assert live["nominal_rates_hz"] == {"emht": session.stream_spec("emht").nominal_rate_hz}
+    offline = offline_predictions(session.path, run, times, live["nominal_rates_hz"])
     agree = slice(None) if live["frames_skipped"] == 0 else slice(0, int(np.argmax(steps > 1)) + 1)
     assert [p.label for p in offline][agree] == rows["class"].tolist()[agree]
     assert [p.seq for p in offline][agree] == seq.tolist()[agree]
