@@ -15,7 +15,9 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
+from midas_cli.record.live_model import RECOGNITION_KIND
+from midas_cli.record.outcome import stream_outcomes
+from midas_cli.record.status import DeviceStatus, GestureStatus, RecorderSnapshot, StreamStatus
 
 STATE_STYLE = {"ok": "bold green", "degraded": "bold yellow", "lost": "bold red", "starting": "cyan", "opening": "cyan",
                "stopped": "dim"}
@@ -82,6 +84,8 @@ def dashboard(snapshot: RecorderSnapshot, control: Text | None = None) -> Group:
     top: list[Any] = [_header(snapshot), _PathLine(snapshot.session_path)]
     if control is not None:
         top.append(control)
+    if snapshot.recognising:
+        top.append(gesture_line(snapshot.gesture))
     errors = _device_errors(snapshot)
     return Group(*top, _device_table(snapshot), *([errors] if errors.plain else []),
                  Columns(_live_panels(snapshot)))
@@ -120,12 +124,19 @@ def _device_table(snapshot: RecorderSnapshot) -> Table:
     for device in snapshot.devices:
         for stream in device.streams:
             table.add_row(
-                device.name if stream.name == device.name else f"{device.name}/{stream.name}",
+                _row_label(device, stream),
                 Text(device.state, STATE_STYLE.get(device.state, "")), _rate_text(stream), str(stream.samples),
                 _age_text(stream.last_age_s), str(stream.dropped), str(stream.corrupt), str(stream.seq_missing),
                 str(device.reconnects),
             )
     return table
+
+
+def _row_label(device: DeviceStatus, stream: StreamStatus) -> str:
+    """``device/stream``, or the one name where that says it all (the live recognition: its stream)."""
+    if stream.name == device.name or device.kind == RECOGNITION_KIND:
+        return stream.name
+    return f"{device.name}/{stream.name}"
 
 
 def _device_errors(snapshot: RecorderSnapshot) -> Text:
@@ -198,6 +209,18 @@ def _emht_positions(latest: dict[str, Any], labels: dict[str, str]) -> Table:
     return table
 
 
+def gesture_line(gesture: GestureStatus | None) -> Text:
+    """`record --live-model`: the current gesture, its probability, how long it has lasted and the
+    recognition latency (prediction time - frame time of the last frame); dimmed once it is stale."""
+    if gesture is None:
+        return Text("gesture: waiting for the first frame", "dim")
+    stale = gesture.age_s > STALE_PANEL_S
+    return Text.assemble(("gesture ", "dim"), (gesture.label, "dim" if stale else "bold cyan"),
+                         f"  p {gesture.probability:.2f}  for {gesture.duration_s:.1f} s",
+                         f"  latency {gesture.latency_ms:.0f} ms", (f"  STALE {gesture.age_s:.1f} s" if stale else "", "red"),
+                         no_wrap=True, overflow="ellipsis")
+
+
 def status_line(snapshot: RecorderSnapshot) -> str:
     """One plain line for logs and non-TTY output."""
     parts = [f"[{clock_text(snapshot.elapsed_s)}]"]
@@ -208,6 +231,9 @@ def status_line(snapshot: RecorderSnapshot) -> str:
                                                      ("missing", stream.seq_missing),
                                                      ("reconnects", device.reconnects)) if v)
             parts.append(f"{stream.name} {device.state} {rate}/{_nominal_text(stream)} n={stream.samples}{extra}")
+    if snapshot.gesture is not None:
+        g = snapshot.gesture
+        parts.append(f"gesture {g.label} p={g.probability:.2f} for {g.duration_s:.1f}s latency {g.latency_ms:.0f}ms")
     parts.append(f"disk {human_bytes(snapshot.disk_free_bytes)} free")
     return " | ".join(parts)
 
@@ -227,3 +253,20 @@ def control_line(prompt: str | None, markers: int, last_marker: str | None, arme
     if markers:
         parts.append((f"   markers {markers}, last: {(last_marker or '')[:40]}", "dim"))
     return Text.assemble(*parts)
+
+
+def recording_table(manifest: dict) -> Table:
+    """The end of `midas record`: per stream what was recorded and what went wrong (missing in outages / unexplained,
+    dropped, corrupt, reconnects of its device)."""
+    table = Table("stream", "samples", "measured Hz", "missing (outage / other)", "dropped", "corrupt",
+                  "reconnects", "p99 latency ms",
+                  title=f"{manifest['session_id']}: {manifest['status']} ({manifest['stop_reason']})",
+                  header_style="bold")
+    for name, o in stream_outcomes(manifest).items():
+        rate = o["measured_rate_hz"]
+        missing = f"{o['missing_outage']} / {o['missing_unexplained']}" if o["missing"] else "0"
+        rate_text = "events" if o["nominal_rate_hz"] is None else "—" if rate is None else f"{rate:.2f}"
+        table.add_row(name, str(o["samples"]), rate_text,
+                      Text(missing, "yellow" if o["missing"] else ""), str(o["dropped"]), str(o["corrupt"]),
+                      str(o["reconnects"]), "—" if o["p99_latency_ms"] is None else str(o["p99_latency_ms"]))
+    return table

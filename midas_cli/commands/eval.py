@@ -100,6 +100,38 @@ def sync(sessions: list[Path] = typer.Argument(..., help="Session folders (align
     err.print(f"wrote {len(files)} file(s), e.g. {files[-1]}" if files else "wrote nothing", markup=False)
 
 
+@app.command()
+def live(sessions: list[Path] = typer.Argument(..., help="Sessions recorded with `midas record --live-model`.",
+                                               show_default=False),
+         run: Optional[Path] = typer.Option(None, "--run", help="The live model's run (default: the one the "
+                                            "manifest names)."),
+         label_set: str = typer.Option("gestures", "--labels", help="Label set to compare with, when the session "
+                                       "has it."),
+         as_json: bool = JSON_OPTION) -> None:
+    """Gestures recognised while recording against the labels and the offline model.
+
+    On the frames of each session's gestures_live stream: accuracy, edit score and, per segment of
+    the reference, whether it was detected live and how long after its start (ms); the recognition's
+    own latency (prediction time - frame time) beside.
+
+    Example: midas eval live sessions/suturing_S1_T9_20261126T150000Z
+    """
+    from midas_cli.analysis.live_eval import evaluate_live
+
+    results = [evaluate_live(session, run, label_set) for session in sessions]
+    if as_json:
+        print_json([result.to_json() for result in results])
+        return
+    table = Table("session", "reference", "frames", "accuracy", "edit", "detected", "delay p50/p90 ms",
+                  "latency p50/p99 ms", title="gestures recognised live", header_style="bold")
+    for result in results:
+        for a in result.agreements:
+            table.add_row(result.session, a.reference, str(a.frames), _num(a.accuracy, ".3f"), _num(a.edit, ".1f"),
+                          f"{a.detected}/{a.segments}", f"{_num(a.delay_ms['p50'], '.0f')}/{_num(a.delay_ms['p90'], '.0f')}",
+                          f"{_num(result.latency_ms['p50'], '.1f')}/{_num(result.latency_ms['p99'], '.1f')}")
+    out.print(table)
+
+
 def _num(value: Optional[float], spec: str) -> str:
     return "—" if value is None else format(value, spec)
 

@@ -12,12 +12,11 @@ from typing import TYPE_CHECKING, Optional
 
 import typer
 from rich.live import Live
-from rich.table import Table
 from rich.text import Text
 
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
 from midas_cli.config import RIG_ENV, config_path, default_priority, default_rig, default_sessions
-from midas_cli.console import dashboard, is_interactive, status_line
+from midas_cli.console import dashboard, is_interactive, recording_table, status_line
 from midas_cli.devices.base import DeviceUrl, redact_url
 from midas_cli.devices.lsl.outlet import exposure_note, lsl_config_file
 from midas_cli.devices.rigconfig import DeviceConfig, RigConfig, load_rig
@@ -26,7 +25,8 @@ from midas_cli.record.foxglove_live import DEFAULT_ADDRESS as DEFAULT_FOXGLOVE, 
 from midas_cli.record.markers import check_stream_names, events_spec
 from midas_cli.record.outcome import recording_problems, stream_outcomes
 from midas_cli.record.priority import checked_priority
-from midas_cli.record.recorder import RecordPlan, Recorder, run_until
+from midas_cli.record.pacing import run_until
+from midas_cli.record.recorder import RecordPlan, Recorder
 from midas_cli.record.status import RecorderSnapshot
 from midas_cli.rig import simulated_rig
 from midas_cli.session.writer import SessionMetadata
@@ -79,6 +79,11 @@ def record(
                                            "scheduling priority: high = nice -10 where permitted (root, CAP_SYS_NICE "
                                            "or ulimit -e 30; else a warning), for a busy host (default: [record] "
                                            "priority in the config, else normal)."),
+    live_model: Optional[Path] = typer.Option(None, "--live-model", metavar="RUN", help="Recognise gestures "
+                                              "while recording with this causal model run (`train gestures "
+                                              "--causal`): the stream gestures_live, shown live; refused "
+                                              "before recording if the rig lacks a stream it needs "
+                                              "(default: the rig file's [live] model)."),
 ) -> None:
     """Record a session from the rig's devices into a new session folder.
 
@@ -102,10 +107,16 @@ def record(
             import_pylsl()  # pylsl missing: one error line before anything is created
         priority = default_priority() if priority is None else checked_priority(priority, "--priority")
         rig_config = _choose_rig(simulate, rig, device)
+        live_plan = None
+        live_model = live_model if live_model is not None else rig_config.live_model  # the rig's [live] model
+        if live_model is not None:
+            from midas_cli.record.live_model import plan_live_model
+
+            live_plan = plan_live_model(Path(live_model))  # a run that cannot run live: one line, nothing created
         plan = RecordPlan(_metadata(rig_config, subject, task, trial, platform, note, master_rate),
                           rig_config.device_urls(), default_sessions() if out is None else out, seed, queue_size,
                           rig_config.to_manifest(), lsl_out, foxglove=live_address, extra_streams=(events_spec(),),
-                          priority=priority)
+                          priority=priority, live_model=live_plan)
         recorder = Recorder(plan)  # every URL checked, every stream layout known; nothing on disk yet
         check_stream_names(recorder.streams)
         _exit_if_stopped_before_start(stop)
@@ -324,7 +335,7 @@ class _Display:
         if self.stop.hung_up:
             return
         self.path_shown = True
-        self._safely(lambda: err.print(_final_table(manifest)))
+        self._safely(lambda: err.print(recording_table(manifest)))
         problems = recording_problems(manifest)
         if problems:
             self._safely(lambda: err.print(Text("problems: " + "; ".join(problems), style="bold yellow"),
@@ -377,20 +388,3 @@ def _write_line(stream, text: str) -> None:
 def _duration_s(manifest: dict) -> Optional[float]:
     stop = (manifest.get("stop") or {}).get("host_ns")
     return None if stop is None else round((stop - manifest["start"]["host_ns"]) / 1e9, 3)
-
-
-def _final_table(manifest: dict) -> Table:
-    """Per stream what was recorded and what went wrong (missing in outages / unexplained,
-    dropped, corrupt, reconnects of its device)."""
-    table = Table("stream", "samples", "measured Hz", "missing (outage / other)", "dropped", "corrupt",
-                  "reconnects", "p99 latency ms",
-                  title=f"{manifest['session_id']}: {manifest['status']} ({manifest['stop_reason']})",
-                  header_style="bold")
-    for name, o in stream_outcomes(manifest).items():
-        rate = o["measured_rate_hz"]
-        missing = f"{o['missing_outage']} / {o['missing_unexplained']}" if o["missing"] else "0"
-        rate_text = "events" if o["nominal_rate_hz"] is None else "—" if rate is None else f"{rate:.2f}"
-        table.add_row(name, str(o["samples"]), rate_text,
-                      Text(missing, "yellow" if o["missing"] else ""), str(o["dropped"]), str(o["corrupt"]),
-                      str(o["reconnects"]), "—" if o["p99_latency_ms"] is None else str(o["p99_latency_ms"]))
-    return table

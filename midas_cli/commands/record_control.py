@@ -13,6 +13,7 @@ import logging
 import os
 import threading
 import time
+from dataclasses import asdict
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Callable, Optional
@@ -185,8 +186,15 @@ class RemoteControl:
                 "duration_s": None if self.started_ns is None or now_ns is None
                 else round((now_ns - self.started_ns) / 1e9, 3),
                 "limit_s": None if snapshot is None else snapshot.duration_s,
-                "health": health, "devices": devices, "markers": markers.count if markers else 0}
+                "health": health, "devices": devices, "markers": markers.count if markers else 0,
+                **({"gesture": _gesture(snapshot)} if snapshot is not None and snapshot.recognising else {})}
 
     def _where(self) -> dict[str, Any]:
         path = self.recorder.path if self.recorder is not None and self.recorder.writer is not None else None
         return {"session_path": None if path is None else str(path), "pid": os.getpid()}
+
+
+def _gesture(snapshot: RecorderSnapshot) -> dict[str, Any] | None:
+    """`ctl status`'s ``gesture`` (with --live-model): label, probability, duration_s, latency_ms, age_s;
+    None before the first frame was predicted."""
+    return None if snapshot.gesture is None else asdict(snapshot.gesture)

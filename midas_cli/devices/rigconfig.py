@@ -27,6 +27,7 @@ RIG_KEYS = {"name": str, "platform": str, "master_rate_hz": (int, float), "descr
 METADATA_KEYS = {"subject": (str, int), "task": str, "trial": int, "operator_note": str}
 DEVICE_KEYS = {"url": str, "kind": str, "description": str, "sensors": dict, "pedals": dict,
                "password_env": str, "password_file": str}
+LIVE_KEYS = {"model": str}  # [live] model = "RUN": `record --live-model RUN` (relative to the rig file)
 PASSWORD_SOURCES = ("password_env", "password_file")  # where a password is: they travel as URL parameters
 
 
@@ -55,6 +56,7 @@ class RigConfig:
     metadata: dict[str, Any] = field(default_factory=dict)
     devices: dict[str, DeviceConfig] = field(default_factory=dict)
     source: str = ""
+    live_model: str | None = None  # [live] model: the run recognised live by `midas record` (an absolute path)
 
     def device_urls(self) -> dict[str, str]:
         """Device name -> URL; ``password_env`` and ``password_file`` keys travel as URL parameters (the
@@ -91,7 +93,7 @@ def load_rig(path: Path | str) -> RigConfig:
 
 
 def parse_rig(data: dict[str, Any], source: str) -> RigConfig:
-    _check_keys(data, {"rig": dict, "metadata": dict, "devices": dict}, source, "")
+    _check_keys(data, {"rig": dict, "metadata": dict, "devices": dict, "live": dict}, source, "")
     rig = data.get("rig")
     if rig is None:
         raise ConfigError(f"{source}: missing [rig] section")
@@ -104,8 +106,11 @@ def parse_rig(data: dict[str, Any], source: str) -> RigConfig:
     devices = {name: _parse_device(name, entry, source) for name, entry in data.get("devices", {}).items()}
     if not devices:
         raise ConfigError(f"{source}: no [devices.<name>] sections")
+    live = data.get("live", {})
+    _check_keys(live, LIVE_KEYS, source, "live.")
+    model = str(Path(source).parent / Path(live["model"]).expanduser()) if "model" in live else None
     return RigConfig(rig["name"], rig["platform"], float(rig.get("master_rate_hz", 30.0)),
-                     rig.get("description", ""), metadata, devices, source)
+                     rig.get("description", ""), metadata, devices, source, model)
 
 
 def _parse_device(name: str, entry: Any, source: str) -> DeviceConfig:

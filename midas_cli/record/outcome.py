@@ -16,16 +16,19 @@ def stream_outcomes(manifest: dict[str, Any]) -> dict[str, dict[str, Any]]:
     outcomes = {}
     for name, entry in (manifest.get("streams") or {}).items():
         gaps = entry.get("seq_gaps") or {}
-        outage = int((entry.get("missing_explained") or {}).get("outage", 0) or 0)
+        explained = entry.get("missing_explained") or {}
         missing = int(gaps.get("missing", 0) or 0)
+        outage = min(int(explained.get("outage", 0) or 0), missing)
+        skipped = min(int(explained.get("skipped", 0) or 0), missing - outage)  # frames the live recognition skipped
         device = devices.get(entry.get("device"), {})
         outcomes[name] = {
             "samples": entry.get("samples"),
             "measured_rate_hz": entry.get("measured_rate_hz"),
             "nominal_rate_hz": entry.get("nominal_rate_hz"),
             "missing": missing,
-            "missing_outage": min(outage, missing),
-            "missing_unexplained": max(0, missing - outage),
+            "missing_outage": outage,
+            "missing_skipped": skipped,
+            "missing_unexplained": missing - outage - skipped,
             "gaps": int(gaps.get("count", 0) or 0),
             "dropped": int(entry.get("dropped", 0) or 0),
             "corrupt": int(entry.get("corrupt", 0) or 0),
@@ -42,6 +45,8 @@ def recording_problems(manifest: dict[str, Any]) -> list[str]:
         parts = []
         if o["missing_outage"]:
             parts.append(f"{o['missing_outage']} samples missing during device outages")
+        if o["missing_skipped"]:
+            parts.append(f"{o['missing_skipped']} frames skipped (the recognition was behind)")
         if o["missing_unexplained"]:
             parts.append(f"{o['missing_unexplained']} samples missing without an outage")
         if o["dropped"]:

@@ -25,12 +25,15 @@ from midas_cli.devices.rigconfig import check_device_name
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.record.foxglove_live import FoxgloveLive
 from midas_cli.record.link import Inbox, StopLine
+from midas_cli.record.live_model import (GESTURES_STREAM, MODEL_MODULE, RECOGNITION_DEVICE, RECOGNITION_KIND, GestureTracker,
+                                         LivePlan, check_rig_streams, gestures_spec, live_stream_extra)
 from midas_cli.record.lsl_out import lsl_out_manifest
 from midas_cli.record.messages import DataBatch, DeviceEvent
 from midas_cli.record.priority import denied_warning
-from midas_cli.record.stats import DeviceRecord, StreamStats, device_labels
+from midas_cli.record.recognition import RecognitionJob, recognition_main
+from midas_cli.record.stats import DeviceRecord, StreamStats, device_health, device_labels
 from midas_cli.record.spawn import (reap_workers, start_worker, start_worker_server, stop_signals_blocked,
-                                    worker_context)
+                                    warm_worker_server, worker_context)
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import WorkerJob, worker_main
 from midas_cli.session.schema import StreamSpec
@@ -57,6 +60,7 @@ class RecordPlan:
     foxglove: str | None = None  # HOST:PORT of a live Foxglove WebSocket server (record/foxglove_live.py)
     extra_streams: tuple[StreamSpec, ...] = ()  # written by the recorder's own process (the events stream)
     priority: str = "normal"  # the device workers' priority: "high" asks for nice -10 (record/priority.py)
+    live_model: LivePlan | None = None  # --live-model: gestures recognised while recording (record/recognition.py)
 
 
 class Recorder:
@@ -67,7 +71,11 @@ class Recorder:
         self.clock = HostClock.anchored_now()
         self.devices: dict[str, DeviceRecord] = {}
         self.streams: dict[str, StreamStats] = {}
-        self._ctx = worker_context(self._describe_devices())
+        modules = self._describe_devices()
+        self.gesture: GestureTracker | None = None
+        if plan.live_model is not None:  # a model the rig cannot feed: refused before anything is on disk
+            modules += self._add_recognition(plan.live_model)
+        self._ctx = worker_context(modules)
         self._inbox = Inbox()
         self._stop_workers = StopLine(self._ctx)
         self._lock = threading.Lock()
@@ -99,6 +107,17 @@ class Recorder:
                 self.streams[spec.name] = StreamStats(spec)
         return modules
 
+    def _add_recognition(self, plan: LivePlan) -> list[str]:
+        """The recognition as one more worker (device ``recognition``, stream ``gestures_live``); the
+        modules its process needs (preloaded by the fork server: torch is imported once)."""
+        plan = self.plan.live_model = check_rig_streams(plan, {n: s.spec for n, s in self.streams.items()}, self.devices)
+        spec = gestures_spec(plan)
+        self.devices[RECOGNITION_DEVICE] = DeviceRecord(RECOGNITION_DEVICE, RECOGNITION_KIND, plan.run,
+                                                        plan.manifest(), [spec.name])
+        self.streams[spec.name] = StreamStats(spec)
+        self.gesture = GestureTracker(plan.rate_hz)
+        return [MODEL_MODULE, recognition_main.__module__]
+
     @property
     def started_monotonic_s(self) -> float:
         """``time.monotonic()`` at the session start (the manifest's start time)."""
@@ -125,6 +144,8 @@ class Recorder:
         specs = [stats.spec for stats in self.streams.values()] + list(self.plan.extra_streams)
         if self.plan.foxglove is not None:  # a port in use is refused before anything is on disk
             self.live = FoxgloveLive(self.plan.foxglove, specs, f"midas record {self.plan.metadata.subject}")
+        if self.plan.live_model is not None:  # the model's modules (torch) load before the session starts
+            warm_worker_server(self._ctx)
         entries = {name: record.manifest_entry() for name, record in self.devices.items()}
         self.writer = SessionWriter.create(self.plan.out_root, self.plan.metadata, self.clock, entries, specs,
                                            self.plan.rig, extra={"lsl_out": lsl_out_manifest(self.plan.lsl_out)})
@@ -134,14 +155,27 @@ class Recorder:
         start_ns = self.writer.manifest["start"]["host_ns"]
         folder = self.path.resolve()
         start_worker_server()
+        needs = self.plan.live_model.streams if self.plan.live_model is not None else {}
+        feeds = {name: self._ctx.Pipe(duplex=False) for name in self.plan.devices
+                 if any(s in needs for s in self.devices[name].streams)}
         with stop_signals_blocked():
             for name, url in self.plan.devices.items():
                 files = {s: str(folder / self.streams[s].spec.file) for s in self.devices[name].streams}
                 job = WorkerJob(name, url, self.clock.anchor_ns, start_ns, self.plan.seed,
                                 stall_timeout_s=self._stall_timeout(name), parent_pid=os.getpid(),
                                 session_dir=str(folder), stream_files=files, queue_size=self.plan.queue_size,
-                                lsl_out=self.plan.lsl_out, kind=self.devices[name].kind, priority=self.plan.priority)
-                self._start_worker(name, job)
+                                lsl_out=self.plan.lsl_out, kind=self.devices[name].kind, priority=self.plan.priority,
+                                feed_columns={s: needs[s] for s in self.devices[name].streams if s in needs})
+                self._start_worker(name, worker_main, job, self._stop_workers.reader,
+                                   feeds[name][1] if name in feeds else None)
+            if self.plan.live_model is not None:
+                job = RecognitionJob(self.plan.live_model, self.clock.anchor_ns, os.getpid(),
+                                     str(folder / self.streams[GESTURES_STREAM].spec.file), folder.name,
+                                     self.plan.queue_size, self.plan.lsl_out)
+                self._start_worker(RECOGNITION_DEVICE, recognition_main, job, [r for r, _ in feeds.values()])
+        for pipe in feeds.values():  # the workers hold their ends: EOF then means they are gone
+            for end in pipe:
+                end.close()
         self._stop_workers.close_reader()
         self._bookkeeping_thread = threading.Thread(target=self._bookkeeping_loop, name="midas-bookkeeping",
                                                     daemon=True)
@@ -149,11 +183,12 @@ class Recorder:
         log.info("recording %s with devices %s", self.writer.folder, ", ".join(self.devices))
         return self.writer.folder
 
-    def _start_worker(self, device: str, job: WorkerJob) -> None:
-        """Fork the device's worker. If that fails (its fork server died), its pipe still joins the
-        inbox: it reads EOF at once, so the device is reported as crashed like a worker that died."""
+    def _start_worker(self, device: str, target: Callable[..., None], job: Any, *more: Any) -> None:
+        """Fork the device's worker: ``target(job, sender, *more)``. If that fails (its fork server died),
+        its pipe still joins the inbox: it reads EOF at once, so the device is reported as crashed like a
+        worker that died."""
         receiver, sender = self._ctx.Pipe(duplex=False)
-        process = start_worker(self._ctx, f"midas-{device}", worker_main, (job, sender, self._stop_workers.reader))
+        process = start_worker(self._ctx, f"midas-{device}", target, (job, sender, *more))
         if process is not None:
             self._processes[device] = process
         sender.close()  # the worker holds the only sending end: EOF here means it is gone
@@ -250,6 +285,8 @@ class Recorder:
         with self._lock:
             self.streams[batch.stream].add(batch, batch.committed_ns)
             self.bytes_written += batch.nbytes
+            if self.gesture is not None and batch.stream == GESTURES_STREAM:
+                self.gesture.update(batch.last_row)
         if self.live is not None:
             self.live.publish(self.streams[batch.stream].spec, [batch.last_row])
 
@@ -289,6 +326,7 @@ class Recorder:
         now_ns = self.clock.now_ns()
         with self._lock:
             devices = tuple(self._device_status(record, now_ns) for record in self.devices.values())
+            gesture = None if self.gesture is None else self.gesture.status(now_ns)
         elapsed = time.monotonic() - self._started_mono
         return RecorderSnapshot(
             session_path=str(self.path),
@@ -300,6 +338,8 @@ class Recorder:
             bytes_written=self.bytes_written,
             devices=devices,
             stopping=stopping,
+            recognising=self.gesture is not None,
+            gesture=gesture,
         )
 
     def _write_rate(self) -> float:
@@ -310,7 +350,7 @@ class Recorder:
 
     def _device_status(self, record: DeviceRecord, now_ns: int) -> DeviceStatus:
         streams = tuple(self._stream_status(self.streams[name], now_ns) for name in record.streams)
-        return DeviceStatus(record.name, record.kind, record.url, _health(record, streams), record.reconnects,
+        return DeviceStatus(record.name, record.kind, record.url, device_health(record, streams), record.reconnects,
                             record.last_error, streams, record.labels, record.warning)
 
     @staticmethod
@@ -339,6 +379,8 @@ class Recorder:
         if self.live is not None:
             self.live.close()
         extra = {name: stats.manifest_extra() for name, stats in self.streams.items()}
+        if self.plan.live_model is not None:
+            live_stream_extra(self.plan.live_model, self.devices[RECOGNITION_DEVICE].info, extra[GESTURES_STREAM])
         self.writer.manifest["devices"] = {n: r.manifest_entry() for n, r in self.devices.items()}
         try:
             manifest = self.writer.finalize(status, reason, stop_ns, extra)
@@ -356,41 +398,3 @@ class Recorder:
             self._log_handler = None
 
     _stop_deadline = float("inf")
-
-
-def _health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:
-    """ok / degraded / lost / starting / stopped, from events and the streams' freshness and rate."""
-    if record.state in ("lost", "stopped", "starting", "opening"):
-        return record.state
-    for stream in streams:
-        if stream.nominal_rate_hz is None:  # events: no rate to fall short of, silence is normal
-            continue
-        stale = max(0.5, 5.0 / stream.nominal_rate_hz)
-        if stream.last_age_s is not None and stream.last_age_s > stale:
-            return "degraded"
-        if stream.measured_rate_hz is not None and stream.measured_rate_hz < 0.9 * stream.nominal_rate_hz:
-            return "degraded"
-    return "ok"
-
-
-def run_until(recorder: Recorder, duration_s: float | None, should_stop: Callable[[], bool],
-              on_tick: Callable[[RecorderSnapshot], None], tick_s: float = 0.25) -> None:
-    """Block until ``duration_s`` after the session start has passed or ``should_stop()`` is true,
-    calling ``on_tick`` with a snapshot about every ``tick_s``."""
-    deadline = None if duration_s is None else recorder.started_monotonic_s + duration_s
-    while not should_stop():
-        if recorder.duration_reached(duration_s):
-            return
-        on_tick(recorder.snapshot(duration_s))
-        wait = tick_s if deadline is None else max(0.0, min(tick_s, deadline - time.monotonic()))
-        _sleep_watching(wait, should_stop)
-
-
-def _sleep_watching(seconds: float, should_stop: Callable[[], bool], step_s: float = 0.05) -> None:
-    """Sleep ``seconds`` in short steps, returning early once ``should_stop()`` is true."""
-    end = time.monotonic() + seconds
-    while not should_stop():
-        left = end - time.monotonic()
-        if left <= 0:
-            return
-        time.sleep(min(step_s, left))

@@ -51,6 +51,17 @@ def start_worker_server() -> None:
         forkserver.ensure_running()
 
 
+def warm_worker_server(context: Any) -> None:
+    """Start the fork server and wait until it has imported what it preloads (it forks one trivial
+    process once that is done): `record --live-model` preloads torch, seconds of imports that would
+    otherwise delay every device's first sample after the session's start."""
+    start_worker_server()
+    with stop_signals_blocked():
+        process = context.Process(target=int, name="midas-warm-up", daemon=True)
+        process.start()
+    process.join()
+
+
 @contextlib.contextmanager
 def stop_signals_blocked() -> Iterator[None]:
     """Block SIGINT/SIGTERM/SIGHUP in this thread for the duration (pending ones are delivered when

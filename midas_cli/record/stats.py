@@ -10,6 +10,7 @@ import numpy as np
 
 from midas_cli.devices.pedals import DAVINCI_PEDALS
 from midas_cli.record.messages import DataBatch
+from midas_cli.record.status import StreamStatus
 from midas_cli.session.schema import StreamSpec
 
 LATENCY_BIN_NS = 50_000  # 50 us bins
@@ -178,3 +179,18 @@ def device_labels(kind: str, rig_entry: dict[str, Any] | None) -> dict[str, str]
     if kind == "emht":
         return {str(k): str(v) for k, v in (extras.get("sensors") or {}).items()}
     return {}
+
+
+def device_health(record: DeviceRecord, streams: tuple[StreamStatus, ...]) -> str:
+    """ok / degraded / lost / starting / stopped, from events and the streams' freshness and rate."""
+    if record.state in ("lost", "stopped", "starting", "opening"):
+        return record.state
+    for stream in streams:
+        if stream.nominal_rate_hz is None:  # events: no rate to fall short of, silence is normal
+            continue
+        stale = max(0.5, 5.0 / stream.nominal_rate_hz)
+        if stream.last_age_s is not None and stream.last_age_s > stale:
+            return "degraded"
+        if stream.measured_rate_hz is not None and stream.measured_rate_hz < 0.9 * stream.nominal_rate_hz:
+            return "degraded"
+    return "ok"

@@ -43,6 +43,19 @@ class DeviceStatus:
 
 
 @dataclass(frozen=True)
+class GestureStatus:
+    """The live recognition (`record --live-model`): the current gesture and its probability, how long
+    it has lasted (s, on the frames' clock), the recognition latency of the last frame (ms, prediction
+    time - frame time) and how long ago that prediction was made (s)."""
+
+    label: str
+    probability: float
+    duration_s: float
+    latency_ms: float
+    age_s: float
+
+
+@dataclass(frozen=True)
 class RecorderSnapshot:
     session_path: str
     session_id: str
@@ -53,6 +66,8 @@ class RecorderSnapshot:
     bytes_written: int
     devices: tuple[DeviceStatus, ...]
     stopping: bool = False
+    recognising: bool = False  # --live-model
+    gesture: GestureStatus | None = None  # with --live-model, once a frame was predicted
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -35,6 +35,7 @@ from midas_cli.devices.base import Device
 from midas_cli.devices.registry import DeviceContext, create_device
 from midas_cli.errors import DeviceError, MidasError
 from midas_cli.processes import process_alive
+from midas_cli.record.feed import RowFeed
 from midas_cli.record.link import StopSignal, WorkerLink
 from midas_cli.record.lsl_out import LiveOutlets
 from midas_cli.record.messages import DataBatch, DeviceEvent
@@ -68,6 +69,7 @@ class WorkerJob:
     lsl_out: bool = False  # also publish the rows as LSL outlets (record/lsl_out.py)
     kind: str = ""  # the device's kind (the outlets' LSL type)
     priority: str = "normal"  # "high": nice -10 where permitted (record/priority.py)
+    feed_columns: dict[str, tuple[str, ...]] = field(default_factory=dict)  # --live-model: stream -> its columns
 
 
 class StreamWriteFailed(Exception):
@@ -123,6 +125,7 @@ class WorkerOutput:
         self.last_sent_ns = 0
         self.corrupt_closed = 0  # corrupt records counted by earlier connections (counters restart per open)
         self.outlets: LiveOutlets | None = None  # --lsl-out: rows are published after they are on disk
+        self.feed: RowFeed | None = None  # --live-model: the recognition's rows, offered last (record/feed.py)
 
     def open(self, files: dict[str, str]) -> None:
         """Open the existing stream files for appending (never creates one)."""
@@ -147,6 +150,8 @@ class WorkerOutput:
         pending.add(rows, committed, nbytes, committed - started, corrupt)
         if self.outlets is not None:  # published once on disk; the bookkeeping may follow later
             self.outlets.publish(spec, rows)
+        if self.feed is not None:
+            self.feed.offer(spec, rows)
         self.tick(committed)
 
     def tick(self, now_ns: int | None = None) -> None:
@@ -191,32 +196,44 @@ class WorkerOutput:
     def close(self) -> None:
         if self.outlets is not None:
             self.outlets.close()
+        if self.feed is not None:
+            self.feed.close()
         for appender in self.appenders.values():
             appender.close()
 
 
-def worker_main(job: WorkerJob, sender: Connection, stop_reader: Connection) -> None:
-    """Entry point of the worker process: the signals first (they arrive blocked, see
-    ``Recorder.start``), then its priority (before any thread starts: threads inherit it), then the
-    pipes, then ``run_worker``."""
+def ignore_stop_signals() -> None:
+    """A worker ignores the stop signals (they arrive blocked, see ``Recorder.start``): the recorder
+    tells it when to stop."""
     stop_signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     for signum in stop_signals:
         signal.signal(signum, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, stop_signals)
+
+
+def worker_main(job: WorkerJob, sender: Connection, stop_reader: Connection,
+                feed_sender: Connection | None = None) -> None:
+    """Entry point of the worker process: the signals first, then its priority (before any thread
+    starts: threads inherit it), then the pipes (``feed_sender``: rows for the live recognition), then
+    ``run_worker``."""
+    ignore_stop_signals()
     priority = apply_priority(job.priority)
     link = WorkerLink(sender, job.queue_size)
+    feed = None if feed_sender is None else RowFeed(feed_sender, job.feed_columns)
     try:
-        run_worker(job, link, StopSignal(stop_reader), priority)
+        run_worker(job, link, StopSignal(stop_reader), priority, feed)
     finally:
         link.close()
 
 
-def run_worker(job: WorkerJob, out: "queue.Queue", stop, priority: dict[str, Any] | None = None) -> None:
+def run_worker(job: WorkerJob, out: "queue.Queue", stop, priority: dict[str, Any] | None = None,
+               feed: RowFeed | None = None) -> None:
     """Process entry point; ``priority`` (what ``apply_priority`` put in force) goes with the 'opening'
-    event. A failed write is reported as a 'write_failed' event (the worker then
+    event; ``feed`` gets the rows once they are on disk. A failed write is reported as a 'write_failed' event (the worker then
     exits normally); a bug (any other exception) as a 'crashed' event with its traceback, never
     swallowed, and the worker exits with status 1."""
     output = WorkerOutput(job.device, out, HostClock(job.anchor_ns))
+    output.feed = feed
     status = 0
     try:
         output.event("opening", info={"priority": priority} if priority else None)

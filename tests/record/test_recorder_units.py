@@ -18,7 +18,8 @@ from midas_cli.console import dashboard, status_line
 from midas_cli.devices.registry import describe_device
 from midas_cli.record import worker
 from midas_cli.record.messages import DataBatch, DeviceEvent
-from midas_cli.record.recorder import Recorder, RecordPlan, _health
+from midas_cli.record.recorder import Recorder, RecordPlan
+from midas_cli.record.stats import device_health as _health
 from midas_cli.record.stats import DeviceRecord, StreamStats
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
 from midas_cli.record.worker import StreamWriteFailed, WorkerOutput, _flush
