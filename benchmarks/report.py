@@ -14,6 +14,7 @@ from report_reference import reference_section  # noqa: E402
 from report_batch import batch_section, export_section, foxglove_live_section  # noqa: E402
 from report_executor import executor_section  # noqa: E402
 from report_gestures import gestures_jigsaws_section  # noqa: E402
+from report_live import live_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 from report_timestamp import timestamp_section  # noqa: E402
 
@@ -340,6 +341,7 @@ def main() -> None:
     lines += foxglove_live_section(live) if live else ["## foxglove_live: no results yet (run its script)", ""]
     stamps = load("timestamp_error")
     lines += timestamp_section(stamps) if stamps else ["## timestamp_error: no results yet (run its script)", ""]
+    lines += live_section(load("live_gestures"), load("live_record"))
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
 
