@@ -25,10 +25,9 @@ def _per_frame(report: dict[str, Any]) -> list[str]:
 
 def _cpu(run: dict[str, Any]) -> tuple[float, str]:
     """Total steady CPU (% of one core) and the per-process split, largest first."""
-    percent = run["steady_cpu_percent_of_one_core"]["percent"]
-    parts = percent if isinstance(percent, dict) else {"all": percent}
-    total = sum(float(v) for v in parts.values())
-    split = ", ".join(f"{k} {float(v):.1f}" for k, v in sorted(parts.items(), key=lambda kv: -float(kv[1])))
+    parts = dict(run["steady_cpu_percent_of_one_core"]["percent"])
+    total = float(parts.pop("total"))
+    split = ", ".join(f"{k} {float(v):.1f}" for k, v in sorted(parts.items(), key=lambda kv: -float(kv[1])) if v)
     return total, split
 
 
@@ -39,7 +38,7 @@ def _recording(report: dict[str, Any]) -> list[str]:
            "t_host_ns` of each `gestures_live` row (the frame's time to its prediction, including the wait for the "
            "samples after the frame that its features need).", "",
            "| live model | load before–after | CPU total (% of a core) | CPU per process | worst stream p99 (ms) | "
-           "lost / dropped | recognition frames | recognition latency p50 / p99 (ms) | skipped frames |",
+           "sent − recorded + dropped | recognition frames | recognition latency p50 / p99 (ms) | skipped frames |",
            "|---|---|---|---|---|---|---|---|---|"]
     for run in report["runs"]:
         total, split = _cpu(run)
@@ -54,8 +53,26 @@ def _recording(report: dict[str, Any]) -> list[str]:
                    f"{lat.get('frames', '—') if run['live_model'] else '—'} | "
                    f"{latency} | "
                    f"{live.get('frames_skipped', '—') if run['live_model'] else '—'} |")
-    return out + [f"Goals (issue 28): recording p99 <= {GOAL_RECORD_P99_MS:g} ms with zero loss, recorder + workers "
-                  f"+ recognition <= {GOAL_CPU_PERCENT:g} % of one core.", ""]
+    return out + ["", *_verdict(report)]
+
+
+def _verdict(report: dict[str, Any]) -> list[str]:
+    """Issue 28's recording goals against the runs with the model."""
+    on = [run for run in report["runs"] if run["live_model"]]
+    off = [run for run in report["runs"] if not run["live_model"]]
+    if not on:
+        return []
+    p99 = max(max(s["latency_ms"]["p99"] for s in run["streams"].values()) for run in on)
+    cpu = max(_cpu(run)[0] for run in on)
+    base = f" (without the model: {max(_cpu(run)[0] for run in off):.1f} %)" if off else ""
+    worker = max(float(run["steady_cpu_percent_of_one_core"]["percent"].get("worker gestures_live", 0)) for run in on)
+    return [f"Goals (issue 28) with the model: recording p99 <= {GOAL_RECORD_P99_MS:g} ms: "
+            f"{'met' if p99 <= GOAL_RECORD_P99_MS else 'not met'} (worst stream {p99:g} ms); recorder + workers + "
+            f"recognition <= {GOAL_CPU_PERCENT:g} % of one core: {'met' if cpu <= GOAL_CPU_PERCENT else 'not met'} "
+            f"({cpu:.1f} %{base}; the recognition worker itself {worker:.1f} %). The recognition latency is mostly "
+            "waiting: a frame's features need the samples after it (velocities by central differences, as training "
+            "computed them), so a frame is predicted one video period or more after its time; the computation itself "
+            "is the per-frame table above.", ""]
 
 
 def live_section(per_frame: dict[str, Any] | None, recording: dict[str, Any] | None) -> list[str]:
