@@ -48,6 +48,10 @@ EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=
 CAUSAL_OPT = typer.Option(False, "--causal", rich_help_panel=TRAINING_PANEL, help="Causal sequence models (frame t "
                           "sees frames <= t only: causal convolutions, masked attention), trained as such: the models "
                           "`record --live-model` can run. Per-frame baselines are causal as they are.")
+MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING_PANEL, help="Merge predicted "
+                                "segments shorter than this into their longer neighbour: seconds, none, or auto "
+                                "(default): the 5th percentile of the training split's gesture lengths (none for "
+                                "--causal). The metrics without it are kept as raw.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -74,19 +78,21 @@ class Training:
     epochs: Optional[int]
     seed: int
     causal: bool
+    min_segment: str
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
         from midas_cli.models.train import TrainConfig
 
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
-                           causal=self.causal, **fields)
+                           causal=self.causal, min_segment=self.min_segment, **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
 training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
-    ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool)))
+    ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
+    ("min_segment", MIN_SEGMENT_OPT, str)))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:

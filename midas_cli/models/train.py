@@ -20,10 +20,8 @@ generators).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import subprocess
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
@@ -31,11 +29,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from midas_cli import __version__
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
+from midas_cli.models import postprocess
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
 from midas_cli.models.plots import write_confusion_png, write_timeline_png
+from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
 from midas_cli.models.splits import PARTS, Split, instances, make_split
 from midas_cli.models.torch_io import load_weights_only
@@ -64,9 +63,11 @@ class TrainConfig:
     shuffle_labels: bool = False  # control: permute the classes of the training gesture instances
     model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
     causal: bool = False  # sequence models see frames <= t only (per-frame baselines always do)
+    min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
+        postprocess.check(self.min_segment)
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -145,10 +146,11 @@ def seeded_model(dataset: GestureDataset, config: TrainConfig) -> tuple[torch.nn
 def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, config: TrainConfig,
                model: torch.nn.Module, model_cfg: dict, history: list[dict], device: torch.device) -> RunResult:
     """Evaluate the trained ``model`` on the test (and validation) units and write the run folder."""
-    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device)}
+    minimum = postprocess.min_frames(config.min_segment, fold.parts["train"].y, dataset.trials[0].rate_hz, config.causal)
+    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum)}
     if fold.parts["val"].units:
-        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device)
-    run = _run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history)
+        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum)
+    run = {**_run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history), "min_segment_frames": minimum}
     _write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
     return RunResult(out_dir, result, history)
 
@@ -173,7 +175,7 @@ def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pat
                            bool(saved.get("model_config", {}).get("causal", False)))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
-    result = {"test": _evaluate(model, test, dataset.classes, device)}
+    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)))}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
     _write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
@@ -260,21 +262,6 @@ def load_checkpoint(path: Path) -> dict:
     return saved
 
 
-def code_version() -> dict:
-    """midas version, sha256 of the model package sources, and the git commit when available."""
-    package = Path(__file__).resolve().parent
-    digest = hashlib.sha256()
-    for source in sorted(package.glob("*.py")):
-        digest.update(source.name.encode() + source.read_bytes())
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=package, capture_output=True, text=True,
-                                timeout=5).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        commit = None
-    return {"midas": __version__, "models_sha256": digest.hexdigest(), "git_commit": commit,
-            "torch": str(torch.__version__)}
-
-
 def fit_normaliser(dataset: GestureDataset, train_units: list[tuple[str, int, int]],
                    order: list[str]) -> Normaliser | None:
     """The training-set normaliser for ``normalise == "train"``; None otherwise (per trial or none)."""
@@ -326,9 +313,15 @@ def frame_accuracy(model: torch.nn.Module, seqs: Sequences, device: torch.device
     return float((np.concatenate(preds)[keep] == truth[keep]).mean()) if keep.any() else 0.0
 
 
-def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], device: torch.device) -> dict:
-    preds = predict(model, seqs, device)
-    return {**M.evaluate(preds, seqs.y, classes), "predictions": preds}
+def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], device: torch.device,
+              min_segment_frames: int = 0) -> dict:
+    """Metrics of the predictions after the clean-up (``raw``: before it, where there was one)."""
+    raw = predict(model, seqs, device)
+    if not min_segment_frames:
+        return {**M.evaluate(raw, seqs.y, classes), "predictions": raw}
+    preds = [postprocess.merge_short_segments(p, min_segment_frames) for p in raw]
+    return {**M.evaluate(preds, seqs.y, classes), "min_segment_frames": min_segment_frames,
+            "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
 
 
 def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | None, config: TrainConfig,
@@ -344,7 +337,7 @@ def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | 
             "split": split.to_json(), "normalise": dataset.config.normalise,
             "normaliser": normaliser.to_json() if normaliser is not None else None,
             "recipe": {k: getattr(config, k) for k in RECIPES[config.model]},
-            "data_fingerprint": dataset.fingerprint(), "code": code_version(), "history": history}
+            "data_fingerprint": dataset.fingerprint(), "code": code_version(torch.__version__), "history": history}
 
 
 def _write_run(out_dir: Path, run: dict, result: dict, model: torch.nn.Module, dataset: GestureDataset,

@@ -1,0 +1,79 @@
+"""The offline clean-up of predictions (--min-segment): short predicted segments merged into their longer
+neighbour, the minimum taken from the training split's gesture lengths, raw metrics kept beside."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from helpers.cli import midas
+from helpers.gesture_sessions import write_gesture_session
+from midas_cli.errors import ConfigError
+from midas_cli.models import postprocess
+
+
+def test_short_segments_go_to_their_longer_neighbour_shortest_first():
+    pred = np.array([0, 0, 0, 1, 0, 0, 0, 2, 2, 2, 2, 3, 2])
+    assert postprocess.merge_short_segments(pred, 2).tolist() == [0] * 7 + [2] * 6
+    # shortest first, the leftmost of equals: [1 1] has only a right neighbour; then [2 2 2 2] is long enough
+    assert postprocess.merge_short_segments(np.array([1, 1, 2, 2, 3, 3, 3, 3, 3]), 3).tolist() == [2] * 4 + [3] * 5
+    # a 2-frame segment between a 3-frame and a 4-frame one joins the longer; a tie goes left
+    assert postprocess.merge_short_segments(np.array([1, 1, 1, 2, 2, 3, 3, 3, 3]), 3).tolist() == [1] * 3 + [3] * 6
+    assert postprocess.merge_short_segments(np.array([1, 1, 1, 2, 3, 3, 3]), 2).tolist() == [1] * 4 + [3] * 3
+    assert postprocess.merge_short_segments(np.array([1, 1, 2, 2]), 3).tolist() == [2, 2, 2, 2]  # all short: one left
+    assert postprocess.merge_short_segments(pred, 1).tolist() == pred.tolist()  # 1 frame: nothing to merge
+    assert postprocess.merge_short_segments(np.array([4, 4]), 10).tolist() == [4, 4]  # one segment stays
+
+
+def test_the_minimum_comes_from_the_training_labels_seconds_or_nothing():
+    labels = [np.array([0] * 10 + [1] * 20 + [-1] * 3 + [2] * 40), np.array([1] * 30 + [0] * 50)]
+    lengths = [10, 20, 40, 30, 50]  # unlabelled runs (-1) are no gesture
+    assert postprocess.min_frames("auto", labels, 10.0, causal=False) == int(np.floor(np.percentile(lengths, 5)))
+    assert postprocess.min_frames("auto", labels, 10.0, causal=True) == 0  # a live model cannot look ahead
+    assert postprocess.min_frames("1.5", labels, 10.0, causal=False) == 15
+    assert postprocess.min_frames("none", labels, 10.0, causal=False) == 0
+    for bad in ("-1", "0", "fast", "nan"):
+        with pytest.raises(ConfigError, match="--min-segment"):
+            postprocess.check(bad)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("postprocess") / "data"
+    for i, (user, trial) in enumerate((u, t) for u in "BC" for t in (1, 2)):
+        write_gesture_session(root, user, trial, n_frames=150, seed=i)
+    return root
+
+
+def _shortest_run(path: Path) -> int:
+    pred = pd.read_csv(path, dtype=str)["prediction"].to_numpy()
+    starts = np.r_[0, np.flatnonzero(pred[1:] != pred[:-1]) + 1]
+    lengths = np.diff(np.r_[starts, len(pred)])
+    return int(lengths.min()) if len(lengths) > 1 else len(pred)
+
+
+def test_train_cleans_up_by_default_keeps_raw_and_re_evaluates_the_same(data, tmp_path):
+    args = ("train", "gestures", str(data), "--modalities", "emht", "--features", "pos,vel", "--epochs", "1",
+            "--split", "louo", "--fold", "0", "--json")
+    run = midas(*args, "--out", str(tmp_path / "run"), check=True)
+    test = json.loads((tmp_path / "run" / "metrics.json").read_text(encoding="utf-8"))["test"]
+    minimum = test["min_segment_frames"]
+    assert minimum > 1 and set(test["raw"]) == set(test["summary"])
+    record = json.loads((tmp_path / "run" / "run.json").read_text(encoding="utf-8"))
+    assert record["train_config"]["min_segment"] == "auto" and record["min_segment_frames"] == minimum
+    for trial in (tmp_path / "run" / "predictions").glob("*.csv"):  # LOUO: each test trial is one sequence
+        assert _shortest_run(trial) >= minimum
+    again = midas("train", "gestures", str(data), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
+                  "--out", str(tmp_path / "eval"), "--json", check=True)
+    assert json.loads(again.stdout)["test"] == json.loads(run.stdout)["test"]
+
+    plain = midas(*args, "--min-segment", "none", "--out", str(tmp_path / "plain"), check=True)
+    assert "raw" not in json.loads((tmp_path / "plain" / "metrics.json").read_text(encoding="utf-8"))["test"]
+    assert json.loads(plain.stdout)["test"]["accuracy"] == pytest.approx(test["raw"]["accuracy"])
+
+    bad = midas(*args, "--min-segment", "-2", "--out", str(tmp_path / "bad"))
+    assert bad.returncode == 2 and "--min-segment" in bad.stderr and not (tmp_path / "bad" / "run.json").exists()
