@@ -13,7 +13,7 @@ from report_align import align_section  # noqa: E402
 from report_reference import reference_section  # noqa: E402
 from report_batch import batch_section, export_section, foxglove_live_section  # noqa: E402
 from report_executor import executor_section  # noqa: E402
-from report_gestures import gestures_jigsaws_section  # noqa: E402
+from report_gestures import gestures_jigsaws_section, rescored_section  # noqa: E402
 from report_live import live_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
 from report_timestamp import timestamp_section  # noqa: E402
@@ -330,6 +330,8 @@ def main() -> None:
             lines += reference_section(load("mstcn_reference"))
         if name == "train" and load("gestures_jigsaws"):
             lines += gestures_jigsaws_section(load("gestures_jigsaws"))
+            rescored = load("gestures_jigsaws_rescored")
+            lines += rescored_section(rescored) if rescored else []
     lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     startup = load("startup")
     lines += startup_section(startup) if startup else ["## startup: no results yet (run its script)", ""]

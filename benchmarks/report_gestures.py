@@ -127,3 +127,26 @@ def gestures_jigsaws_section(report: dict[str, Any]) -> list[str]:
     if missing:
         out += [f"Not yet measured (at the defaults, all folds): {', '.join(missing)}.", ""]
     return out + [f"* {note}" for note in report.get("notes", [])] + ([""] if report.get("notes") else [])
+
+
+def rescored_table(rows: list[dict[str, Any]]) -> list[str]:
+    """rescore_jigsaws.py's rows: one per (task, run, --min-segment setting)."""
+    out = ["| task | run | --min-segment | folds | min frames per fold | acc | edit | F1@10 | F1@25 | F1@50 | video acc "
+           "| video edit |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        p, v = r["pooled"], r["per_video"]
+        out.append(f"| {r['task']} | {r['run_dir'].rstrip('/').rsplit('/', 1)[-1]} | {r['setting']} | {r['folds']} | "
+                   f"{' '.join(map(str, r['min_segment_frames']))} | {100 * p['accuracy']:.1f} | {p['edit']:.1f} | "
+                   f"{p['f1@10']:.1f} | {p['f1@25']:.1f} | {p['f1@50']:.1f} | {100 * v['accuracy']:.1f} | "
+                   f"{v['edit']:.1f} |")
+    return out
+
+
+def rescored_section(report: dict[str, Any]) -> list[str]:
+    """The clean-up's effect (``--min-segment``) on the development runs' raw predictions."""
+    return ["### The offline clean-up on the development tasks (`rescore_jigsaws.py`)", "",
+            f"Rendered from `results/gestures_jigsaws_rescored.json` ({report['machine']['date_utc'][:10]}): the raw "
+            "predictions of the runs above re-scored with `--min-segment` settings (no training again; each fold's "
+            "minimum from its own training split, as `train gestures` computes it; `auto` = the 5th percentile of "
+            "the training gestures' lengths, the default since it was chosen here). acc in %.", "",
+            *rescored_table(report["rows"]), ""]
