@@ -127,7 +127,7 @@ def test_the_live_screen_shows_the_current_gesture(trained, tmp_path: Path) -> N
     name = f"midas-test-live-{os.getpid()}"
     command = (f"{sys.executable} -m midas_cli record --simulate --duration 60 --out {tmp_path} "
                f"--live-model {run} {' '.join(META)}")
-    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "24", command], check=True)
+    subprocess.run(["tmux", "-L", name, "new-session", "-d", "-s", name, "-x", "80", "-y", "24", command], check=True)
     try:
         screen = _wait_for_screen(name, lambda text: "gesture G" in text and "P9" in text)
         line = next(line for line in screen.splitlines() if line.startswith("gesture "))
@@ -137,12 +137,12 @@ def test_the_live_screen_shows_the_current_gesture(trained, tmp_path: Path) -> N
         lines = screen.splitlines()
         top = next(i for i, text in enumerate(lines) if text.startswith("● REC elapsed"))  # under the socket's line
         assert "latency" in line and max(len(text) for text in lines[top:]) <= 80, screen
-        subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "C-c"], check=True)
         _wait_for_screen(name, lambda _: _status(tmp_path) == "complete")
         rows = Session.open(next(p for p in tmp_path.iterdir() if p.is_dir())).read_stream("gestures_live")
         assert len(rows) > 0
     finally:
-        subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+        subprocess.run(["tmux", "-L", name, "kill-session", "-t", name], capture_output=True)
 
 
 def _status(out: Path) -> str | None:
@@ -156,7 +156,7 @@ def _wait_for_screen(name: str, ok, timeout_s: float = 90) -> str:
     screen = ""
     while time.monotonic() < deadline:
         time.sleep(0.5)
-        screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", "-t", name], capture_output=True,
+        screen = subprocess.run(["tmux", "-L", name, "capture-pane", "-p", "-J", "-t", name], capture_output=True,
                                 text=True).stdout
         if ok(screen):
             return screen

@@ -274,14 +274,14 @@ def _check_layout(screen: str, width: int, session: Path) -> None:
 def test_live_tui_at_120x40_shows_everything(tmp_path: Path) -> None:
     name = f"midas-test-wide-{os.getpid()}"
     command = f"{sys.executable} -m midas_cli record --simulate --duration 60 --out {tmp_path} {' '.join(META)}"
-    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "120", "-y", "40", command], check=True)
+    subprocess.run(["tmux", "-L", name, "new-session", "-d", "-s", name, "-x", "120", "-y", "40", command], check=True)
     try:
         screen = _wait_for_screen(name, "P9", lambda text: not _unhealthy_rows(text))
         _check_layout(screen, 120, _only_session(tmp_path))
-        subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "C-c"], check=True)
         _wait_for_screen(name, "", lambda _: Session.open(_only_session(tmp_path)).status == "complete")
     finally:
-        subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+        subprocess.run(["tmux", "-L", name, "kill-session", "-t", name], capture_output=True)
 
 
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux is not installed (.ci/run installs it)")
@@ -290,23 +290,23 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
     name = f"midas-test-{os.getpid()}"
     command = (f"{sys.executable} -m midas_cli record --simulate --duration 60 --out {tmp_path} "
                f"{' '.join(META)}; sleep 30")
-    subprocess.run(["tmux", "new-session", "-d", "-s", name, "-x", "80", "-y", "24", command], check=True)
+    subprocess.run(["tmux", "-L", name, "new-session", "-d", "-s", name, "-x", "80", "-y", "24", command], check=True)
     try:
         screen = _wait_for_screen(name, "elapsed 00:00:04")
         # a busy host can stall a worker for a moment (the row then says degraded, honestly): wait for a
         # screen where every device is healthy rather than judge the first one
         screen = _wait_for_screen(name, "", lambda text: not _unhealthy_rows(text))
         _check_layout(screen, 80, _only_session(tmp_path))
-        subprocess.run(["tmux", "send-keys", "-t", name, "m"], check=True)  # a marker: m, text, Enter
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "m"], check=True)  # a marker: m, text, Enter
         _wait_for_screen(name, "Enter saves, Esc cancels")
-        subprocess.run(["tmux", "send-keys", "-t", name, "-l", 'suture 1, "knot"'], check=True)
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "-l", 'suture 1, "knot"'], check=True)
         _wait_for_screen(name, 'marker: suture 1, "knot"')
-        subprocess.run(["tmux", "send-keys", "-t", name, "Enter"], check=True)
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "Enter"], check=True)
         _wait_for_screen(name, "markers 1, last: suture 1")
-        subprocess.run(["tmux", "send-keys", "-t", name, "m"], check=True)  # a second one, never saved
-        subprocess.run(["tmux", "send-keys", "-t", name, "-l", "half typed"], check=True)
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "m"], check=True)  # a second one, never saved
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "-l", "half typed"], check=True)
         _wait_for_screen(name, "marker: half typed")
-        subprocess.run(["tmux", "send-keys", "-t", name, "C-c"], check=True)
+        subprocess.run(["tmux", "-L", name, "send-keys", "-t", name, "C-c"], check=True)
         screen = _wait_for_screen(name, str(tmp_path), history=True)  # the summary scrolls a 24-line screen
         assert "marker being typed was not saved (the recording stopped before Enter): half typed" in screen
         session = Session.open(_only_session(tmp_path))
@@ -315,7 +315,7 @@ def test_live_tui_in_a_terminal_shows_every_device_rate_and_stops_on_ctrl_c(tmp_
         assert events["text"].tolist() == ['suture 1, "knot"'] and events["source"].tolist() == ["key"]
         assert midas("session", "verify", str(session.path)).returncode == 0
     finally:
-        subprocess.run(["tmux", "kill-session", "-t", name], capture_output=True)
+        subprocess.run(["tmux", "-L", name, "kill-session", "-t", name], capture_output=True)
 
 
 def _unhealthy_rows(screen: str) -> list[str]:
@@ -336,12 +336,13 @@ def _unhealthy_rows(screen: str) -> list[str]:
 
 def _wait_for_screen(name: str, text: str, ok=None, timeout_s: float = 30, history: bool = False) -> str:
     """The first screen showing ``text`` (and satisfying ``ok``, when given) within ``timeout_s``; with
-    ``history``, the lines scrolled off the top too."""
+    ``history``, the lines scrolled off the top too. Each tmux test runs its own tmux server (``-L name``):
+    a server still exiting after another test's last session was killed refuses a new session."""
     deadline = time.monotonic() + timeout_s
     screen = ""
     while time.monotonic() < deadline:
         time.sleep(0.5)
-        screen = subprocess.run(["tmux", "capture-pane", "-p", "-J", *(["-S", "-"] if history else []), "-t", name],
+        screen = subprocess.run(["tmux", "-L", name, "capture-pane", "-p", "-J", *(["-S", "-"] if history else []), "-t", name],
                                 capture_output=True, text=True).stdout
         if text in screen and (ok is None or ok(screen)):
             return screen
