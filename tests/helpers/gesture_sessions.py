@@ -83,3 +83,11 @@ def write_gesture_session(root: Path, subject: str, trial: int, n_frames: int = 
 
 def write_gesture_dataset(root: Path, n_trials: int = 4, subjects: int = 2, **kwargs) -> list[Path]:
     return [write_gesture_session(root, str(1 + i % subjects), 1 + i, seed=i, **kwargs) for i in range(n_trials)]
+
+
+def write_two_users(root: Path, n_frames: int) -> Path:
+    """Users B and C with trials 1 and 2 each (four sessions, seeds 0..3) under ``root``: the smallest
+    folder a leave-one-user-out run needs; returns ``root``."""
+    for i, (user, trial) in enumerate((u, t) for u in "BC" for t in (1, 2)):
+        write_gesture_session(root, user, trial, n_frames=n_frames, seed=i)
+    return root

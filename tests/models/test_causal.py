@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from helpers.cli import midas
-from helpers.gesture_sessions import write_gesture_session
+from helpers.gesture_sessions import write_two_users
 from midas_cli.errors import ConfigError
 from midas_cli.models import cv
 from midas_cli.models.train import build_model
@@ -58,10 +58,7 @@ def test_a_per_frame_baseline_has_no_causal_option_and_stays_as_it_is():
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("causal") / "data"
-    for i, (user, trial) in enumerate((u, t) for u in "BC" for t in (1, 2)):
-        write_gesture_session(root, user, trial, n_frames=120, seed=i)
-    return root
+    return write_two_users(tmp_path_factory.mktemp("causal") / "data", n_frames=120)
 
 
 def test_train_gestures_causal_records_it_and_re_evaluates_the_same(data, tmp_path):

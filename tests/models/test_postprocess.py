@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from helpers.cli import midas
-from helpers.gesture_sessions import write_gesture_session
+from helpers.gesture_sessions import write_two_users
 from midas_cli.errors import ConfigError
 from midas_cli.models import postprocess
 
@@ -43,10 +43,7 @@ def test_the_minimum_comes_from_the_training_labels_seconds_or_nothing():
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("postprocess") / "data"
-    for i, (user, trial) in enumerate((u, t) for u in "BC" for t in (1, 2)):
-        write_gesture_session(root, user, trial, n_frames=150, seed=i)
-    return root
+    return write_two_users(tmp_path_factory.mktemp("postprocess") / "data", n_frames=150)
 
 
 def _shortest_run(path: Path) -> int:
