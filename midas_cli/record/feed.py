@@ -25,7 +25,7 @@ import numpy as np
 
 from midas_cli.session.schema import StreamSpec
 
-FEED_EVERY_S = 0.01
+FEED_EVERY_S = 0.05
 FEED_QUEUE = 1024  # batches of rows (one per device read) waiting for the feeder thread
 CLOSE_TIMEOUT_S = 2.0
 _CLOSE = object()

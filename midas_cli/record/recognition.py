@@ -29,11 +29,12 @@ from midas_cli.processes import process_alive
 from midas_cli.record.link import WorkerLink
 from midas_cli.record.live_model import LivePlan, RECOGNITION_DEVICE, RECOGNITION_KIND, gestures_spec
 from midas_cli.record.lsl_out import LiveOutlets
-from midas_cli.record.worker import StreamWriteFailed, WorkerOutput, ignore_stop_signals
+from midas_cli.record.worker import StreamWriteFailed, WorkerOutput, freeze_inherited_objects, ignore_stop_signals
 
 log = logging.getLogger(__name__)
 
 POLL_S = 0.05
+ALIVE_EVERY_S = 0.5  # how often the loop checks the recorder is still there (a /proc read)
 WARN_EVERY_S = 5.0  # at most one "frames skipped" warning this often
 
 
@@ -50,6 +51,7 @@ class RecognitionJob:
 
 def recognition_main(job: RecognitionJob, sender: Connection, feeds: list[Connection]) -> None:
     """Entry point of the recognition process (``feeds``: one pipe per device worker that feeds it)."""
+    freeze_inherited_objects()
     ignore_stop_signals()
     link = WorkerLink(sender, job.queue_size)
     output = WorkerOutput(RECOGNITION_DEVICE, link, HostClock(job.anchor_ns), every_s=0.0)
@@ -101,7 +103,13 @@ class Recognition:
     def run(self, model: Any, feeds: list[Connection]) -> dict[str, Any]:
         """Feed ``model`` (a ``LiveFeed``) until every feed has closed; the counts for the manifest."""
         open_feeds = list(feeds)
-        while open_feeds and process_alive(self.job.parent_pid):
+        clock = self.output.clock
+        checked_ns = clock.now_ns()
+        while open_feeds:
+            if clock.now_ns() - checked_ns >= ALIVE_EVERY_S * 1e9:
+                if not process_alive(self.job.parent_pid):
+                    break
+                checked_ns = clock.now_ns()
             for conn in wait(open_feeds, POLL_S):
                 self._read(conn, model, open_feeds)
             self._predict(model)

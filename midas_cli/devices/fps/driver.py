@@ -28,7 +28,7 @@ from midas_cli.devices.fps.protocol import (
     MAX_RATE_HZ, PROTO_VERSION, Banner, LineDecoder, Message, Reply, Sample, encode_command, max_rate_hz, rate_fits,
 )
 from midas_cli.devices.pedals import PedalStateTracker, PedalThresholds
-from midas_cli.devices.usbserial import port_fd, prepare_port
+from midas_cli.devices.usbserial import port_fd, prepare_port, read_available
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
 
@@ -96,6 +96,7 @@ class FpsDevice(Device):
         self.tracker = PedalStateTracker(self.thresholds)
         self.decoder = LineDecoder()
         self._serial: serial.SerialBase | None = None
+        self._fd: int | None = None  # the port's descriptor (read_available), None for loop:// and the like
         self._read_ns = 0  # host time when the last read returned
         self.counters.extra["seq_rebased"] = 0
 
@@ -127,7 +128,8 @@ class FpsDevice(Device):
                                                  write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"{self.name}: cannot open {self.port}: {exc} (is the board plugged in?)") from exc
-        adapter = prepare_port(self.port, port_fd(self._serial))
+        self._fd = port_fd(self._serial)
+        adapter = prepare_port(self.port, self._fd)
         try:
             return {**self._handshake(), "usb_serial": adapter.as_dict()}
         except DeviceError:
@@ -184,9 +186,9 @@ class FpsDevice(Device):
 
     def _receive(self) -> list[Message]:
         try:
-            data = self._serial.read(max(1, self._serial.in_waiting))
-            if data and self._serial.in_waiting:  # woken by a line's first byte: take the rest in this pass
-                data += self._serial.read(self._serial.in_waiting)
+            data = read_available(self._serial, self._fd, READ_TIMEOUT_S)
+            if data:  # woken by a line's first byte: take the rest in this pass
+                data += read_available(self._serial, self._fd, 0.0)
             self._read_ns = self.clock.now_ns()
         except (serial.SerialException, OSError) as exc:
             raise DeviceError(f"{self.name}: lost {self.port}: {exc}") from exc
@@ -204,7 +206,7 @@ class FpsDevice(Device):
         self._request(encode_command("START"), lambda m: _is_reply(m, "START"))
 
     def close(self) -> None:
-        port, self._serial = self._serial, None
+        port, self._serial, self._fd = self._serial, None, None
         if port is None:
             return
         try:

@@ -34,7 +34,6 @@ e.g. pyserial's ``socket://``, always wait for the next record).
 from __future__ import annotations
 
 import logging
-import select
 import time
 from typing import Any
 
@@ -43,7 +42,7 @@ import serial
 from midas_cli.devices.base import Device, DeviceContext, DeviceUrl
 from midas_cli.devices.emht_layout import emht_stream, first_seq, resume_seq
 from midas_cli.devices.trakstar import protocol as fob
-from midas_cli.devices.usbserial import prepare_port
+from midas_cli.devices.usbserial import prepare_port, read_available
 from midas_cli.errors import ConfigError, DeviceError
 from midas_cli.session.schema import StreamSpec
 
@@ -286,9 +285,7 @@ class FobEmHT(Device):
     def _read_chunk(self) -> bytes:
         """What arrived; b'' when nothing came within 5 ms, or (a record pending) within the idle window."""
         wait_s = self._idle_wait_s(time.monotonic())
-        if wait_s is not None and not select.select([self._fd], [], [], min(wait_s, READ_TIMEOUT_S))[0]:
-            return b""
-        return self._port.read(max(1, self._port.in_waiting))
+        return read_available(self._port, self._fd, READ_TIMEOUT_S if wait_s is None else min(wait_s, READ_TIMEOUT_S))
 
     def _idle_wait_s(self, now: float) -> float | None:
         """Seconds of the idle window still to wait for the pending record (0.0: the line has been idle long
