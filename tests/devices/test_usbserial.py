@@ -223,3 +223,44 @@ def test_rig_check_on_an_emulator_pty_reports_it_is_not_a_usb_adapter(tmp_path: 
     assert checked.state == "ok", checked.error
     assert checked.as_dict()["info"]["usb_serial"]["adapter"] == "not usb"
     assert checked.as_dict()["info"]["usb_serial"]["low_latency"] == "unsupported"
+
+
+# -- read_available: the drivers' read of a port's descriptor ---------------------------------------
+def test_read_available_takes_everything_waiting_waits_at_most_its_timeout_and_raises_when_the_port_goes() -> None:
+    import serial
+
+    master, slave = pty.openpty()
+    port = serial.Serial(os.ttyname(slave), timeout=0.005)
+    fd = usbserial.port_fd(port)
+    try:
+        assert fd is not None
+        os.write(master, b"A,1\r\n" * 300)  # 1500 bytes waiting: one call takes them all
+        got = b""
+        while len(got) < 1500:
+            chunk = usbserial.read_available(port, fd, 1.0)
+            assert chunk, "data was waiting"
+            got += chunk
+        assert got == b"A,1\r\n" * 300
+        assert usbserial.read_available(port, fd, 0.01) == b""  # nothing more: b'' once the timeout passes
+        os.close(master)  # the device side vanishes: an error the drivers turn into "lost", never b'' forever
+        master = -1
+        with pytest.raises((OSError, serial.SerialException)):
+            usbserial.read_available(port, fd, 1.0)
+    finally:
+        port.close()
+        os.close(slave)
+        if master >= 0:
+            os.close(master)
+
+
+def test_read_available_falls_back_to_pyserial_for_ports_without_a_descriptor() -> None:
+    import serial
+
+    port = serial.serial_for_url("loop://", timeout=0.005)
+    try:
+        assert usbserial.port_fd(port) is None
+        port.write(b"hello")
+        assert usbserial.read_available(port, None, 0.005) == b"hello"
+        assert usbserial.read_available(port, None, 0.005) == b""
+    finally:
+        port.close()
