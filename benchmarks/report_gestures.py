@@ -35,14 +35,17 @@ def _minutes(row: dict[str, Any]) -> str:
 
 def _title(row: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     """The model's title; a variant's name and its extra train options after it; a causal row's says so,
-    with its pooled accuracy minus the offline row's (same task, epochs and variant) where that is there."""
+    with its pooled accuracy minus the offline row's (same task and epochs; the same variant, else the
+    same inputs)."""
     title = TITLES[row["model"]]
     if row.get("variant"):
         title += f" [{row['variant']}: `{row['train_args']}`]"
     if not row.get("causal"):
         return title
     offline = [r for r in rows if r["model"] == row["model"] and not r.get("causal")
-               and r["epochs_option"] == row["epochs_option"] and r.get("variant") == row.get("variant")]
+               and r["epochs_option"] == row["epochs_option"]
+               and (r.get("variant") == row.get("variant") or r.get("inputs") == row.get("inputs"))]
+    offline.sort(key=lambda r: r.get("variant") != row.get("variant"))  # the same variant first, else the same inputs
     delta = (f"; acc {100 * (row['pooled']['accuracy'] - offline[0]['pooled']['accuracy']):+.1f} vs offline"
              if offline else "")
     return f"{title} (causal{delta})"
@@ -86,8 +89,10 @@ def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
 
 
 def _not_measured(report: dict[str, Any]) -> list[str]:
+    defaults = {json.dumps(r.get("inputs"), sort_keys=True) for r in report["rows"] if not r.get("variant")}
     have = {(r["task"], r["model"]) for r in report["rows"]
-            if r["epochs_option"] is None and not r.get("variant") and not r["missing_folds"] and not r.get("causal")}
+            if r["epochs_option"] is None and not r["missing_folds"] and not r.get("causal")
+            and (not r.get("variant") or json.dumps(r.get("inputs"), sort_keys=True) in defaults)}
     return [f"{report['tasks'][t]['title']} {TITLES[m]}" for t in report["tasks"] for m in ORDER if (t, m) not in have]
 
 
