@@ -20,11 +20,12 @@ generators).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -103,15 +104,15 @@ ProgressFn = Callable[[int, int, dict], None]
 def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: TrainConfig, out_dir: Path,
               progress: ProgressFn | None = None) -> RunResult:
     """Build the data, train, evaluate on the test units and write the run folder."""
-    out_dir = new_run_dir(out_dir)
-    config = config.resolved()
-    device = torch_device(config.device)
-    dataset = build_dataset(sessions, data_config)
-    fold = prepare_fold(dataset, config)
-    model, model_cfg = seeded_model(dataset, config)
-    model.to(device)
-    history = fit(model, fold.parts["train"], fold.parts["val"], config, device, progress)
-    return finish_run(out_dir, dataset, fold, config, model, model_cfg, history, device)
+    with run_folder(out_dir) as out_dir:
+        config = config.resolved()
+        device = torch_device(config.device)
+        dataset = build_dataset(sessions, data_config)
+        fold = prepare_fold(dataset, config)
+        model, model_cfg = seeded_model(dataset, config)
+        model.to(device)
+        history = fit(model, fold.parts["train"], fold.parts["val"], config, device, progress)
+        return finish_run(out_dir, dataset, fold, config, model, model_cfg, history, device)
 
 
 @dataclass
@@ -157,7 +158,11 @@ def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, confi
 
 def evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Path, device_name: str = "cpu") -> RunResult:
     """Re-evaluate a saved model on the test units of its own split (trials found in ``sessions``)."""
-    out_dir = new_run_dir(out_dir)
+    with run_folder(out_dir) as out_dir:
+        return _evaluate_checkpoint(sessions, checkpoint, out_dir, device_name)
+
+
+def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Path, device_name: str) -> RunResult:
     device = torch_device(device_name)
     saved = load_checkpoint(checkpoint)
     data_config = DatasetConfig.from_json(saved["dataset_config"])
@@ -372,6 +377,21 @@ def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, 
             for f, t, p in zip(trial.frames[tested], trial.labels[tested], timeline[tested])]
         write_text(out_child(out_dir / "predictions", f"{name}.csv"), "\n".join(rows) + "\n")
         write_timeline_png(out_child(out_dir / "plots", f"{name}.png"), trial.labels, timeline, dataset.classes, name)
+
+
+@contextlib.contextmanager
+def run_folder(out_dir: Path) -> Iterator[Path]:
+    """``new_run_dir(out_dir)`` for the block; a folder it created is removed again if the block fails
+    before writing anything into it (data refused, Ctrl-C while training): no empty run folder is left."""
+    created = not Path(out_dir).expanduser().exists()
+    folder = new_run_dir(out_dir)
+    try:
+        yield folder
+    except BaseException:
+        if created:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only an empty folder: anything written stays
+        raise
 
 
 def new_run_dir(out_dir: Path) -> Path:
