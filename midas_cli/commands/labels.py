@@ -10,6 +10,7 @@ import typer
 from rich.table import Table
 
 from midas_cli.commands.common import err, error_line, out, positive, print_json
+from midas_cli.errors import ConfigError
 from midas_cli.commands.options import JSON_OPTION, SESSION_ARG, renamed_option, take_renamed
 from midas_cli.labels.sessions import EXPORT_FORMATS, ImportOptions, ImportResult, export_labels, import_transcription
 from midas_cli.labels.sessions import import_via as import_via_file
@@ -186,8 +187,7 @@ def stats(
     """
     fps = take_renamed(frame_rate, old_fps, "--fps", "--frame-rate", error_line) or JIGSAWS_FPS
     recordings, recorded_taxonomy = load_recordings(paths, name, fps)
-    taxonomy = (load_taxonomy(taxonomy_name) if taxonomy_name
-                else shipped_taxonomy(recorded_taxonomy) if recorded_taxonomy else None)
+    taxonomy = load_taxonomy(taxonomy_name) if taxonomy_name else _recorded_taxonomy(recorded_taxonomy)
     result = gesture_stats(recordings, taxonomy, exclude)
     if plot is not None:
         transition_heatmap(result, plot)
@@ -196,6 +196,20 @@ def stats(
         print_json(result.to_json())
         return
     _print_stats(result)
+
+
+def _recorded_taxonomy(name: Optional[str]) -> Optional[Taxonomy]:
+    """The shipped taxonomy the label sets name; None (a warning: classes in their order of appearance)
+    when it is not one midas ships (a label set made with a taxonomy file of its own: only the name is
+    recorded, and a name from the data is never read as a path)."""
+    if name is None:
+        return None
+    try:
+        return shipped_taxonomy(name)
+    except ConfigError:
+        error_line(f"midas: warning: the label sets name taxonomy {name!r}, which midas does not ship: gestures in "
+                   "the order they appear (give --taxonomy FILE for its order and names)")
+        return None
 
 
 def _print_stats(result: GestureStats) -> None:

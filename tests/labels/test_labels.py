@@ -320,6 +320,12 @@ def test_stats_on_a_session_uses_its_taxonomy_and_frame_rate(tmp_path: Path) -> 
     data = gesture_stats(recordings, load_taxonomy(taxonomy)).to_json()
     assert [(r["id"], r["samples"], r["mean_s"]) for r in data["gestures"]] == [("S1", 1, 0.9), ("S2", 1, 0.6),
                                                                                  ("S3", 1, 1.0)]
+    meta_path = next((session / "labels").glob("*.json"))  # a label set made with a taxonomy file of its own
+    meta = json.loads(meta_path.read_text())
+    meta_path.write_text(json.dumps({**meta, "taxonomy": "our-own\x1b[2J"}))
+    own = midas("labels", "stats", str(session))  # only its name was recorded: the gestures as they come, warned
+    assert own.returncode == 0 and "S2" in own.stdout and "Align & grasp" not in own.stdout
+    assert "'our-own\\x1b[2J'" in own.stderr and "\x1b" not in own.stderr and "does not ship" in own.stderr
 
 
 @pytest.mark.shared_data("compass-suturing-gestures")
