@@ -72,7 +72,7 @@ def test_the_feed_sends_the_needed_columns_in_the_models_order_and_ignores_other
 
 def test_a_feed_nobody_reads_drops_rows_counted_and_never_blocks_the_worker() -> None:
     receiver, sender = mp.Pipe(duplex=False)
-    feed = RowFeed(sender, dict(PLAN.streams), maxsize=4, every_s=0.0)
+    feed = RowFeed(sender, dict(PLAN.streams), max_rows=4, every_s=0.0)
     offered = 0
     for k in range(400):  # ~8 MB of rows: far more than the pipe and the queue hold
         feed.offer(EMHT, _rows(k * 1000, 1000))
@@ -235,6 +235,14 @@ def test_rows_the_feed_cannot_take_are_counted_and_never_raise_into_the_worker()
     feed = RowFeed(sender, {"emht": ("s1_x_mm", "s9_x_mm")}, every_s=0.0)  # a column a reopened device lacks
     feed.offer(EMHT, _rows(0, 4))
     feed.offer(EMHT, [(4, 4_000_000, "not a number", 1.0, 2.0)])
+    feed.close()  # the feeder thread takes the columns: what it cannot take is counted there
     assert feed.dropped == 5
-    feed.close()
     assert _drain(receiver) == ([], 5)
+    receiver, sender = mp.Pipe(duplex=False)
+    feed = RowFeed(sender, dict(PLAN.streams), every_s=0.5)  # a bad row among good ones, sent together
+    feed.offer(EMHT, _rows(1, 3))
+    feed.offer(EMHT, [(4, 4_000_000, 4.0, "not a number", 8.0)])
+    feed.offer(EMHT, _rows(5, 2))
+    feed.close()
+    batches, dropped = _drain(receiver)
+    assert dropped == 1 and np.concatenate([t for _, t, _ in batches]).tolist() == [1_000_000 * i for i in (1, 2, 3, 5, 6)]
