@@ -46,6 +46,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import RESULTS, load_average, machine_info  # noqa: E402
 from report_gestures import gestures_jigsaws_table  # noqa: E402
@@ -249,6 +251,32 @@ def figures(cv: dict[str, Any]) -> dict[str, Any]:
             "inputs": {k: cv["dataset_config"].get(k) for k in ("modalities", "features", "sides", "rate_hz")}}
 
 
+def learning_curve(out: Path) -> dict[str, Any] | None:
+    """A run trained with ``--curve-every``: at each scored epoch that every finished fold has, the
+    pooled accuracy (correct / labelled test frames over all folds) and the mean edit over test videos,
+    raw predictions (no --min-segment). None for a run without it."""
+    points: dict[int, list[dict[str, Any]]] = {}
+    folds = 0
+    for run in sorted(out.glob("fold-*/run.json")):
+        try:
+            history = json.loads(run.read_text(encoding="utf-8"))["history"]
+        except (OSError, ValueError, KeyError):
+            continue
+        scored = {int(e["epoch"]): e["test_curve"] for e in history if isinstance(e, dict) and "test_curve" in e}
+        if not scored:
+            continue
+        folds += 1
+        for epoch, point in scored.items():
+            points.setdefault(epoch, []).append(point)
+    epochs = sorted(e for e, p in points.items() if len(p) == folds)
+    if not folds or not epochs:
+        return None
+    return {"folds": folds, "epochs": epochs,
+            "accuracy": [sum(p["correct"] for p in points[e]) / max(1, sum(p["frames"] for p in points[e]))
+                         for e in epochs],
+            "edit": [float(np.mean([x for p in points[e] for x in p["edit"]])) for e in epochs]}
+
+
 def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace) -> list[dict[str, Any]]:
     """Every requested model of one task; the rows (the baseline read from the first neural run)."""
     sessions, prep = (args.work / "sessions" / name, {}) if args.report_only else prepare(data, name, args.work,
@@ -277,7 +305,8 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
                    "run_dir": str(out), "variant": args.variant if row_model == model else "",
                    "train_args": args.train_args if row_model == model else "",
                    "timing": timing, "trained_in": model, "prepare": prep, **figures(part),
-                   "fold_seconds": fold_seconds(out, row_model)}
+                   "fold_seconds": fold_seconds(out, row_model),
+                   "curve": learning_curve(out) if row_model == model else None}
             rows.append(row)
             wall = "unfinished" if timing["wall_s"] is None else f"{timing['wall_s']:g} s"
             print(f"{name} {row_model}{' (causal)' if args.causal else ''}: {wall}{shared}{' (reused)' if timing.get('reused') else ''}"

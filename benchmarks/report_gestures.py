@@ -129,9 +129,29 @@ def gestures_jigsaws_section(report: dict[str, Any]) -> list[str]:
            "its wall time inside that run's; *a fold* is the span of the folds' own training times (one worker "
            "each).", ""]
     out += gestures_jigsaws_table(report)
+    out += curves_table(report["rows"])
     if missing:
         out += [f"Not yet measured (at the defaults, all folds): {', '.join(missing)}.", ""]
     return out + [f"* {note}" for note in report.get("notes", [])] + ([""] if report.get("notes") else [])
+
+
+def curves_table(rows: list[dict[str, Any]]) -> list[str]:
+    """The learning curves of runs trained with --curve-every: pooled accuracy / mean edit (raw) by epoch."""
+    curved = [r for r in rows if r.get("curve")]
+    if not curved:
+        return []
+    epochs = sorted({e for r in curved for e in r["curve"]["epochs"]})
+    out = ["Learning curves (`--train-args \"--curve-every N\"`): the test folds scored while training, raw "
+           "predictions (no --min-segment), pooled accuracy % / mean edit over the test videos, at each scored "
+           "epoch every fold reached; never used to train or to pick weights.", "",
+           "| run | folds | " + " | ".join(f"epoch {e}" for e in epochs) + " |",
+           "|---|---|" + "---|" * len(epochs)]
+    for r in curved:
+        c = r["curve"]
+        at = {e: (a, d) for e, a, d in zip(c["epochs"], c["accuracy"], c["edit"])}
+        cells = [f"{100 * at[e][0]:.1f} / {at[e][1]:.1f}" if e in at else "" for e in epochs]
+        out.append(f"| {r['task']} {_title(r, rows)} | {c['folds']} | " + " | ".join(cells) + " |")
+    return out + [""]
 
 
 def rescored_table(rows: list[dict[str, Any]]) -> list[str]:

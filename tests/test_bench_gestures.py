@@ -75,3 +75,25 @@ def test_causal_rows_coexist_with_the_offline_ones_and_show_the_accuracy_differe
     assert bench.run_dir(tmp_path, "knot_tying", "mstcn", None, causal=True).name == "mstcn-causal"
     assert bench.run_dir(tmp_path, "knot_tying", "mstcn", 3, causal=True).name == "mstcn-causal-e3"
     assert bench.run_dir(tmp_path, "knot_tying", "mstcn", None).name == "mstcn"
+
+
+def test_a_learning_curve_pools_the_folds_at_the_epochs_every_fold_reached(tmp_path: Path) -> None:
+    from report_gestures import curves_table
+
+    def fold(k: int, points: dict[int, tuple[int, int, list[float]]]) -> None:
+        history = [{"epoch": e, "loss": 1.0} for e in range(1, 21)]
+        for e, (frames, correct, edit) in points.items():
+            history[e - 1]["test_curve"] = {"frames": frames, "correct": correct, "edit": edit}
+        (tmp_path / f"fold-{k}").mkdir()
+        (tmp_path / f"fold-{k}" / "run.json").write_text(json.dumps({"history": history}), encoding="utf-8")
+
+    assert bench.learning_curve(tmp_path) is None  # no run, or none scored: no curve
+    fold(0, {10: (100, 50, [40.0]), 20: (100, 80, [70.0])})
+    fold(1, {10: (300, 270, [80.0, 90.0]), 20: (300, 240, [60.0, 80.0])})
+    fold(2, {})  # an older fold without --curve-every: left out, not counted
+    curve = bench.learning_curve(tmp_path)
+    assert curve == {"folds": 2, "epochs": [10, 20], "accuracy": [0.8, 0.8], "edit": [70.0, 70.0]}
+    fold(3, {10: (10, 10, [100.0])})  # a fold that has not reached epoch 20: only the epochs all folds have
+    assert bench.learning_curve(tmp_path)["epochs"] == [10]
+    lines = curves_table([{**_row("mstcn", 0.8, 70.0), "curve": curve}])
+    assert "| epoch 10 | epoch 20 |" in lines[2] and "| 80.0 / 70.0 | 80.0 / 70.0 |" in lines[4]

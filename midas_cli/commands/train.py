@@ -52,6 +52,9 @@ MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING
                                 "segments shorter than this into their longer neighbour: seconds, none, or auto "
                                 "(default): the 5th percentile of the training split's gesture lengths (none for "
                                 "--causal). The metrics without it are kept as raw.")
+CURVE_EVERY_OPT = typer.Option(0, "--curve-every", rich_help_panel=TRAINING_PANEL, min=0, help="Score the test split "
+                               "every N epochs (and after the last) into run.json's history: a learning curve for "
+                               "choosing --epochs on development data (never used to train or to pick weights).")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -79,20 +82,22 @@ class Training:
     seed: int
     causal: bool
     min_segment: str
+    curve_every: int = 0
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
         from midas_cli.models.train import TrainConfig
 
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
-                           causal=self.causal, min_segment=self.min_segment, **fields)
+                           causal=self.causal, min_segment=self.min_segment, curve_every=self.curve_every,
+                           **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
 training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
-    ("min_segment", MIN_SEGMENT_OPT, str)))
+    ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int)))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:
@@ -263,7 +268,9 @@ def _batched_folds(paths: list[Path], data, config, jobs: list, n_units: int, ch
     from midas_cli.models import cv, fold_batch
 
     n_folds = n_units // len(jobs)
-    if not fold_batch.enabled(mode, config.device, n_folds) or choice.executor != "local":
+    if config.curve_every and mode == "on":
+        raise ConfigError("--curve-every scores each fold as it trains: it needs --fold-batch off (or auto)")
+    if not fold_batch.enabled(mode, config.device, n_folds) or choice.executor != "local" or config.curve_every:
         if mode == "on" and choice.executor != "local":
             raise ConfigError("--fold-batch on trains the folds in this process: it needs --executor local")
         if choice.jobs > 1 and config.device == "cuda":

@@ -65,10 +65,13 @@ class TrainConfig:
     model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
     causal: bool = False  # sequence models see frames <= t only (per-frame baselines always do)
     min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
+    curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
         postprocess.check(self.min_segment)
+        if self.curve_every < 0:
+            raise ConfigError(f"--curve-every must be >= 0 epochs, got {self.curve_every}")
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -111,7 +114,8 @@ def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: Trai
         fold = prepare_fold(dataset, config)
         model, model_cfg = seeded_model(dataset, config)
         model.to(device)
-        history = fit(model, fold.parts["train"], fold.parts["val"], config, device, progress)
+        history = fit(model, fold.parts["train"], fold.parts["val"], config, device, progress,
+                      curve=fold.parts["test"] if config.curve_every else None)
         return finish_run(out_dir, dataset, fold, config, model, model_cfg, history, device)
 
 
@@ -203,11 +207,14 @@ def build_model(name: str, modality_dims: dict[str, int], n_classes: int, option
 
 
 def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
-        progress: ProgressFn | None = None) -> list[dict]:
+        progress: ProgressFn | None = None, curve: Sequences | None = None) -> list[dict]:
     """Adam on the training units for ``config.epochs`` (None fields: the model's recipe); keeps the
     last epoch's weights, or with selection "best-val" restores the best validation epoch's. On CUDA
     the forward pass and loss run in mixed precision (autocast float16, the loss scaled by GradScaler);
-    on the CPU everything stays float32."""
+    on the CPU everything stays float32. With ``config.curve_every`` > 0, ``curve`` (the test split) is
+    scored every that many epochs and after the last (``learning_curve_point``): a learning curve for
+    choosing the epochs on development data, never used by training or selection (an evaluation in
+    eval mode draws no random numbers: the weights are the same with it or without)."""
     config = config.resolved()
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     rng = np.random.default_rng(config.seed)
@@ -228,6 +235,8 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
             losses.append(float(loss.detach()))
         val_acc = frame_accuracy(model, val, device) if val.units else None
         history.append({"epoch": epoch, "loss": float(np.mean(losses)), "val_accuracy": val_acc})
+        if curve is not None and config.curve_every and (epoch % config.curve_every == 0 or epoch == config.epochs):
+            history[-1]["test_curve"] = learning_curve_point(model, curve, device)
         if config.selection == "best-val" and val_acc is not None and val_acc > best[0]:
             best = (val_acc, {k: v.detach().clone() for k, v in model.state_dict().items()})
         if progress:
@@ -235,6 +244,16 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     if best[1] is not None:
         model.load_state_dict(best[1])
     return history
+
+
+def learning_curve_point(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> dict:
+    """The raw predictions' (no --min-segment) labelled frames and correct ones (pooled accuracy over
+    folds = sum correct / sum frames) and each unit's edit score, in unit order."""
+    preds = predict(model, seqs, device)
+    labelled = [y != M.IGNORE for y in seqs.y]
+    return {"frames": int(sum(int(k.sum()) for k in labelled)),
+            "correct": int(sum(int((p[k] == y[k]).sum()) for p, y, k in zip(preds, seqs.y, labelled))),
+            "edit": [round(float(M.edit_score(p, y)), 3) for p, y in zip(preds, seqs.y)]}
 
 
 def shuffled_instance_labels(labels: list[np.ndarray], seed: int) -> list[np.ndarray]:

@@ -110,6 +110,9 @@ def test_a_bad_fold_batch_mode_is_one_line_and_exit_2(jigsaws, tmp_path):
                    "--out", str(tmp_path / "cv"))
     assert result.returncode == 2 and result.stderr.strip().count("\n") == 0 and "--fold-batch" in result.stderr
     assert not (tmp_path / "cv").exists()
+    curve = midas("train", "gestures", str(jigsaws), "--split", "louo", "--fold", "all", "--fold-batch", "on",
+                  "--curve-every", "5", "--out", str(tmp_path / "cv2"))  # batched folds are not scored per epoch
+    assert curve.returncode == 2 and "--curve-every" in curve.stderr and curve.stderr.strip().count("\n") == 0
 
 
 @pytest.fixture(scope="module")

@@ -64,6 +64,23 @@ def test_same_seed_same_run_and_eval_only_reproduces(sessions, tmp_path):
         tiny_run(sessions, tmp_path / "a")
 
 
+def test_a_learning_curve_scores_the_test_split_without_changing_the_training(sessions, tmp_path):
+    plain = tiny_run(sessions, tmp_path / "plain", epochs=3)
+    curved = tiny_run(sessions, tmp_path / "curved", epochs=3, curve_every=2)
+    a = torch.load(tmp_path / "plain" / "checkpoint.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "curved" / "checkpoint.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)  # the same weights: scoring draws no random numbers
+    assert curved.metrics["test"] == plain.metrics["test"]
+    history = json.loads((tmp_path / "curved" / "run.json").read_text())["history"]
+    assert [e["epoch"] for e in history if "test_curve" in e] == [2, 3]  # every 2nd epoch and the last
+    last = history[-1]["test_curve"]
+    summary = curved.metrics["test"]["raw"]["summary"] if "raw" in curved.metrics["test"] else curved.metrics["test"]["summary"]
+    assert last["frames"] == summary["frames"] and last["correct"] / last["frames"] == pytest.approx(summary["accuracy"])
+    assert len(last["edit"]) == len(json.loads((tmp_path / "curved" / "run.json").read_text())["split"]["test"])
+    with pytest.raises(ConfigError, match="curve-every"):
+        TrainConfig(curve_every=-1)
+
+
 def test_shuffled_instance_labels_keep_structure_but_break_the_mapping():
     y = [np.array([0, 0, 1, 1, 1, 2, -1, 3, 3]), np.array([1, 1, 0, 0, 2, 2, 3])]
     shuffled = shuffled_instance_labels(y, seed=0)
