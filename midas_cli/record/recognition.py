@@ -51,8 +51,8 @@ class RecognitionJob:
 
 def recognition_main(job: RecognitionJob, sender: Connection, feeds: list[Connection]) -> None:
     """Entry point of the recognition process (``feeds``: one pipe per device worker that feeds it)."""
-    freeze_inherited_objects()
     ignore_stop_signals()
+    freeze_inherited_objects()
     link = WorkerLink(sender, job.queue_size)
     output = WorkerOutput(RECOGNITION_DEVICE, link, HostClock(job.anchor_ns), every_s=0.0)
     status = 0

@@ -225,8 +225,8 @@ def worker_main(job: WorkerJob, sender: Connection, stop_reader: Connection,
     """Entry point of the worker process: the signals first, then its priority (before any thread
     starts: threads inherit it), then the pipes (``feed_sender``: rows for the live recognition), then
     ``run_worker``."""
-    freeze_inherited_objects()
     ignore_stop_signals()
+    freeze_inherited_objects()
     priority = apply_priority(job.priority)
     link = WorkerLink(sender, job.queue_size)
     feed = None if feed_sender is None else RowFeed(feed_sender, job.feed_columns)
