@@ -31,8 +31,9 @@ from torch.func import functional_call, stack_module_state
 
 from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
-from midas_cli.models.train import (ProgressFn, Sequences, TrainConfig, finish_run, frame_accuracy, new_run_dir,
-                                    padded_batches, prepare_fold, seeded_model, torch_device)
+from midas_cli.models.run_files import new_run_dir
+from midas_cli.models.train import (ProgressFn, Sequences, TrainConfig, finish_run, frame_accuracy, padded_batches,
+                                    prepare_fold, seeded_model, torch_device)
 
 log = logging.getLogger(__name__)
 

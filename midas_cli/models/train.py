@@ -20,12 +20,10 @@ generators).
 
 from __future__ import annotations
 
-import contextlib
-import json
 import logging
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -34,12 +32,11 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models import postprocess
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
-from midas_cli.models.plots import write_confusion_png, write_timeline_png
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
+from midas_cli.models.run_files import run_folder, write_run
 from midas_cli.models.splits import PARTS, Split, instances, make_split
 from midas_cli.models.torch_io import load_weights_only
-from midas_cli.session.outputs import out_child, out_folder, out_target, replacing, write_text
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +153,7 @@ def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, confi
     if fold.parts["val"].units:
         result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum)
     run = {**_run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history), "min_segment_frames": minimum}
-    _write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
+    write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
     return RunResult(out_dir, result, history)
 
 
@@ -187,7 +184,7 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)))}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
-    _write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
+    write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
     return RunResult(out_dir, result, saved.get("history", []))
 
 
@@ -362,62 +359,6 @@ def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | 
             "normaliser": normaliser.to_json() if normaliser is not None else None,
             "recipe": {k: getattr(config, k) for k in RECIPES[config.model]},
             "data_fingerprint": dataset.fingerprint(), "code": code_version(torch.__version__), "history": history}
-
-
-def _write_run(out_dir: Path, run: dict, result: dict, model: torch.nn.Module, dataset: GestureDataset,
-               test: Sequences, device: torch.device, save_checkpoint: bool = True) -> None:
-    preds = result["test"].pop("predictions")
-    if "val" in result:
-        result["val"].pop("predictions")
-    write_text(out_target(out_dir / "run.json"), json.dumps(run, indent=2) + "\n")
-    if save_checkpoint:
-        state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-        with replacing(out_target(out_dir / "checkpoint.pt")) as tmp:
-            torch.save({**run, "state_dict": state}, tmp)
-    _write_predictions(out_dir, dataset, test, preds)
-    write_confusion_png(out_dir / "plots" / "confusion.png", np.asarray(result["test"]["confusion"]), dataset.classes)
-    # last: metrics.json says the run is finished (cross-validation pools every fold's predictions once
-    # each fold has it, from whichever fold ends last; folds run at once on a cluster)
-    write_text(out_target(out_dir / "metrics.json"), json.dumps(result, indent=2) + "\n")
-
-
-def _write_predictions(out_dir: Path, dataset: GestureDataset, test: Sequences, preds: list[np.ndarray]) -> None:
-    """predictions/<trial>.csv and plots/<trial>.png: test frames of each trial on its own timeline."""
-    per_trial: dict[str, np.ndarray] = {}
-    for (name, start, stop), pred in zip(test.units, preds):
-        trial = dataset.trials[dataset.trial_index(name)]
-        timeline = per_trial.setdefault(name, np.full(len(trial.labels), -1, dtype=np.int64))
-        timeline[start:stop] = pred
-    for name, timeline in sorted(per_trial.items()):
-        trial = dataset.trials[dataset.trial_index(name)]
-        tested = timeline >= 0
-        rows = ["frame,truth,prediction"] + [
-            f"{f},{dataset.classes[t] if t >= 0 else ''},{dataset.classes[p]}"
-            for f, t, p in zip(trial.frames[tested], trial.labels[tested], timeline[tested])]
-        write_text(out_child(out_dir / "predictions", f"{name}.csv"), "\n".join(rows) + "\n")
-        write_timeline_png(out_child(out_dir / "plots", f"{name}.png"), trial.labels, timeline, dataset.classes, name)
-
-
-@contextlib.contextmanager
-def run_folder(out_dir: Path) -> Iterator[Path]:
-    """``new_run_dir(out_dir)`` for the block; a folder it created is removed again if the block fails
-    before writing anything into it (data refused, Ctrl-C while training): no empty run folder is left."""
-    created = not Path(out_dir).expanduser().exists()
-    folder = new_run_dir(out_dir)
-    try:
-        yield folder
-    except BaseException:
-        if created:
-            with contextlib.suppress(OSError):
-                folder.rmdir()  # only an empty folder: anything written stays
-        raise
-
-
-def new_run_dir(out_dir: Path) -> Path:
-    out_dir = Path(out_dir)
-    if (out_dir / "run.json").exists():
-        raise ConfigError(f"{out_dir} already holds a run (run.json): choose a new --out folder")
-    return out_folder(out_dir)
 
 
 def torch_device(name: str) -> torch.device:
