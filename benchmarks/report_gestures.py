@@ -44,11 +44,25 @@ def _title(row: dict[str, Any], rows: list[dict[str, Any]]) -> str:
         return title
     offline = [r for r in rows if r["model"] == row["model"] and not r.get("causal")
                and r["epochs_option"] == row["epochs_option"]
-               and (r.get("variant") == row.get("variant") or r.get("inputs") == row.get("inputs"))]
+               and (r.get("variant") == row.get("variant") or _same_inputs(r.get("inputs"), row.get("inputs")))]
     offline.sort(key=lambda r: r.get("variant") != row.get("variant"))  # the same variant first, else the same inputs
-    delta = (f"; acc {100 * (row['pooled']['accuracy'] - offline[0]['pooled']['accuracy']):+.1f} vs offline"
-             if offline else "")
+    delta = ""
+    if offline and row.get("curve") and offline[0].get("curve"):  # both raw (a causal run has no clean-up)
+        mine, theirs = row["curve"], offline[0]["curve"]
+        delta = (f"; acc {100 * (mine['accuracy'][-1] - theirs['accuracy'][-1]):+.1f} vs offline, raw, epoch "
+                 f"{mine['epochs'][-1]}")
+    elif offline:
+        delta = f"; acc {100 * (row['pooled']['accuracy'] - offline[0]['pooled']['accuracy']):+.1f} vs offline"
     return f"{title} (causal{delta})"
+
+
+def _same_inputs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
+    """The same modalities, features and sides, and rates equal or one left to the CLI's default (None)."""
+    if not a or not b:
+        return a == b
+    keys = ("modalities", "features", "sides")
+    return all(a.get(k) == b.get(k) for k in keys) and (None in (a.get("rate_hz"), b.get("rate_hz"))
+                                                          or a.get("rate_hz") == b.get("rate_hz"))
 
 
 def _meets(row: dict[str, Any], target_accuracy: float, target_edit: float) -> str:
@@ -89,10 +103,10 @@ def gestures_jigsaws_table(report: dict[str, Any]) -> list[str]:
 
 
 def _not_measured(report: dict[str, Any]) -> list[str]:
-    defaults = {json.dumps(r.get("inputs"), sort_keys=True) for r in report["rows"] if not r.get("variant")}
+    defaults = [r.get("inputs") for r in report["rows"] if not r.get("variant") and r["model"] != "baseline"]
     have = {(r["task"], r["model"]) for r in report["rows"]
             if r["epochs_option"] is None and not r["missing_folds"] and not r.get("causal")
-            and (not r.get("variant") or json.dumps(r.get("inputs"), sort_keys=True) in defaults)}
+            and (not r.get("variant") or any(_same_inputs(r.get("inputs"), d) for d in defaults))}
     return [f"{report['tasks'][t]['title']} {TITLES[m]}" for t in report["tasks"] for m in ORDER if (t, m) not in have]
 
 
@@ -148,9 +162,10 @@ def curves_table(rows: list[dict[str, Any]]) -> list[str]:
            "|---|---|" + "---|" * len(epochs)]
     for r in curved:
         c = r["curve"]
+        task_rows = [x for x in rows if x["task"] == r["task"]]
         at = {e: (a, d) for e, a, d in zip(c["epochs"], c["accuracy"], c["edit"])}
         cells = [f"{100 * at[e][0]:.1f} / {at[e][1]:.1f}" if e in at else "" for e in epochs]
-        out.append(f"| {r['task']} {_title(r, rows)} | {c['folds']} | " + " | ".join(cells) + " |")
+        out.append(f"| {r['task']} {_title(r, task_rows)} | {c['folds']} | " + " | ".join(cells) + " |")
     return out + [""]
 
 

@@ -97,3 +97,15 @@ def test_a_learning_curve_pools_the_folds_at_the_epochs_every_fold_reached(tmp_p
     assert bench.learning_curve(tmp_path)["epochs"] == [10]
     lines = curves_table([{**_row("mstcn", 0.8, 70.0), "curve": curve}])
     assert "| epoch 10 | epoch 20 |" in lines[2] and "| 80.0 / 70.0 | 80.0 / 70.0 |" in lines[4]
+
+
+def test_a_causal_row_finds_the_offline_run_of_the_same_inputs_and_compares_raw_curves() -> None:
+    inputs = {"modalities": ["mtm", "psm"], "features": ["pos"], "sides": ["left", "right"]}
+    offline = {**_row("mstcn", 0.80, 85.0), "variant": "ten", "train_args": "--model-rate 10",
+               "inputs": {**inputs, "rate_hz": 10.0}, "curve": {"epochs": [50], "accuracy": [0.79], "edit": [70.0]}}
+    causal = {**_row("mstcn", 0.72, 60.0), "causal": True, "inputs": {**inputs, "rate_hz": None},
+              "curve": {"epochs": [50], "accuracy": [0.74], "edit": [60.0]}}
+    lines = gestures_jigsaws_table(_report([offline, causal]))
+    assert any("(causal; acc -5.0 vs offline, raw, epoch 50)" in line for line in lines)  # raw vs raw, not 72 vs 80
+    other = {**causal, "inputs": {**inputs, "features": ["vel"], "rate_hz": None}}
+    assert any("| MS-TCN++ (causal) |" in line for line in gestures_jigsaws_table(_report([offline, other])))
