@@ -26,7 +26,7 @@ import torch
 from midas_cli.analysis.sync import associate
 from midas_cli.errors import ConfigError, MidasError
 from midas_cli.models.data import DatasetConfig, Normaliser, modality_features
-from midas_cli.models.train import build_model, load_checkpoint
+from midas_cli.models.train import build_model, load_checkpoint, saved_structure
 from midas_cli.session.derived import AlignedTable
 
 FEATURE_CLOCK_HZ = 30.0  # the video frame clock training's features (velocities) were computed on
@@ -82,7 +82,7 @@ def _live_run(path: Path, saved: dict) -> LiveRun:
     classes = tuple(str(c) for c in saved["classes"])
     dims = {m: len(saved["feature_names"][m]) for m in config.modalities}
     model, model_config = build_model(saved["model"], dims, len(classes), dict(saved["model_options"]),
-                                      bool(saved["model_config"].get("causal", False)))
+                                      *saved_structure(saved))
     if "causal" in model_config and not model_config["causal"]:
         raise ConfigError(f"live model {path}: {saved['model']} was not trained with --causal (it looks at frames "
                           "after t); train it with `midas train gestures --causal`")

@@ -14,6 +14,10 @@ frame's features are built from the streams as ``align`` associates them). A fra
 every stream has a sample after t + s: rows of a stream must come in time order, and a stream that stops
 holds recognition up (the caller decides to ``drop_until``).
 
+A model trained with ``--delay`` (``delay`` frames) labels the frame it stepped ``delay`` steps before: its
+predictions come that much later; ``flush()`` at the end steps ``delay`` zero frames (as the offline forward
+pass appends them, models/mstcn.py ``look_ahead``) for the frames still waiting.
+
 ``offline_predictions(session, run, times)`` runs the same model over a recorded session the offline
 way (one forward pass of the whole sequence, on features built the same way): live and offline classes
 agree frame for frame (tests/analysis/test_live_gestures.py).
@@ -21,6 +25,7 @@ agree frame for frame (tests/analysis/test_live_gestures.py).
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -96,6 +101,10 @@ class LiveFeed:
         self._clock = FrameClock(live.rate_hz)
         self._first: int | None = None  # clock index of the first frame (seq 0)
         self._next: int | None = None  # clock index of the next frame to predict
+        self.delay = int(getattr(live.model.cfg, "delay", 0))  # frames: a frame is labelled this many steps late
+        self._waiting: deque[int] = deque()  # clock indices stepped, not labelled yet (at most ``delay``)
+        self._steps = 0  # frames stepped (zeros of flush() included)
+        self._dim = 0  # the model's input size (flush steps zero vectors of it)
 
     def add(self, stream: str, t_host_ns: np.ndarray, values: np.ndarray) -> None:
         """Rows of one stream as recorded (t_host_ns (n,), values (n, len(spec.streams[stream])) in that
@@ -117,9 +126,17 @@ class LiveFeed:
             self._first = self._next = self._clock.first_at_or_after(max(known) + self._inputs.step_ns)
         out = []
         while self._next is not None and self._computable(self._clock.time(self._next)):
-            out.append(self._predict(self._next))
+            out.extend(self._predict(self._next))
             self._next += 1
         self._forget()
+        return out
+
+    def flush(self) -> list[Prediction]:
+        """The end of the input (a delayed model): the frames still waiting for their label, labelled from
+        zero frames after the last one, as the offline forward pass does. Nothing to add after it."""
+        out = []
+        while self._waiting:
+            out.extend(self._labelled(self._stepper.step(np.zeros(self._dim))))
         return out
 
     def drop_until(self, t_host_ns: int) -> int:
@@ -137,13 +154,24 @@ class LiveFeed:
         last = [b.last_ns() for b in self._buffers.values()]
         return all(x is not None and x > t_ns + self._inputs.step_ns for x in last)
 
-    def _predict(self, k: int) -> Prediction:
+    def _predict(self, k: int) -> list[Prediction]:
+        """Step frame ``k``: its prediction, or (delayed model) the one of the frame stepped ``delay`` before."""
         t_ns = self._clock.time(k)
         times = t_ns + np.array([-self._inputs.step_ns, 0, self._inputs.step_ns], dtype=np.int64)
         rows = np.concatenate([associated(b.t_ns, b.values, times, self._stale[s]) for s, b in self._buffers.items()],
                               axis=1)  # (3, C): the streams' columns in spec order
-        logits = self._stepper.step(self._inputs(t_ns, rows))
-        return _prediction(k - (self._first or 0), t_ns, logits, self.spec.classes)
+        x = self._inputs(t_ns, rows)
+        self._dim = len(x)
+        self._waiting.append(k)
+        return self._labelled(self._stepper.step(x))
+
+    def _labelled(self, logits: np.ndarray) -> list[Prediction]:
+        """The step just taken gives the label of the frame stepped ``delay`` steps before it (if any)."""
+        self._steps += 1
+        if self._steps <= self.delay:
+            return []
+        k = self._waiting.popleft()
+        return [_prediction(k - (self._first or 0), self._clock.time(k), logits, self.spec.classes)]
 
     def _forget(self) -> None:
         """Drop rows no frame to come needs: before the next frame's first row time, or before the first

@@ -48,6 +48,10 @@ EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=
 CAUSAL_OPT = typer.Option(False, "--causal", rich_help_panel=TRAINING_PANEL, help="Causal sequence models (frame t "
                           "sees frames <= t only: causal convolutions, masked attention), trained as such: the models "
                           "`record --live-model` can run. Per-frame baselines are causal as they are.")
+DELAY_OPT = typer.Option(0.0, "--delay", rich_help_panel=TRAINING_PANEL, min=0.0, help="With --causal: label each "
+                         "frame this many seconds late, from the frames up to then (live, a gesture is shown that "
+                         "much later and the model sees that much of what follows it). Default 0: frame t from "
+                         "frames <= t.")
 MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING_PANEL, help="Merge predicted "
                                 "segments shorter than this into their longer neighbour: seconds, none, or auto "
                                 "(default): the 5th percentile of the training split's gesture lengths (none for "
@@ -83,6 +87,7 @@ class Training:
     causal: bool
     min_segment: str
     curve_every: int = 0
+    delay: float = 0.0
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
@@ -90,14 +95,14 @@ class Training:
 
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
                            causal=self.causal, min_segment=self.min_segment, curve_every=self.curve_every,
-                           **fields)
+                           delay_s=self.delay, **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
 training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
-    ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int)))
+    ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float)))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:

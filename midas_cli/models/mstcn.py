@@ -22,6 +22,14 @@ back, its taps at t - 2d, t - d and t (zero padding on the left only), so the ou
 frames <= t alone and the model can run live, one frame at a time (``models/streaming.py``). The 1x1
 convolutions, the softmax between stages and the mask are per frame already; padding frames sit at the
 end of a sequence, after every real frame, so they never reach a real frame's output.
+
+Delayed causal variant (``delay`` frames > 0, ``train gestures --causal --delay SECONDS``): the output for
+frame t is computed at frame t + delay, from the frames <= t + delay: the network runs over the sequence
+with ``delay`` zero frames (the normalised features' mean) appended, its mask extended over them, and its
+outputs shifted back by ``delay`` (:func:`look_ahead`, :func:`shifted_back`). Live, that is a gesture shown
+``delay`` frames late, with that much of what follows it seen; at the end of a recording the same zero
+frames give the last frames their labels, so live and offline agree frame for frame. Batches still equal
+sequences alone: a shorter sequence's zeros run on past its end into the batch padding, as they would alone.
 """
 
 from __future__ import annotations
@@ -45,6 +53,22 @@ class MSTCNConfig:
     smoothing_weight: float = 0.15
     tau: float = 4.0
     causal: bool = False  # taps at t - 2d, t - d, t instead of t - d, t, t + d
+    delay: int = 0  # causal: frame t labelled from the frames <= t + delay (look_ahead)
+
+
+def look_ahead(x: torch.Tensor, mask: torch.Tensor, delay: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x`` (B, D, T) and ``mask`` (B, T) with ``delay`` zero frames appended, the mask True over the
+    ``delay`` frames after each sequence's last real one (the input of a delayed causal network)."""
+    if not delay:
+        return x, mask
+    x = F.pad(x, (0, delay))  # (B, D, T) -> (B, D, T + delay)
+    mask = F.pad(mask, (0, delay), value=False)
+    return x, mask | F.pad(mask, (delay, 0), value=False)[:, :-delay]
+
+
+def shifted_back(stages: torch.Tensor, delay: int) -> torch.Tensor:
+    """Outputs (..., T + delay) computed at frames t + delay -> (..., T): the ones for frames t."""
+    return stages[..., delay:] if delay else stages
 
 
 class DilatedConv(nn.Conv1d):
@@ -138,13 +162,14 @@ class MSTCN(nn.Module):
         self.refinements = nn.ModuleList(Refinement(cfg) for _ in range(cfg.refinement_stages))
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        x, mask = look_ahead(x, mask, self.cfg.delay)
         m = mask.unsqueeze(1).to(x.dtype)  # (B, T) -> (B, 1, T)
         logits = self.generation(x, m)
         stages = [logits]
         for refinement in self.refinements:
             logits = refinement(F.softmax(logits, dim=1) * m, m)
             stages.append(logits)
-        return torch.stack(stages)  # (S, B, C, T)
+        return shifted_back(torch.stack(stages), self.cfg.delay)  # (S, B, C, T)
 
     def loss(self, stages: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Sum over stages of CE + smoothing_weight * truncated MSE. ``target`` (B, T) long, -1 = ignore."""

@@ -63,12 +63,17 @@ class TrainConfig:
     causal: bool = False  # sequence models see frames <= t only (per-frame baselines always do)
     min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
+    delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
         postprocess.check(self.min_segment)
         if self.curve_every < 0:
             raise ConfigError(f"--curve-every must be >= 0 epochs, got {self.curve_every}")
+        if not 0.0 <= self.delay_s < float("inf"):
+            raise ConfigError(f"--delay must be >= 0 seconds, got {self.delay_s}")
+        if self.delay_s and not self.causal:
+            raise ConfigError("--delay is for --causal models (a model that is not causal sees every later frame)")
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -142,7 +147,14 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
 def seeded_model(dataset: GestureDataset, config: TrainConfig) -> tuple[torch.nn.Module, dict]:
     """The untrained network of ``config`` (on the CPU), its weights drawn after ``torch.manual_seed(seed)``."""
     torch.manual_seed(config.seed)
-    return build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options, config.causal)
+    delay = delay_frames(config.delay_s, dataset.trials[0].rate_hz)
+    return build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options, config.causal,
+                       delay)
+
+
+def delay_frames(delay_s: float, rate_hz: float) -> int:
+    """``--delay`` in frames of the model's rate (rounded)."""
+    return int(round(delay_s * rate_hz))
 
 
 def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, config: TrainConfig,
@@ -178,7 +190,7 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     if name == "transformer" and "refinement_stages" not in saved.get("model_config", {}):
         name = "transformer-plain"  # a checkpoint from before the refinement stages existed
     model, _ = build_model(name, dataset.modality_dims, len(dataset.classes), saved["model_options"],
-                           bool(saved.get("model_config", {}).get("causal", False)))
+                           *saved_structure(saved))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
     result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)))}
@@ -188,13 +200,22 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     return RunResult(out_dir, result, saved.get("history", []))
 
 
+def saved_structure(saved: dict) -> tuple[bool, int]:
+    """``causal`` and ``delay`` (frames) of a saved run's network (False, 0 for one from before them)."""
+    model_config = saved.get("model_config", {})
+    return bool(model_config.get("causal", False)), int(model_config.get("delay", 0))
+
+
 def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict,
-                causal: bool = False) -> tuple[torch.nn.Module, dict]:
+                causal: bool = False, delay: int = 0) -> tuple[torch.nn.Module, dict]:
     """The network and its config as a plain dict; ``options`` override config fields; ``causal`` sets the
-    config's ``causal`` where the model has one (a per-frame model has none: it is causal as it is)."""
+    config's ``causal`` where the model has one (a per-frame model has none: it is causal as it is), and
+    ``delay`` (frames) its ``delay`` (a per-frame model has none either: it labels frame t at t)."""
     model_cls, cfg = model_entry(name).build(modality_dims, n_classes)
     if causal and "causal" in asdict(cfg):
         options = {**options, "causal": True}
+    if delay and "delay" in asdict(cfg):
+        options = {**options, "delay": int(delay)}
     unknown = set(options) - set(asdict(cfg))
     if unknown:
         raise ConfigError(f"model options {', '.join(sorted(unknown))} do not exist for {name} "

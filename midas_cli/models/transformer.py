@@ -37,7 +37,8 @@ Causal variant (``causal=True``, ``midas train gestures --causal``): the CNN enc
 the window at or before the query (window position p attends to positions 0..p of its own window, so a
 frame costs at most ``window`` attention terms, live as offline) and the refinement stages are MS-TCN++'s
 causal ones: the output at frame t depends on frames <= t alone (``models/streaming.py`` runs it frame by
-frame).
+frame). With ``delay`` frames > 0 (``--delay``) it labels frame t from the frames <= t + delay, as the
+delayed MS-TCN++ does (``mstcn.look_ahead``).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from midas_cli.models.mstcn import MSTCNConfig, Refinement, segmentation_loss
+from midas_cli.models.mstcn import MSTCNConfig, Refinement, look_ahead, segmentation_loss, shifted_back
 
 
 @dataclass
@@ -72,6 +73,7 @@ class TransformerConfig:
     smoothing_weight: float = 0.15  # MS-TCN++ smoothing loss weight (lambda); 0 = cross-entropy only
     tau: float = 4.0
     causal: bool = False  # frame t sees frames <= t only (left-padded convolutions, masked attention)
+    delay: int = 0  # causal: frame t labelled from the frames <= t + delay (mstcn.look_ahead)
 
     def __post_init__(self) -> None:
         if not self.modality_order:
@@ -128,6 +130,7 @@ class GestureTransformer(nn.Module):
         self.register_buffer("positions", sinusoidal_positions(cfg.window, cfg.d_model), persistent=False)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        x, mask = look_ahead(x, mask, self.cfg.delay)
         b, _, t = x.shape
         w = self.cfg.window
         m = mask.unsqueeze(1).to(x.dtype)  # (B, T) -> (B, 1, T)
@@ -151,7 +154,7 @@ class GestureTransformer(nn.Module):
         for refinement in self.refinements:
             logits = refinement(F.softmax(logits, dim=1) * m, m)
             stages.append(logits)
-        return torch.stack(stages)  # (S, B, C, T)
+        return shifted_back(torch.stack(stages), self.cfg.delay)  # (S, B, C, T)
 
     def loss(self, stages: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """Per stage cross-entropy (+ the smoothing loss unless ``smoothing_weight`` is 0), summed;

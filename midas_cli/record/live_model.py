@@ -5,7 +5,8 @@ before anything is recorded, that the rig gives every stream and column the mode
 describes the session's ``gestures_live`` stream: one row per frame of the model's frame clock,
 ``seq`` (the frame's index on that clock: a gap is a frame the recognition skipped to catch up),
 ``t_host_ns`` (the frame's time, host clock), ``t_pred_ns`` (host clock when its prediction was made),
-``class`` (the label text) and ``probability``. Its rows are written by the recognition process
+``class`` (the label text) and ``probability``. A model trained with ``--delay`` labels each frame that
+much later (its ``t_pred_ns`` - ``t_host_ns`` includes it; the manifest's ``live_model`` says ``delay_s``). Its rows are written by the recognition process
 (record/recognition.py), a worker like the devices' (its own device ``recognition``), fed with the rows of
 the streams it needs by the device workers (record/feed.py) without ever making one of them wait.
 """
@@ -43,22 +44,26 @@ class LivePlan:
     classes: tuple[str, ...]
     max_lag_s: float = MAX_LAG_S
     nominal_rates_hz: dict[str, float | None] = field(default_factory=dict)  # the rig's, of ``streams``: staleness
+    delay_frames: int = 0  # the model labels a frame this many frames late (train gestures --delay)
 
     def manifest(self) -> dict[str, Any]:
         """The ``live_model`` entry of the ``gestures_live`` stream (counts are added at the stop)."""
         return {"run": self.run, "run_id": self.run_id, "checkpoint_sha256": self.checkpoint_sha256,
                 "model": self.model, "rate_hz": self.rate_hz, "classes": list(self.classes),
                 "inputs": {name: list(columns) for name, columns in self.streams.items()},
-                "nominal_rates_hz": dict(self.nominal_rates_hz), "max_lag_s": self.max_lag_s}
+                "nominal_rates_hz": dict(self.nominal_rates_hz), "max_lag_s": self.max_lag_s,
+                "delay_frames": self.delay_frames, "delay_s": round(self.delay_frames / self.rate_hz, 6)}
 
 
 def plan_live_model(run: Path) -> LivePlan:
     """Load the run's model once (ConfigError, exit 2, when it cannot run live) and describe it."""
     from midas_cli.analysis.live_gestures import load_live_model  # torch: only when asked for
 
-    spec = load_live_model(run).spec
+    feed = load_live_model(run)
+    spec = feed.spec
     return LivePlan(str(Path(run).resolve()), spec.run_id, spec.checkpoint_sha256, spec.model, float(spec.rate_hz),
-                    {name: tuple(columns) for name, columns in spec.streams.items()}, tuple(spec.classes))
+                    {name: tuple(columns) for name, columns in spec.streams.items()}, tuple(spec.classes),
+                    delay_frames=feed.delay)
 
 
 def check_rig_streams(plan: LivePlan, specs: Mapping[str, StreamSpec], devices: Mapping[str, Any]) -> LivePlan:

@@ -114,6 +114,7 @@ class Recognition:
                 self._read(conn, model, open_feeds)
             self._predict(model)
         self._predict(model)
+        self._write(model.flush())  # a delayed model's last frames (train gestures --delay)
         return {"frames_skipped": self.skipped, "input_rows_dropped": sum(self.rows_dropped.values())}
 
     def _read(self, conn: Any, model: Any, open_feeds: list[Connection]) -> None:
@@ -134,12 +135,16 @@ class Recognition:
         predictions = model.ready()
         if predictions:
             self.predicted = True
-            t_pred = clock.now_ns()
-            rows = [(p.seq, p.t_host_ns, t_pred, p.label, round(float(p.probability), 4)) for p in predictions]
-            self.output.write(self.spec, rows, 0)
+            self._write(predictions)
         else:
             self.output.tick()
         self._warn_if_skipping(clock.now_ns())
+
+    def _write(self, predictions: list) -> None:
+        if predictions:
+            t_pred = self.output.clock.now_ns()
+            rows = [(p.seq, p.t_host_ns, t_pred, p.label, round(float(p.probability), 4)) for p in predictions]
+            self.output.write(self.spec, rows, 0)
 
     def _warn_if_skipping(self, now_ns: int) -> None:
         if self.skipped > self._warned_skipped and now_ns - self._warned_ns >= WARN_EVERY_S * 1e9:

@@ -37,10 +37,10 @@ def sessions(tmp_path_factory) -> list[Path]:
     return found
 
 
-def _train(sessions: list[Path], out: Path, model: str, causal: bool = True, **data) -> Path:
+def _train(sessions: list[Path], out: Path, model: str, causal: bool = True, delay_s: float = 0.0, **data) -> Path:
     config = DatasetConfig(("emht",), ("pos", "ori", "vel"), **data)
     recipe = {"lr": 1e-2} if model == "mstcn" else {"lr": 3e-3, "batch_size": 1}
-    train_run(sessions, config, TrainConfig(model=model, epochs=6, selection="last", causal=causal,
+    train_run(sessions, config, TrainConfig(model=model, epochs=6, selection="last", causal=causal, delay_s=delay_s,
                                             model_options=TINY[model], **recipe), out)
     return out
 
@@ -98,6 +98,35 @@ def test_live_predictions_equal_the_offline_model_frame_for_frame(sessions, runs
     held = _feed_in_random_chunks(load_live_model(runs[model]), session, seed=2)  # no rates: 1 s, both ways
     assert [p.class_index for p in held] == [p.class_index for p in offline_predictions(
         session, runs[model], np.array([p.t_host_ns for p in held]))]
+
+
+def test_a_delayed_model_labels_each_frame_late_and_the_flush_labels_the_last_ones_as_offline(sessions, tmp_path):
+    run = _train(sessions, tmp_path / "delayed", "mstcn", delay_s=1.0)
+    session = sessions[1]
+    feed = load_live_model(run, _rates(session))
+    assert feed.delay == 10  # 1 s at the model's 10 Hz
+    streamed = _feed_in_random_chunks(feed, session, seed=3)
+    tail = feed.flush()
+    assert len(tail) == 10 and feed.flush() == []
+    live = streamed + tail
+    assert [p.seq for p in live] == list(range(len(live)))  # every frame stepped has its label, in order
+    times = np.array([p.t_host_ns for p in live])
+    assert (np.diff(times) == 100_000_000).all()
+    offline = offline_predictions(session, run, times, _rates(session))
+    assert [p.class_index for p in live] == [p.class_index for p in offline]
+    assert np.allclose([p.probability for p in live], [p.probability for p in offline], atol=1e-4)
+    assert np.ptp([p.probability for p in live]) > 0.02
+    # the first second of rows: fewer than 11 frames can be stepped, none is labelled yet; later, a frame is
+    # labelled only once the frame 1 s after it has been stepped
+    early = load_live_model(run, _rates(session))
+    data = Session.open(session).read_columns("emht")
+    t, values = np.asarray(data["t_host_ns"]), np.column_stack([data[c] for c in early.spec.streams["emht"]])
+    early.add("emht", t[:240], values[:240])
+    assert early.ready() == []
+    early.add("emht", t[240:720], values[240:720])
+    labelled = early.ready()
+    assert labelled[0].seq == 0 and len(labelled) > 5
+    assert labelled[-1].t_host_ns + 1_000_000_000 + feature_step_ns(10.0) < t[719]
 
 
 def test_the_first_frame_waits_for_every_stream_and_drops_are_counted(sessions, runs):

@@ -14,7 +14,7 @@ from helpers.cli import midas
 from helpers.gesture_sessions import write_two_users
 from midas_cli.errors import ConfigError
 from midas_cli.models import cv
-from midas_cli.models.train import build_model
+from midas_cli.models.train import build_model, saved_structure
 
 DIMS, CLASSES = {"emht": 4, "mtm": 3}, 3
 SMALL = {"mstcn": {"pg_layers": 6, "refinement_stages": 2, "refinement_layers": 5, "feature_maps": 8},
@@ -106,3 +106,48 @@ def test_causal_with_per_trial_normalisation_is_refused_in_one_line(data, tmp_pa
     assert result.returncode == 2 and result.stderr.strip().count("\n") == 0
     assert "--causal" in result.stderr and "--normalise trial" in result.stderr
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("name", ["mstcn", "transformer"])
+def test_a_delayed_model_labels_frame_t_from_frames_up_to_t_plus_delay_and_batches_as_alone(name):
+    delay = 5
+    torch.manual_seed(0)
+    model = build_model(name, DIMS, CLASSES, SMALL[name], causal=True, delay=delay)[0].eval()
+    assert model.cfg.delay == delay
+    x = torch.randn(1, 7, 60, generator=torch.Generator().manual_seed(1))
+    later = x.clone()
+    later[:, :, 37:] = torch.randn(1, 7, 23, generator=torch.Generator().manual_seed(2))
+    before, after = _logits(model, x), _logits(model, later)
+    assert before.shape[-1] == 60  # a label per frame, the last ones from the zeros after the end
+    assert torch.allclose(before[..., :37 - delay], after[..., :37 - delay], atol=1e-6)
+    assert not torch.allclose(before[..., 37 - delay:37], after[..., 37 - delay:37], atol=1e-3)  # frames it sees
+    # the same network without the delay: its output at t + delay is the delayed one's at t
+    undelayed = build_model(name, DIMS, CLASSES, SMALL[name], causal=True)[0].eval()
+    undelayed.load_state_dict(model.state_dict())
+    appended = torch.cat([x, torch.zeros(1, 7, delay)], dim=2)
+    assert torch.allclose(_logits(undelayed, appended)[..., delay:], before, atol=1e-5)
+    # a batch of a shorter and a longer sequence: each row as that sequence alone
+    short = x[..., :41]
+    batch = torch.zeros(2, 7, 60)
+    batch[0], batch[1, :, :41] = x[0], short[0]
+    mask = torch.zeros(2, 60, dtype=torch.bool)
+    mask[0], mask[1, :41] = True, True
+    with torch.no_grad():
+        both = model(batch, mask)
+    assert torch.allclose(both[:, 0], before[:, 0], atol=1e-5)
+    assert torch.allclose(both[:, 1, :, :41], _logits(model, short)[:, 0], atol=1e-5)
+
+
+def test_delay_is_refused_without_causal_and_recorded_in_frames_of_the_model_rate(data, tmp_path):
+    refused = midas("train", "gestures", str(data), "--delay", "1", "--out", str(tmp_path / "x"))
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0 and "--causal" in refused.stderr
+    assert not (tmp_path / "x").exists()
+    run = midas("train", "gestures", str(data), "--causal", "--delay", "0.5", "--modalities", "emht", "--features",
+                "pos", "--model-rate", "10", "--epochs", "1", "--out", str(tmp_path / "run"), "--json", check=True)
+    record = json.loads((tmp_path / "run" / "run.json").read_text(encoding="utf-8"))
+    assert record["train_config"]["delay_s"] == 0.5 and record["model_config"]["delay"] == 5  # 0.5 s at 10 Hz
+    saved = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
+    assert saved_structure(saved) == (True, 5)  # what --eval-only and --live-model rebuild it with
+    again = midas("train", "gestures", str(data), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
+                  "--out", str(tmp_path / "eval"), "--json", check=True)
+    assert json.loads(again.stdout)["test"] == json.loads(run.stdout)["test"]

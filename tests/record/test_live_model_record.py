@@ -30,13 +30,14 @@ FRAMES = 90  # gestures_live rows to wait for (3 s at the model's 30 Hz)
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """(a labelled simulated session, a causal MS-TCN++ run trained on EmHT of three such sessions)."""
+    """(a labelled simulated session, a causal MS-TCN++ run trained on EmHT of three such sessions, labelling
+    each frame 0.2 s late: --delay, so the recording's end must label its last frames)."""
     root = tmp_path_factory.mktemp("live")
     midas("simulate", "dataset", "--platform", "davinci-xi", "--trials", "3", "--max-seconds", "20", "--seed", "3",
           "--out", str(root / "sim"), check=True)
     sessions = sorted(p for p in (root / "sim").iterdir() if (p / "manifest.json").exists())
     midas("align", *map(str, sessions), check=True, timeout=300)
-    midas("train", "gestures", str(root / "sim"), "--causal", "--modalities", "emht", "--epochs", "3",
+    midas("train", "gestures", str(root / "sim"), "--causal", "--delay", "0.2", "--modalities", "emht", "--epochs", "3",
           "--out", str(root / "run"), check=True, timeout=600)
     return sessions[0], root / "run"
 
@@ -77,6 +78,7 @@ def test_live_gestures_from_a_replay_equal_the_offline_causal_models(trained, tm
     live = entry["live_model"]
     assert (live["run_id"], live["checkpoint_sha256"], live["model"]) == (spec.run_id, spec.checkpoint_sha256, spec.model)
     assert live["rate_hz"] == spec.rate_hz and live["input_rows_dropped"] == 0
+    assert (live["delay_frames"], live["delay_s"]) == (6, 0.2)  # 0.2 s at the model's 30 Hz
 
     rows = session.read_stream("gestures_live")
     seq, times = rows["seq"].to_numpy(np.int64), rows["t_host_ns"].to_numpy(np.int64)
