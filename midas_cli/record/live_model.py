@@ -6,7 +6,8 @@ describes the session's ``gestures_live`` stream: one row per frame of the model
 ``seq`` (the frame's index on that clock: a gap is a frame the recognition skipped to catch up),
 ``t_host_ns`` (the frame's time, host clock), ``t_pred_ns`` (host clock when its prediction was made),
 ``class`` (the label text) and ``probability``. A model trained with ``--delay`` labels each frame that
-much later (its ``t_pred_ns`` - ``t_host_ns`` includes it; the manifest's ``live_model`` says ``delay_s``). Its rows are written by the recognition process
+much later (its ``t_pred_ns`` - ``t_host_ns`` includes it; the manifest's ``live_model`` says ``delay_s``).
+Its rows are written by the recognition process
 (record/recognition.py), a worker like the devices' (its own device ``recognition``), fed with the rows of
 the streams it needs by the device workers (record/feed.py) without ever making one of them wait.
 """
