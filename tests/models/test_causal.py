@@ -75,15 +75,17 @@ def test_train_gestures_causal_records_it_and_re_evaluates_the_same(data, tmp_pa
 
 def test_causal_cross_validation_batched_trains_causal_folds_and_per_frame_baselines(data, tmp_path):
     out = tmp_path / "cv"
-    result = midas("train", "gestures", str(data), "--causal", "--model", "transformer", "--modalities", "emht",
-                   "--features", "pos", "--split", "louo", "--fold", "all", "--epochs", "1", "--fold-batch", "on",
-                   "--out", str(out), "--json")
+    result = midas("train", "gestures", str(data), "--causal", "--delay", "0.3", "--model", "transformer",
+                   "--modalities", "emht", "--features", "pos", "--model-rate", "10", "--split", "louo", "--fold", "all",
+                   "--epochs", "1", "--fold-batch", "on", "--out", str(out), "--json")
     assert result.returncode == 0, result.stderr
     for k in (0, 1):
         fold = json.loads((out / f"fold-{k}" / "run.json").read_text(encoding="utf-8"))
         assert fold["model_config"]["causal"] is True and fold["train_config"]["causal"] is True
+        assert fold["model_config"]["delay"] == 3  # delayed too, batched
         baseline = json.loads((out / "baseline" / f"fold-{k}" / "run.json").read_text(encoding="utf-8"))
         assert baseline["train_config"]["causal"] is True and "causal" not in baseline["model_config"]
+        assert baseline["train_config"]["delay_s"] == 0.0  # a per-frame model labels frame t at t
     # a fold written before --causal existed has no such key, which meant "not causal"
     _set_causal(out / "fold-0" / "run.json", None)
     with pytest.raises(ConfigError, match="trained differently"):
