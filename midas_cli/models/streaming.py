@@ -7,7 +7,9 @@ transformer layer the keys and values of the current attention window (reset at 
 so a frame attends to at most ``window`` frames). A ring starts as zeros: the zero padding the offline
 forward pass puts before the first frame. The arithmetic is the network's own, in float64 numpy with
 the trained weights (eval mode: dropout off), so the logits equal the offline causal forward pass on the
-same frames up to float rounding (tests/models/test_streaming.py).
+same frames up to float rounding (tests/models/test_streaming.py). A delayed model (``cfg.delay`` frames,
+``train gestures --delay``) steps the same way: its step at frame t gives frame t - delay's logits
+(``analysis/live_gestures.py`` keeps the frames waiting for theirs and flushes them with zero frames).
 
 ``frame_stepper(model)`` builds the stepper of a trained network (MS-TCN++, the transformer, the
 per-frame baselines); a sequence model trained without ``causal`` is refused (it would need frames
