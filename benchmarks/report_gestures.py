@@ -35,25 +35,61 @@ def _minutes(row: dict[str, Any]) -> str:
 
 def _title(row: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     """The model's title; a variant's name and its extra train options after it; a causal row's says so,
-    with its pooled accuracy minus the offline row's (same task and epochs; the same variant, else the
-    same inputs)."""
+    with its pooled accuracy minus the offline row's (:func:`offline_partner`): raw against raw at the last
+    epoch both learning curves have, else the rows' own figures (same epochs)."""
     title = TITLES[row["model"]]
     if row.get("variant"):
         title += f" [{row['variant']}: `{row['train_args']}`]"
     if not row.get("causal"):
         return title
-    offline = [r for r in rows if r["model"] == row["model"] and not r.get("causal")
-               and r["epochs_option"] == row["epochs_option"]
-               and (r.get("variant") == row.get("variant") or _same_inputs(r.get("inputs"), row.get("inputs")))]
-    offline.sort(key=lambda r: r.get("variant") != row.get("variant"))  # the same variant first, else the same inputs
+    offline = offline_partner(row, rows)
     delta = ""
-    if offline and row.get("curve") and offline[0].get("curve"):  # both raw (a causal run has no clean-up)
-        mine, theirs = row["curve"], offline[0]["curve"]
-        delta = (f"; acc {100 * (mine['accuracy'][-1] - theirs['accuracy'][-1]):+.1f} vs offline, raw, epoch "
-                 f"{mine['epochs'][-1]}")
-    elif offline:
-        delta = f"; acc {100 * (row['pooled']['accuracy'] - offline[0]['pooled']['accuracy']):+.1f} vs offline"
+    if offline is not None and row.get("curve") and offline.get("curve"):  # both raw (a causal run has no clean-up)
+        deltas = curve_deltas(row["curve"], offline["curve"])
+        if deltas:
+            epoch, diff = deltas[-1]
+            delta = f"; acc {100 * diff:+.1f} vs offline, raw, epoch {epoch}"
+    elif offline is not None:
+        delta = f"; acc {100 * (row['pooled']['accuracy'] - offline['pooled']['accuracy']):+.1f} vs offline"
     return f"{title} (causal{delta})"
+
+
+def offline_partner(row: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The offline row a causal ``row`` is compared with: the same model (and task), not causal, the same
+    variant or else the same inputs; where ``row`` has a learning curve, one with a curve sharing an epoch
+    (any epochs option: the curve's epochs say what is compared), else the same epochs option. The same
+    variant first."""
+    def shares_epochs(r: dict[str, Any]) -> bool:
+        if row.get("curve") and r.get("curve"):
+            return bool(curve_deltas(row["curve"], r["curve"]))
+        return r["epochs_option"] == row["epochs_option"]
+
+    found = [r for r in rows if r["model"] == row["model"] and not r.get("causal") and r["task"] == row["task"]
+             and (r.get("variant") == row.get("variant") or _same_inputs(r.get("inputs"), row.get("inputs")))
+             and shares_epochs(r)]
+    found.sort(key=lambda r: (r.get("variant") != row.get("variant"), not (row.get("curve") and r.get("curve"))))
+    return found[0] if found else None
+
+
+def curve_deltas(mine: dict[str, Any], theirs: dict[str, Any]) -> list[tuple[int, float]]:
+    """(epoch, accuracy difference) at every epoch both learning curves have, in order."""
+    at = dict(zip(theirs["epochs"], theirs["accuracy"]))
+    return [(e, a - at[e]) for e, a in zip(mine["epochs"], mine["accuracy"]) if e in at]
+
+
+def causal_table(rows: list[dict[str, Any]]) -> list[str]:
+    """Causal runs with learning curves against their offline partner's, epoch by epoch (raw pooled accuracy)."""
+    pairs = [(r, offline_partner(r, rows)) for r in rows if r.get("causal") and r.get("curve")]
+    pairs = [(r, o) for r, o in pairs if o is not None and o.get("curve")]
+    if not pairs:
+        return []
+    out = ["What the causal models cost, from the learning curves (raw pooled accuracy %, causal − offline of the "
+           "same inputs, at each epoch both were scored; a delayed model (`--delay`) labels frame t from the frames up "
+           "to t + delay):", "", "| task | causal run | offline run | causal − offline, by epoch |", "|---|---|---|---|"]
+    for r, o in pairs:
+        cells = ", ".join(f"{e}: {100 * d:+.1f}" for e, d in curve_deltas(r["curve"], o["curve"]))
+        out.append(f"| {r['task']} | {_title(r, rows).split(' (causal')[0]} | {_title(o, rows)} | {cells} |")
+    return out + [""]
 
 
 def _same_inputs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
@@ -144,6 +180,7 @@ def gestures_jigsaws_section(report: dict[str, Any]) -> list[str]:
            "each).", ""]
     out += gestures_jigsaws_table(report)
     out += curves_table(report["rows"])
+    out += causal_table(report["rows"])
     if missing:
         out += [f"Not yet measured (at the defaults, all folds): {', '.join(missing)}.", ""]
     return out + [f"* {note}" for note in report.get("notes", [])] + ([""] if report.get("notes") else [])

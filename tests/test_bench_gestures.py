@@ -109,3 +109,18 @@ def test_a_causal_row_finds_the_offline_run_of_the_same_inputs_and_compares_raw_
     assert any("(causal; acc -5.0 vs offline, raw, epoch 50)" in line for line in lines)  # raw vs raw, not 72 vs 80
     other = {**causal, "inputs": {**inputs, "features": ["vel"], "rate_hz": None}}
     assert any("| MS-TCN++ (causal) |" in line for line in gestures_jigsaws_table(_report([offline, other])))
+
+
+def test_a_delayed_causal_run_of_other_epochs_is_compared_at_every_epoch_both_curves_have() -> None:
+    from report_gestures import causal_table
+
+    offline = {**_row("transformer", 0.74, 65.0), "variant": "curve5", "train_args": "--curve-every 5",
+               "curve": {"epochs": [10, 20, 30, 40], "accuracy": [0.772, 0.741, 0.744, 0.739], "edit": [70.0] * 4}}
+    delayed = {**_row("transformer", 0.74, 66.0), "causal": True, "epochs_option": 30, "variant": "delay1s",
+               "train_args": "--delay 1 --curve-every 5",
+               "curve": {"epochs": [10, 20, 30], "accuracy": [0.749, 0.772, 0.740], "edit": [64.0] * 3}}
+    lines = gestures_jigsaws_table(_report([offline, delayed]))
+    assert any("(causal; acc -0.4 vs offline, raw, epoch 30)" in line for line in lines)
+    table = causal_table([offline, delayed])
+    assert "10: -2.3, 20: +3.1, 30: -0.4" in table[-2] and "delay1s" in table[-2] and "curve5" in table[-2]
+    assert causal_table([offline]) == [] and causal_table([{**delayed, "curve": None}, offline]) == []
