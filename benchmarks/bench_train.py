@@ -15,6 +15,7 @@ thread, ``torch.no_grad``, 100 calls. Sizes 5, 10 and 15 trials give the slope p
     .venv/bin/python benchmarks/bench_train.py            # 15 trials; 5, 10, 15 -> results/train.json
     .venv/bin/python benchmarks/bench_train.py --quick    # 3 trials cut to 40 s; 2 and 3
     .venv/bin/python benchmarks/bench_train.py --louo     # JIGSAWS-sized LOUO fold -> results/train_louo.json
+    nice -n 19 .venv/bin/python benchmarks/bench_train.py --louo-all [--epochs N]   # Suturing-sized, all 8 folds
 
 LOUO (``--louo``): a JIGSAWS-sized dataset, 8 subjects x 5 trials of ~100 s at 30 Hz (``midas simulate
 dataset --platform raven-ii --trials 40 --subjects 8 --max-seconds 100``, ``--difficulty real``), 76 input
@@ -25,6 +26,15 @@ MS-TCN++ recipe: batch 1, ``RECIPES["mstcn"]["epochs"]`` epochs) through the rea
 (``models.train.fit``): a warm-up epoch, then ``LOUO_EPOCHS`` timed epochs; the whole fold is
 extrapolated (recipe epochs x epoch + test evaluation) and said so.
 CPU only here; a GPU run is recorded only where ``torch.cuda.is_available()``.
+
+Whole cross-validation, Suturing-sized (``--louo-all``, issue 27's time budget: <= 30 min on 2 CPU cores at
+the defaults): 38 trials of ~100 s over 8 subjects (JIGSAWS Suturing: 38 labelled trials, 8 users, ~3,000
+frames at 30 Hz each), simulated and aligned as above, then ``midas train gestures SESSIONS --modalities
+mtm,psm --split louo --fold all --no-baseline --jobs 2`` through the CLI, everything else at its defaults
+(features, model rate, recipe; ``--epochs N`` overrides the recipe, to see what fewer epochs would save):
+measured, not extrapolated. The wall time, each fold's own time (the run's done markers) and the load are
+recorded in ``results/train_louo_all.json`` (``--epochs``: ``train_louo_all-e<N>.json``); the accuracy on
+simulated data is kept but means nothing for the real task.
 """
 
 from __future__ import annotations
@@ -195,6 +205,40 @@ def louo_case(folder: Path, device_name: str) -> dict:
             "fold_s_extrapolated": round(fold_epochs * epoch_s + test_s, 1)}
 
 
+LOUO_ALL_TRIALS = 38  # JIGSAWS Suturing's labelled trials
+
+
+def run_louo_all(epochs: int | None, quick: bool) -> None:
+    """Simulate a Suturing-shaped dataset and time a whole LOUO cross-validation at the defaults (module docs)."""
+    from gestures_jigsaws import fold_seconds
+
+    trials, seconds = (LOUO_SUBJECTS * 2, 15.0) if quick else (LOUO_ALL_TRIALS, LOUO_MAX_SECONDS)
+    with tempfile.TemporaryDirectory(prefix="midas-bench-louo-all-") as tmp:
+        sessions, out = Path(tmp) / "sessions", Path(tmp) / "run"
+        print(f"train: simulating and aligning {trials} {PLATFORM} trials ({LOUO_SUBJECTS} subjects) ...", file=sys.stderr)
+        load = load_average()
+        data = {**prepare_dataset(sessions, trials, seconds, LOUO_SUBJECTS), "load_average_before_after": [load, load_average()]}
+        args = ["train", "gestures", str(sessions), "--modalities", ",".join(LOUO_MODALITIES), "--split", "louo",
+                "--fold", "all", "--no-baseline", "--jobs", "2", "--out", str(out), "--json"]
+        args += ["--epochs", str(epochs)] if epochs is not None else []
+        print(f"train: {' '.join(args[:2])} --split louo --fold all (mstcn, defaults"
+              f"{f', {epochs} epochs' if epochs is not None else ''}) ...", file=sys.stderr)
+        load, t0 = load_average(), time.monotonic()
+        _cli(*args)
+        wall = time.monotonic() - t0
+        first = json.loads((out / "fold-0" / "run.json").read_text(encoding="utf-8"))
+        cv = json.loads((out / "cv.json").read_text(encoding="utf-8"))
+        run = {"wall_s": round(wall, 1), "load_average_before_after": [load, load_average()],
+               "command": "midas " + " ".join(a if not a.startswith(tmp) else "…" for a in args),
+               "fold_seconds": fold_seconds(out, "mstcn"), "folds": len(cv.get("folds", [])) or None,
+               "epochs": first["train_config"]["epochs"], "recipe": first["recipe"],
+               "rate_hz": first["trials"][0]["rate_hz"], "inputs": {m: len(v) for m, v in first["feature_names"].items()},
+               "frames_at_model_rate": int(sum(t["frames"] for t in first["trials"])),
+               "trials": len(first["trials"]), "simulated_accuracy": cv.get("pooled", {}).get("accuracy")}
+    name = "train_louo_all" + (f"-e{epochs}" if epochs is not None else "")
+    write_result(name, {"machine": machine_info(), "quick": quick, "data": data, "run": run})
+
+
 def run_louo() -> None:
     import torch
 
@@ -223,6 +267,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="3 trials cut to 40 s; sizes 2 and 3")
     parser.add_argument("--louo", action="store_true", help="JIGSAWS-sized LOUO fold timing -> results/train_louo.json")
+    parser.add_argument("--louo-all", action="store_true",
+                        help="Suturing-sized whole LOUO cross-validation at the defaults -> results/train_louo_all.json")
+    parser.add_argument("--epochs", type=int, default=None, help="--louo-all: override the recipe's epochs")
     parser.add_argument("--case", nargs=4, help=argparse.SUPPRESS)
     parser.add_argument("--louo-case", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -231,6 +278,9 @@ def main() -> None:
         return
     if args.louo:
         run_louo()
+        return
+    if args.louo_all:
+        run_louo_all(args.epochs, args.quick)
         return
     if args.case:
         result = case(args.case[0], Path(args.case[1]), int(args.case[2]), int(args.case[3]))

@@ -46,6 +46,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_pedal_gt.py --duration 10   # pedal ground truth from video",
             ".venv/bin/python benchmarks/bench_train.py      # simulate + align 15 trials; MS-TCN++ / transformer",
             ".venv/bin/python benchmarks/bench_train.py --louo   # one JIGSAWS-sized LOUO fold of MS-TCN++",
+            "nice -n 19 .venv/bin/python benchmarks/bench_train.py --louo-all   # a whole Suturing-sized LOUO at the defaults",
             ".venv/bin/python benchmarks/bench_mstcn_reference.py --threads 1   # MS-TCN++ vs a reference loop",
             "nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --jobs 2   # LOUO on real JIGSAWS kinematics",
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
@@ -292,6 +293,28 @@ def train_louo_section(t: dict) -> list[str]:
     return out + [""]
 
 
+def train_louo_all_section(results: list[dict]) -> list[str]:
+    """Whole Suturing-sized cross-validations (``bench_train.py --louo-all``), one row per run."""
+    d = results[0]["data"]
+    out = ["### A whole LOUO cross-validation, Suturing-sized (`bench_train.py --louo-all`)", "",
+           f"Data: `midas simulate dataset --platform {d['platform']} --trials {d['trials']} --subjects {d['subjects']} "
+           f"--max-seconds {d['max_seconds_per_trial']:g}` (JIGSAWS Suturing: 38 labelled trials, 8 users, ~3,000 frames "
+           "at 30 Hz each), aligned; then `midas train gestures SESSIONS --modalities mtm,psm --split louo --fold all "
+           "--no-baseline --jobs 2` at the defaults (MS-TCN++, its features and model rate) through the CLI, measured "
+           "end to end. Issue 27's budget: <= 30 min on 2 CPU cores. The machine is shared: the load is beside each run.",
+           "", "| epochs | trials | frames at the model rate | wall | a fold | load 1 min | <= 30 min | run on |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        run, secs = r["run"], list(r["run"]["fold_seconds"].values())
+        load = "–".join(f"{x:g}" for x in run["load_average_before_after"])
+        span = f"{min(secs) / 60:.1f}–{max(secs) / 60:.1f} min" if secs else "—"
+        quick = " (smoke run)" if r.get("quick") else ""
+        out.append(f"| {run['epochs']} | {run['trials']} | {run['frames_at_model_rate']:,} ({run['rate_hz']:g} Hz) | "
+                   f"{run['wall_s'] / 60:.1f} min{quick} | {span} | {load} | {'yes' if run['wall_s'] <= 1800 else 'no'} | "
+                   f"{r['machine']['date_utc'][:16]}, {r['machine']['affinity_cpus']} CPUs |")
+    return out + [""]
+
+
 def startup_section(s: dict) -> list[str]:
     m = s["machine"]
     lines = ["## 6. Start-up of light commands (`bench_startup.py`)", "",
@@ -326,6 +349,9 @@ def main() -> None:
         lines += section(result) if result else [f"## {name}: no results yet (run its script)", ""]
         if name == "train" and load("train_louo"):
             lines += train_louo_section(load("train_louo"))
+        louo_all = [json.loads(p.read_text(encoding="utf-8")) for p in sorted(RESULTS.glob("train_louo_all*.json"))]
+        if name == "train" and louo_all:
+            lines += train_louo_all_section(louo_all)
         if name == "train" and load("mstcn_reference"):
             lines += reference_section(load("mstcn_reference"))
         if name == "train" and load("gestures_jigsaws"):
