@@ -153,6 +153,15 @@ class _Model:
             self.next_seq += 1
         return out
 
+    def flush(self) -> list[_Prediction]:
+        """The end of the input: a delayed model's held-back frame (one here), then nothing."""
+        if self.flushed:
+            return []
+        k, self.next_seq, self.flushed = self.next_seq, self.next_seq + 1, True
+        return [_Prediction(k, k * 100_000_000, 0, "G1", 0.6)]
+
+    flushed = False
+
 
 def test_the_recognition_writes_a_row_per_frame_and_counts_what_it_skipped(tmp_path: Path) -> None:
     spec = gestures_spec(PLAN)
@@ -175,11 +184,12 @@ def test_the_recognition_writes_a_row_per_frame_and_counts_what_it_skipped(tmp_p
     lines = path.read_text().splitlines()
     assert lines[0] == "seq,t_host_ns,t_pred_ns,class,probability"
     rows = [line.split(",") for line in lines[1:]]
-    # what came before the first prediction is predicted (frames 0-2 of 249 ms of rows), never skipped
-    assert [int(r[0]) for r in rows] == [0, 1, 2, 5, 6] and [int(r[1]) for r in rows][-1] == 600_000_000
+    # what came before the first prediction is predicted (frames 0-2 of 249 ms of rows), never skipped; once
+    # every feed has closed, the frame the model still held back (flush) is written last
+    assert [int(r[0]) for r in rows] == [0, 1, 2, 5, 6, 7] and [int(r[1]) for r in rows][-1] == 700_000_000
     assert all(int(r[2]) >= output.clock.anchor_ns for r in rows) and rows[1][3] == '"G2"'
     batches = [m for m in _all(out) if isinstance(m, DataBatch)]
-    assert batches and batches[-1].last_row[:4:3] == (6, "G1") and batches[-1].stream == "gestures_live"
+    assert batches and batches[-1].last_row[:4:3] == (7, "G1") and batches[-1].stream == "gestures_live"
 
 
 def _all(out: queue.Queue) -> list:
