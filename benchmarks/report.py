@@ -336,6 +336,13 @@ def startup_section(s: dict) -> list[str]:
                     "parser).", ""]
 
 
+def notes(section: str) -> list[str]:
+    """Measurements and readings written by hand, without a script of their own, kept after ``section``'s
+    generated part (``benchmarks/notes/<section>.md``, as it is): a render never loses them."""
+    path = Path(__file__).resolve().parent / "notes" / f"{section}.md"
+    return path.read_text(encoding="utf-8").rstrip("\n").splitlines() + [""] if path.is_file() else []
+
+
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
@@ -358,6 +365,7 @@ def main() -> None:
             lines += gestures_jigsaws_section(load("gestures_jigsaws"))
             rescored = load("gestures_jigsaws_rescored")
             lines += rescored_section(rescored) if rescored else []
+        lines += notes(name)
     lines += soak_section({name: load(name) for name in ("soak", "soak-short")})
     startup = load("startup")
     lines += startup_section(startup) if startup else ["## startup: no results yet (run its script)", ""]
@@ -369,6 +377,7 @@ def main() -> None:
     lines += foxglove_live_section(live) if live else ["## foxglove_live: no results yet (run its script)", ""]
     stamps = load("timestamp_error")
     lines += timestamp_section(stamps) if stamps else ["## timestamp_error: no results yet (run its script)", ""]
+    lines += notes("timestamp_error")
     lines += live_section(load("live_gestures"), load("live_record"))
     (ROOT / "BENCHMARKS.md").write_text("\n".join(lines), encoding="utf-8")
     print(ROOT / "BENCHMARKS.md")
