@@ -148,6 +148,8 @@ def seeded_model(dataset: GestureDataset, config: TrainConfig) -> tuple[torch.nn
     """The untrained network of ``config`` (on the CPU), its weights drawn after ``torch.manual_seed(seed)``."""
     torch.manual_seed(config.seed)
     delay = delay_frames(config.delay_s, dataset.trials[0].rate_hz)
+    if config.delay_s and not delay:
+        log.warning("--delay %g s is less than half a frame at %g Hz: no delay", config.delay_s, dataset.trials[0].rate_hz)
     return build_model(config.model, dataset.modality_dims, len(dataset.classes), config.model_options, config.causal,
                        delay)
 

@@ -153,3 +153,7 @@ def test_delay_is_refused_without_causal_and_recorded_in_frames_of_the_model_rat
     again = midas("train", "gestures", str(data), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
                   "--out", str(tmp_path / "eval"), "--json", check=True)
     assert json.loads(again.stdout)["test"] == json.loads(run.stdout)["test"]
+    tiny = midas("train", "gestures", str(data), "--causal", "--delay", "0.01", "--modalities", "emht", "--features",
+                 "pos", "--model-rate", "10", "--epochs", "1", "--out", str(tmp_path / "tiny"), check=True)
+    assert "no delay" in tiny.stderr  # under half a frame: said, not silently ignored
+    assert json.loads((tmp_path / "tiny" / "run.json").read_text(encoding="utf-8"))["model_config"]["delay"] == 0
