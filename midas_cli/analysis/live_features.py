@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from midas_cli.analysis.sync import associate
-from midas_cli.errors import ConfigError, MidasError
+from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.models.data import DatasetConfig, Normaliser, modality_features
 from midas_cli.models.train import build_model, load_checkpoint, saved_structure
 from midas_cli.session.derived import AlignedTable
@@ -74,6 +74,8 @@ def load_run(run: Path) -> LiveRun:
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:  # a damaged or foreign record
         raise ConfigError(f"live model {path}: the checkpoint is not a usable gesture run ({type(exc).__name__}: "
                           f"{exc})") from None
+    except SessionError as exc:  # a field checked on the way (e.g. the delay)
+        raise ConfigError(f"live model {path}: {exc}") from None
 
 
 def _live_run(path: Path, saved: dict) -> LiveRun:

@@ -59,6 +59,8 @@ class MSTCNConfig:
 def look_ahead(x: torch.Tensor, mask: torch.Tensor, delay: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``x`` (B, D, T) and ``mask`` (B, T) with ``delay`` zero frames appended, the mask True over the
     ``delay`` frames after each sequence's last real one (the input of a delayed causal network)."""
+    if delay < 0:
+        raise ValueError(f"delay must be >= 0 frames, got {delay}")
     if not delay:
         return x, mask
     x = F.pad(x, (0, delay))  # (B, D, T) -> (B, D, T + delay)

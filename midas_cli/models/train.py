@@ -205,7 +205,10 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
 def saved_structure(saved: dict) -> tuple[bool, int]:
     """``causal`` and ``delay`` (frames) of a saved run's network (False, 0 for one from before them)."""
     model_config = saved.get("model_config", {})
-    return bool(model_config.get("causal", False)), int(model_config.get("delay", 0))
+    delay = model_config.get("delay", 0)
+    if isinstance(delay, bool) or not isinstance(delay, int) or delay < 0:
+        raise SessionError(f"the checkpoint's delay must be a whole number of frames >= 0, got {delay!r}")
+    return bool(model_config.get("causal", False)), delay
 
 
 def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict,

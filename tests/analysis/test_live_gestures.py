@@ -163,6 +163,10 @@ def test_what_cannot_run_live_is_refused_naming_why(sessions, runs, tmp_path):
     torch.save({**saved, "trials": "hostile"}, tmp_path / "hostile.pt")
     with pytest.raises(ConfigError, match="not a usable gesture run"):
         load_live_model(tmp_path / "hostile.pt")
+    for delay in (-3, 2.5, True):  # a delay that is not a whole number of frames >= 0: refused, never run
+        torch.save({**saved, "model_config": {**saved["model_config"], "delay": delay}}, tmp_path / "delay.pt")
+        with pytest.raises(ConfigError, match="delay"):
+            load_live_model(tmp_path / "delay.pt")
     assert json.loads((runs["mstcn"] / "run.json").read_text())["train_config"]["causal"] is True
 
 
