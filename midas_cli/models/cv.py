@@ -101,7 +101,7 @@ def cv_jobs(config: TrainConfig, out_dir: Path, baseline: str | None = BASELINE)
     baseline's (its own recipe, no model options) under ``out_dir/baseline``."""
     jobs = [(config, Path(out_dir))]
     if baseline and baseline != config.model:
-        jobs.append((replace(config, model=baseline, model_options={}, lr=None, delay_s=0.0), Path(out_dir) / BASELINE))
+        jobs.append((replace(config, model=baseline, model_options={}, lr=None), Path(out_dir) / BASELINE))
     return jobs
 
 

@@ -85,7 +85,8 @@ def test_causal_cross_validation_batched_trains_causal_folds_and_per_frame_basel
         assert fold["model_config"]["delay"] == 3  # delayed too, batched
         baseline = json.loads((out / "baseline" / f"fold-{k}" / "run.json").read_text(encoding="utf-8"))
         assert baseline["train_config"]["causal"] is True and "causal" not in baseline["model_config"]
-        assert baseline["train_config"]["delay_s"] == 0.0  # a per-frame model labels frame t at t
+        # as with causal: the training asked for is recorded, the per-frame network has no delay (frame t at t)
+        assert baseline["train_config"]["delay_s"] == 0.3 and "delay" not in baseline["model_config"]
     # a fold written before --causal existed has no such key, which meant "not causal"
     _set_causal(out / "fold-0" / "run.json", None)
     with pytest.raises(ConfigError, match="trained differently"):
