@@ -234,7 +234,8 @@ def run_louo_all(epochs: int | None, quick: bool) -> None:
                "epochs": first["train_config"]["epochs"], "recipe": first["recipe"],
                "rate_hz": first["trials"][0]["rate_hz"], "inputs": {m: len(v) for m, v in first["feature_names"].items()},
                "frames_at_model_rate": int(sum(t["frames"] for t in first["trials"])),
-               "trials": len(first["trials"]), "simulated_accuracy": cv.get("pooled", {}).get("accuracy")}
+               "trials": len(first["trials"]), "simulated_accuracy": cv.get("pooled", {}).get("accuracy"),
+               "git_commit": first.get("code", {}).get("git_commit")}
     name = "train_louo_all" + (f"-e{epochs}" if epochs is not None else "")
     write_result(name, {"machine": machine_info(), "quick": quick, "data": data, "run": run})
 

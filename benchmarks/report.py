@@ -302,8 +302,8 @@ def train_louo_all_section(results: list[dict]) -> list[str]:
            "at 30 Hz each), aligned; then `midas train gestures SESSIONS --modalities mtm,psm --split louo --fold all "
            "--no-baseline --jobs 2` at the defaults (MS-TCN++, its features and model rate) through the CLI, measured "
            "end to end. Issue 27's budget: <= 30 min on 2 CPU cores. The machine is shared: the load is beside each run.",
-           "", "| epochs | trials | frames at the model rate | wall | a fold | load 1 min | <= 30 min | run on |",
-           "|---|---|---|---|---|---|---|---|"]
+           "", "| epochs | trials | frames at the model rate | wall | a fold | load 1 min | <= 30 min | run on | code |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         run, secs = r["run"], list(r["run"]["fold_seconds"].values())
         load = "–".join(f"{x:g}" for x in run["load_average_before_after"])
@@ -311,7 +311,8 @@ def train_louo_all_section(results: list[dict]) -> list[str]:
         quick = " (smoke run)" if r.get("quick") else ""
         out.append(f"| {run['epochs']} | {run['trials']} | {run['frames_at_model_rate']:,} ({run['rate_hz']:g} Hz) | "
                    f"{run['wall_s'] / 60:.1f} min{quick} | {span} | {load} | {'yes' if run['wall_s'] <= 1800 else 'no'} | "
-                   f"{r['machine']['date_utc'][:16]}, {r['machine']['affinity_cpus']} CPUs |")
+                   f"{r['machine']['date_utc'][:16]}, {r['machine']['affinity_cpus']} CPUs | "
+                   f"{(run.get('git_commit') or '—')[:7]} |")
     return out + [""]
 
 

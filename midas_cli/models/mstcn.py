@@ -39,7 +39,7 @@ the layer's own each step (:meth:`DualDilatedLayer.forward`): 2.7x fewer multipl
 prediction-generation stage and its backward pass. Dropout draws uniform numbers and compares them
 (:class:`Dropout`) rather than torch's per-element Bernoulli draws, 2.6x slower on the CPU. Together with
 fused Adam (``train.fit``) a training step at the defaults takes ~0.6x the time
-(BENCHMARKS.md, "MS-TCN++ training step").
+(BENCHMARKS.md, "MS-TCN++: midas against a reference implementation").
 """
 
 from __future__ import annotations
