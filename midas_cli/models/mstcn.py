@@ -12,7 +12,8 @@ different lengths give the same result as one sequence at a time.
 Audited against the official code (sj-li/MS-TCN2 ``model.py``, ``main.py``, ``train.sh``): layer counts,
 dilations, dropout (``nn.Dropout()`` = 0.5), the 1x1 fusion, the softmax between stages and the loss
 are the same. The training recipe that goes with it (``registry.py``, entry "mstcn"): Adam lr 5e-4,
-batch size 1, 100 epochs, the last epoch's weights. Two deliberate differences, both neutral at batch
+batch size 1, the last epoch's weights, 100 epochs officially (midas's default is 50, chosen on the
+JIGSAWS development tasks: ``registry.py``). Two deliberate differences, both neutral at batch
 size 1: the official model masks nothing (its batches of one have no padding) and its smoothing term
 is a mean over every position of the padded batch, padding included; here padding is masked and the
 mean is over the real frame pairs, so a batch of several sequences trains like the same sequences alone.

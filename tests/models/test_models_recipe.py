@@ -54,14 +54,14 @@ def test_smoothing_gradient_flows_only_into_the_later_frame():
     assert torch.all(logits.grad[:, :, 0] == 0) and torch.any(logits.grad[:, :, 1] != 0)
 
 
-def test_mstcn_default_is_the_published_network_and_recipe():
+def test_mstcn_default_is_the_published_network_and_recipe_with_50_epochs():
     cfg = MSTCNConfig(in_features=6, n_classes=4)
     assert (cfg.pg_layers, cfg.refinement_stages, cfg.refinement_layers, cfg.feature_maps) == (11, 3, 10, 64)
     assert (cfg.dropout, cfg.smoothing_weight, cfg.tau) == (0.5, 0.15, 4.0)
     model = MSTCN(cfg)
     assert len(model.generation.layers) == 11 and [len(r.layers) for r in model.refinements] == [10, 10, 10]
     assert model(torch.randn(1, 6, 20), torch.ones(1, 20, dtype=torch.bool)).shape == (4, 1, 4, 20)
-    assert RECIPES["mstcn"] == {"epochs": 100, "batch_size": 1, "lr": 5e-4, "selection": "last"}
+    assert RECIPES["mstcn"] == {"epochs": 50, "batch_size": 1, "lr": 5e-4, "selection": "last"}
     resolved = TrainConfig(model="mstcn", epochs=3).resolved()
     assert (resolved.epochs, resolved.batch_size, resolved.lr, resolved.selection) == (3, 1, 5e-4, "last")
     with pytest.raises(ConfigError, match="selection"):
