@@ -254,24 +254,29 @@ def figures(cv: dict[str, Any]) -> dict[str, Any]:
 def learning_curve(out: Path) -> dict[str, Any] | None:
     """A run trained with ``--curve-every``: at each scored epoch that every finished fold has, the
     pooled accuracy (correct / labelled test frames over all folds) and the mean edit over test videos,
-    raw predictions (no --min-segment). None for a run without it."""
+    raw predictions (no --min-segment); ``by_fold``: each fold's (held-out group's) [correct, frames] by
+    epoch, so that two runs are compared on the folds both have. None for a run without it."""
     points: dict[int, list[dict[str, Any]]] = {}
+    by_fold: dict[str, dict[str, list[int]]] = {}
     folds = 0
     for run in sorted(out.glob("fold-*/run.json")):
         try:
-            history = json.loads(run.read_text(encoding="utf-8"))["history"]
+            saved = json.loads(run.read_text(encoding="utf-8"))
+            history = saved["history"]
         except (OSError, ValueError, KeyError):
             continue
         scored = {int(e["epoch"]): e["test_curve"] for e in history if isinstance(e, dict) and "test_curve" in e}
         if not scored:
             continue
         folds += 1
+        group = (saved.get("split") or {}).get("group") or run.parent.name
+        by_fold[str(group)] = {str(e): [int(p["correct"]), int(p["frames"])] for e, p in sorted(scored.items())}
         for epoch, point in scored.items():
             points.setdefault(epoch, []).append(point)
     epochs = sorted(e for e, p in points.items() if len(p) == folds)
     if not folds or not epochs:
         return None
-    return {"folds": folds, "epochs": epochs,
+    return {"folds": folds, "epochs": epochs, "by_fold": by_fold,
             "accuracy": [sum(p["correct"] for p in points[e]) / max(1, sum(p["frames"] for p in points[e]))
                          for e in epochs],
             "edit": [float(np.mean([x for p in points[e] for x in p["edit"]])) for e in epochs]}

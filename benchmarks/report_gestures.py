@@ -57,8 +57,8 @@ def _title(row: dict[str, Any], rows: list[dict[str, Any]]) -> str:
 def offline_partner(row: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     """The offline row a causal ``row`` is compared with: the same model (and task), not causal, the same
     variant or else the same inputs; where ``row`` has a learning curve, one with a curve sharing an epoch
-    (any epochs option: the curve's epochs say what is compared), else the same epochs option. The same
-    variant first."""
+    on the same folds (any epochs option: the curve's epochs say what is compared), else the same epochs
+    option. The same variant first, then the curve that shares the most epochs."""
     def shares_epochs(r: dict[str, Any]) -> bool:
         if row.get("curve") and r.get("curve"):
             return bool(curve_deltas(row["curve"], r["curve"]))
@@ -67,14 +67,41 @@ def offline_partner(row: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str
     found = [r for r in rows if r["model"] == row["model"] and not r.get("causal") and r["task"] == row["task"]
              and (r.get("variant") == row.get("variant") or _same_inputs(r.get("inputs"), row.get("inputs")))
              and shares_epochs(r)]
-    found.sort(key=lambda r: (r.get("variant") != row.get("variant"), not (row.get("curve") and r.get("curve"))))
+    found.sort(key=lambda r: (r.get("variant") != row.get("variant"), not (row.get("curve") and r.get("curve")),
+                              -len(curve_deltas(row["curve"], r["curve"])) if row.get("curve") and r.get("curve") else 0))
     return found[0] if found else None
 
 
+def common_folds(mine: dict[str, Any], theirs: dict[str, Any]) -> list[str] | None:
+    """The folds (held-out groups) two learning curves both have; None where a curve predates ``by_fold``."""
+    if "by_fold" not in mine or "by_fold" not in theirs:
+        return None
+    return sorted(set(mine["by_fold"]) & set(theirs["by_fold"]))
+
+
 def curve_deltas(mine: dict[str, Any], theirs: dict[str, Any]) -> list[tuple[int, float]]:
-    """(epoch, accuracy difference) at every epoch both learning curves have, in order."""
-    at = dict(zip(theirs["epochs"], theirs["accuracy"]))
-    return [(e, a - at[e]) for e, a in zip(mine["epochs"], mine["accuracy"]) if e in at]
+    """(epoch, accuracy difference) at every epoch both learning curves have, in order, pooled over the
+    folds both have (an unfinished run against a finished one: its folds only). Curves without
+    ``by_fold`` are compared only when they pool as many folds (else nothing: not like with like)."""
+    folds = common_folds(mine, theirs)
+    if folds is None:
+        if mine.get("folds") != theirs.get("folds"):
+            return []
+        at = dict(zip(theirs["epochs"], theirs["accuracy"]))
+        return [(e, a - at[e]) for e, a in zip(mine["epochs"], mine["accuracy"]) if e in at]
+
+    def pooled(curve: dict[str, Any], epoch: int) -> float | None:
+        points = [curve["by_fold"][f].get(str(epoch)) for f in folds]
+        if any(p is None for p in points):
+            return None
+        return sum(p[0] for p in points) / max(1, sum(p[1] for p in points))
+
+    out = []
+    for epoch in sorted(set(mine["epochs"]) | set(theirs["epochs"])):
+        a, b = pooled(mine, epoch), pooled(theirs, epoch)
+        if a is not None and b is not None:
+            out.append((epoch, a - b))
+    return out if folds else []
 
 
 def causal_table(rows: list[dict[str, Any]]) -> list[str]:
@@ -85,10 +112,13 @@ def causal_table(rows: list[dict[str, Any]]) -> list[str]:
         return []
     out = ["What the causal models cost, from the learning curves (raw pooled accuracy %, causal − offline of the "
            "same inputs, at each epoch both were scored; a delayed model (`--delay`) labels frame t from the frames up "
-           "to t + delay):", "", "| task | causal run | offline run | causal − offline, by epoch |", "|---|---|---|---|"]
+           "to t + delay), pooled over the folds both runs have:", "",
+           "| task | causal run | offline run | folds | causal − offline, by epoch |", "|---|---|---|---|---|"]
     for r, o in pairs:
         cells = ", ".join(f"{e}: {100 * d:+.1f}" for e, d in curve_deltas(r["curve"], o["curve"]))
-        out.append(f"| {r['task']} | {_title(r, rows).split(' (causal')[0]} | {_title(o, rows)} | {cells} |")
+        folds = common_folds(r["curve"], o["curve"])
+        shared = " ".join(folds) if folds is not None else f"{r['curve'].get('folds', '?')} (both)"
+        out.append(f"| {r['task']} | {_title(r, rows).split(' (causal')[0]} | {_title(o, rows)} | {shared} | {cells} |")
     return out + [""]
 
 

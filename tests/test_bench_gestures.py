@@ -92,7 +92,9 @@ def test_a_learning_curve_pools_the_folds_at_the_epochs_every_fold_reached(tmp_p
     fold(1, {10: (300, 270, [80.0, 90.0]), 20: (300, 240, [60.0, 80.0])})
     fold(2, {})  # an older fold without --curve-every: left out, not counted
     curve = bench.learning_curve(tmp_path)
-    assert curve == {"folds": 2, "epochs": [10, 20], "accuracy": [0.8, 0.8], "edit": [70.0, 70.0]}
+    assert curve == {"folds": 2, "epochs": [10, 20], "accuracy": [0.8, 0.8], "edit": [70.0, 70.0],
+                     "by_fold": {"fold-0": {"10": [50, 100], "20": [80, 100]},
+                                 "fold-1": {"10": [270, 300], "20": [240, 300]}}}
     fold(3, {10: (10, 10, [100.0])})  # a fold that has not reached epoch 20: only the epochs all folds have
     assert bench.learning_curve(tmp_path)["epochs"] == [10]
     lines = curves_table([{**_row("mstcn", 0.8, 70.0), "curve": curve}])
@@ -124,3 +126,27 @@ def test_a_delayed_causal_run_of_other_epochs_is_compared_at_every_epoch_both_cu
     table = causal_table([offline, delayed])
     assert "10: -2.3, 20: +3.1, 30: -0.4" in table[-2] and "delay1s" in table[-2] and "curve5" in table[-2]
     assert causal_table([offline]) == [] and causal_table([{**delayed, "curve": None}, offline]) == []
+
+
+def test_an_unfinished_causal_run_is_compared_on_its_own_folds_only() -> None:
+    """A causal run with folds B and C against an offline run of B, C, D: the difference is pooled over B
+    and C (here 0), never the causal run's two easy folds against the offline run's three."""
+    from report_gestures import causal_table, curve_deltas
+
+    def curve(by_fold: dict[str, tuple[int, int]]) -> dict[str, Any]:
+        correct, frames = sum(c for c, _ in by_fold.values()), sum(f for _, f in by_fold.values())
+        return {"folds": len(by_fold), "epochs": [50], "accuracy": [correct / frames], "edit": [70.0],
+                "by_fold": {g: {"50": [c, f]} for g, (c, f) in by_fold.items()}}
+
+    offline = {**_row("mstcn", 0.6, 80.0), "variant": "all", "train_args": "", "curve": curve({"B": (90, 100), "C": (80, 100),
+                                                                                "D": (10, 100)})}
+    causal = {**_row("mstcn", 0.85, 80.0), "causal": True, "variant": "all", "train_args": "", "curve": curve({"B": (90, 100),
+                                                                                              "C": (80, 100)})}
+    assert curve_deltas(causal["curve"], offline["curve"]) == [(50, 0.0)]  # not +0.25 (85 % against 60 %)
+    assert any("(causal; acc +0.0 vs offline, raw, epoch 50)" in line
+               for line in gestures_jigsaws_table(_report([offline, causal])))
+    assert "| B C |" in causal_table([offline, causal])[-2]
+    elsewhere = {**causal, "curve": curve({"E": (99, 100)})}  # no fold in common: nothing to compare
+    assert curve_deltas(elsewhere["curve"], offline["curve"]) == []
+    old = {k: v for k, v in causal["curve"].items() if k != "by_fold"}  # a curve from before by_fold
+    assert curve_deltas(old, {k: v for k, v in offline["curve"].items() if k != "by_fold"}) == []  # 2 vs 3 folds
