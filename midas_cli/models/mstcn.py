@@ -39,7 +39,7 @@ t +- d_large: five, not six, and only those within the sequence), with the effec
 the layer's own each step (:meth:`DualDilatedLayer.forward`): 2.7x fewer multiply-adds in the
 prediction-generation stage and its backward pass. Dropout draws uniform numbers and compares them
 (:class:`Dropout`) rather than torch's per-element Bernoulli draws, 2.6x slower on the CPU. Together with
-fused Adam (``train.fit``) a training step at the defaults takes ~0.6x the time
+fused Adam (``train.fit``) an epoch takes ~0.7x the time of the published layout
 (BENCHMARKS.md, "MS-TCN++: midas against a reference implementation").
 """
 
