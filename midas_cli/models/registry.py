@@ -79,8 +79,8 @@ def _baseline(hidden: int) -> Builder:
 # accuracy reached its plateau by epoch 50 (raw, Knot Tying, 8 folds: 78.5 at 50, 79.3 at 100; Needle Passing,
 # 7 folds: 67.3 at 50, 66.8 at 100), and half the epochs fit a whole Suturing-sized LOUO into issue 27's
 # 30 minutes on 2 CPU cores (28.2 min, BENCHMARKS.md; ``--epochs 100`` gives the official recipe). The
-# transformers keep midas's earlier recipe, lr 1e-3, batches of 4, the weights of the best validation epoch, but the refined transformer
-# trains 10 epochs, not 50: on both JIGSAWS development tasks (all LOUO folds, learning curves every 5
+# transformers keep midas's earlier recipe, lr 1e-3, batches of 4, the weights of the best validation
+# epoch, but the refined transformer trains 10 epochs, not 50: on both JIGSAWS development tasks (all LOUO folds, learning curves every 5
 # epochs, BENCHMARKS.md) its test accuracy peaked at epoch 10 and fell after it (Knot Tying 77.2 at 10,
 # 74.4 at 50; Needle Passing 69.5 and 62.0), with the edit score too; transformer-plain was not measured
 # and keeps 50. The per-frame baselines: lr 1e-2 (logistic regression), 1e-3 (MLP), 50 epochs. The order is
