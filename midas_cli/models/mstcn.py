@@ -115,7 +115,7 @@ class Dropout(nn.Dropout):
         if self.p >= 1.0:
             return x * 0.0
         keep = 1.0 - self.p
-        return x * ((torch.rand_like(x) < keep) * (1.0 / keep))
+        return x * (torch.rand_like(x) < keep) * (1.0 / keep)  # bool mask, scalar scale: x's dtype kept (fp16 too)
 
 
 def tap_offsets(conv: DilatedConv) -> list[int]:

@@ -67,6 +67,7 @@ def test_dropout_keeps_and_scales_like_torch_dropout():
     assert torch.equal(drop(x), x)
     assert torch.equal(Dropout(0.0)(x), x)
     assert torch.equal(Dropout(1.0)(x), torch.zeros_like(x))
+    assert Dropout(0.5)(torch.ones(8, dtype=torch.float16)).dtype == torch.float16  # mixed precision: no upcast
 
 
 def test_dropout_gradient_flows_through_kept_elements_only():
