@@ -44,7 +44,7 @@ BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", rich_help_panel=TR
                             "and ablation: also train the per-frame logistic-regression baseline and add its row to "
                             "every table.")
 EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=0, help="Training epochs (default: "
-                          "the model's recipe: mstcn 100, transformer 10, transformer-plain and the baselines 50).")
+                          "the model's recipe: mstcn 50, transformer 10, transformer-plain and the baselines 50).")
 CAUSAL_OPT = typer.Option(False, "--causal", rich_help_panel=TRAINING_PANEL, help="Causal sequence models (frame t "
                           "sees frames <= t only: causal convolutions, masked attention), trained as such: the models "
                           "`record --live-model` can run. Per-frame baselines are causal as they are.")
@@ -59,6 +59,10 @@ MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING
 CURVE_EVERY_OPT = typer.Option(0, "--curve-every", rich_help_panel=TRAINING_PANEL, min=0, help="Score the test split "
                                "every N epochs (and after the last) into run.json's history: a learning curve for "
                                "choosing --epochs on development data (never used to train or to pick weights).")
+AUGMENT_SHIFT_OPT = typer.Option(0.0, "--augment-shift", rich_help_panel=TRAINING_PANEL, min=0.0, help="Training "
+                                 "augmentation: each training sequence, each epoch, moves every position column by a "
+                                 "constant drawn from N(0, (SD x its sd over the training split)^2): users' offsets blurred "
+                                 "(default 0: off). Nothing changes at test time.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -88,6 +92,7 @@ class Training:
     min_segment: str
     curve_every: int = 0
     delay: float = 0.0
+    augment_shift: float = 0.0
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
@@ -95,14 +100,15 @@ class Training:
 
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
                            causal=self.causal, min_segment=self.min_segment, curve_every=self.curve_every,
-                           delay_s=self.delay, **fields)
+                           delay_s=self.delay, augment_shift=self.augment_shift, **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
 training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
-    ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float)))
+    ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float),
+    ("augment_shift", AUGMENT_SHIFT_OPT, float)))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:

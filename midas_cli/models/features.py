@@ -62,6 +62,12 @@ def feature_block(table: AlignedTable, times_s: np.ndarray, modality: str, featu
     return _grasper(table, modality, path, sides)
 
 
+def is_position(name: str) -> bool:
+    """Whether feature ``name`` is a position coordinate (the ``pos`` set of any modality; not its
+    derivative)."""
+    return not name.startswith("d/dt ") and name.endswith(("_x_mm", "_y_mm", "_z_mm"))
+
+
 def _emht_sensors(sides: Sequence[str]) -> list[int]:
     """EmHT sensor numbers worn on ``sides`` (HANDS), ascending."""
     return sorted(n for side in sides for n in HANDS[side])

@@ -32,8 +32,9 @@ from torch.func import functional_call, stack_module_state
 from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
-from midas_cli.models.train import (ProgressFn, Sequences, TrainConfig, finish_run, frame_accuracy, padded_batches,
-                                    prepare_fold, seeded_model, torch_device)
+from midas_cli.models.augment import PositionShift
+from midas_cli.models.train import (ProgressFn, Sequences, TrainConfig, epoch_inputs, finish_run, frame_accuracy,
+                                    padded_batches, prepare_fold, seeded_model, torch_device)
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def train_folds(sessions: Sequence[Path], data_config: DatasetConfig, config: Tr
     built = [seeded_model(dataset, c) for c in configs]
     models = [model.to(device) for model, _ in built]
     histories = fit_stacked(models, [p.parts["train"] for p in prepared], [p.parts["val"] for p in prepared],
-                            config, device, progress)
+                            config, device, progress, [p.augment for p in prepared])
     for k, c, fold, model, (_, model_cfg), history in zip(folds, configs, prepared, models, built, histories):
         finish_run(run_dirs[k], dataset, fold, c, model, model_cfg, history, device)
 
@@ -84,9 +85,11 @@ class StepState:
 
 
 def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: list[Sequences], config: TrainConfig,
-                device: torch.device, progress: ProgressFn | None = None) -> list[list[dict]]:
+                device: torch.device, progress: ProgressFn | None = None,
+                augments: Sequence[PositionShift | None] | None = None) -> list[list[dict]]:
     """``fit`` for K models of one architecture at once (see the module text); the models get their
-    trained (or best-validation) weights. Returns each fold's history."""
+    trained (or best-validation) weights; ``augments``: each fold's (``fit``'s ``augment``). Returns each
+    fold's history."""
     config = config.resolved()
     params, buffers = stack_module_state(models)  # type: ignore[arg-type]
     names = list(params)
@@ -96,10 +99,12 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
     state = new_state([params[n] for n in names], len(models), device, mixed)
     step = _stacked_loss(models[0], mixed, device)
     rngs = [np.random.default_rng(config.seed) for _ in models]
+    augments = list(augments) if augments is not None else [None] * len(models)
     histories: list[list[dict]] = [[] for _ in models]
     best: list[tuple[float, dict | None]] = [(-1.0, None) for _ in models]
     for epoch in range(1, config.epochs + 1):
-        batches = [list(padded_batches(t, r.permutation(len(t.x)), config.batch_size)) for t, r in zip(trains, rngs)]
+        batches = [list(padded_batches(epoch_inputs(t, a), r.permutation(len(t.x)), config.batch_size))
+                   for t, r, a in zip(trains, rngs, augments)]
         loss_sum = torch.zeros(len(models), device=device)
         for i in range(max(map(len, batches))):
             active = torch.tensor([i < len(b) for b in batches], device=device)

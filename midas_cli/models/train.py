@@ -31,6 +31,7 @@ import torch
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models import postprocess
+from midas_cli.models.augment import PositionShift, position_shift
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
@@ -64,6 +65,7 @@ class TrainConfig:
     min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
     delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
+    augment_shift: float = 0.0  # training inputs' position columns shifted by N(0, (this x their sd)^2) (models/augment.py)
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
@@ -74,6 +76,8 @@ class TrainConfig:
             raise ConfigError(f"--delay must be >= 0 seconds, got {self.delay_s}")
         if self.delay_s and not self.causal:
             raise ConfigError("--delay is for --causal models (a model that is not causal sees every later frame)")
+        if not 0.0 <= self.augment_shift < float("inf"):
+            raise ConfigError(f"--augment-shift must be >= 0 (standard deviations), got {self.augment_shift}")
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -117,17 +121,19 @@ def train_run(sessions: Sequence[Path], data_config: DatasetConfig, config: Trai
         model, model_cfg = seeded_model(dataset, config)
         model.to(device)
         history = fit(model, fold.parts["train"], fold.parts["val"], config, device, progress,
-                      curve=fold.parts["test"] if config.curve_every else None)
+                      curve=fold.parts["test"] if config.curve_every else None, augment=fold.augment)
         return finish_run(out_dir, dataset, fold, config, model, model_cfg, history, device)
 
 
 @dataclass
 class PreparedFold:
-    """One run's split of the data and its normalised parts (train, val, test)."""
+    """One run's split of the data, its normalised parts (train, val, test) and the training inputs'
+    augmentation (None: none)."""
 
     split: Split
     normaliser: Normaliser | None
     parts: dict[str, Sequences]
+    augment: PositionShift | None = None
 
 
 def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
@@ -141,7 +147,11 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
         raise SessionError(f"split {split.kind} left no training or no test units: more labelled data needed")
     if config.shuffle_labels:
         parts["train"].y = shuffled_instance_labels(parts["train"].y, config.seed)
-    return PreparedFold(split, normaliser, parts)
+    names = [name for modality in order for name in dataset.feature_names[modality]]
+    augment = position_shift(config.augment_shift, names, parts["train"].x, config.seed)
+    if config.augment_shift and augment is None:
+        log.warning("--augment-shift %g: the features have no position column, nothing is shifted", config.augment_shift)
+    return PreparedFold(split, normaliser, parts, augment)
 
 
 def seeded_model(dataset: GestureDataset, config: TrainConfig) -> tuple[torch.nn.Module, dict]:
@@ -230,14 +240,16 @@ def build_model(name: str, modality_dims: dict[str, int], n_classes: int, option
 
 
 def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
-        progress: ProgressFn | None = None, curve: Sequences | None = None) -> list[dict]:
+        progress: ProgressFn | None = None, curve: Sequences | None = None,
+        augment: PositionShift | None = None) -> list[dict]:
     """Adam on the training units for ``config.epochs`` (None fields: the model's recipe); keeps the
     last epoch's weights, or with selection "best-val" restores the best validation epoch's. On CUDA
     the forward pass and loss run in mixed precision (autocast float16, the loss scaled by GradScaler);
     on the CPU everything stays float32. With ``config.curve_every`` > 0, ``curve`` (the test split) is
     scored every that many epochs and after the last (``learning_curve_point``): a learning curve for
     choosing the epochs on development data, never used by training or selection (an evaluation in
-    eval mode draws no random numbers: the weights are the same with it or without)."""
+    eval mode draws no random numbers: the weights are the same with it or without). ``augment``
+    (``prepare_fold``'s) redraws the training inputs' position shifts every epoch."""
     config = config.resolved()
     # fused: the same update in one kernel over all parameters (MS-TCN++ step at the defaults: -7 % on the CPU)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay, fused=True)
@@ -248,7 +260,7 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     for epoch in range(1, config.epochs + 1):
         model.train()
         losses = []
-        for batch in padded_batches(train, rng.permutation(len(train.x)), config.batch_size):
+        for batch in padded_batches(epoch_inputs(train, augment), rng.permutation(len(train.x)), config.batch_size):
             x, y, mask = (t.to(device) for t in batch)
             with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=mixed):
                 loss = model.loss(model(x, mask), y, mask)
@@ -268,6 +280,11 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     if best[1] is not None:
         model.load_state_dict(best[1])
     return history
+
+
+def epoch_inputs(train: Sequences, augment: PositionShift | None) -> Sequences:
+    """One epoch's training inputs: ``train`` as it is, or with ``augment``'s new draws."""
+    return train if augment is None else replace(train, x=augment(train.x))
 
 
 def learning_curve_point(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> dict:

@@ -1,0 +1,53 @@
+"""Training-time augmentation of the gesture models' input: position shifts (``--augment-shift SD``).
+
+Why: on real kinematics the positions carry offsets per user and per setup (JIGSAWS Needle Passing,
+training-split z-score units: user B's right patient-side arm sits 1.2 sd off in x and 1.6 in y; the
+master arms' positions fall into two groups of users 2-3 sd apart, from where each surgeon clutched).
+A model trained on the other users learns their positions and misreads a user who sits elsewhere. Each
+training sequence, each epoch, gets every position column moved by its own constant, drawn from
+N(0, (SD x the column's sd over the training split)^2): the shape of the motion is kept, where it happens
+is blurred. Velocities, orientations and grasper angles are left as they are. Nothing changes at test
+time, so it suits causal (live) models as well (unlike ``--normalise trial``, which uses a whole trial).
+
+The draws come from their own generator (``default_rng([seed, STREAM])``), so a run with SD 0 draws
+nothing and trains exactly as before; with SD > 0 the batch order and the weights' initialisation are
+still those of the seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from midas_cli.models.features import is_position
+
+STREAM = 0x5A1F  # the augmentation generator's stream, beside the batch-order generator of the same seed
+
+
+@dataclass
+class PositionShift:
+    """Adds a constant per (sequence, position column) to the training inputs, new draws every call."""
+
+    columns: np.ndarray  # (P,) indices of the position columns in the stacked features
+    scale: np.ndarray  # (P,) standard deviation of each column's shift
+    rng: np.random.Generator
+
+    def __call__(self, xs: list[np.ndarray]) -> list[np.ndarray]:
+        """New (T_i, D) arrays: each ``xs[i]`` with its position columns shifted (inputs unchanged)."""
+        out = []
+        for x in xs:
+            shifted = x.copy()
+            shifted[:, self.columns] += (self.rng.standard_normal(len(self.columns)) * self.scale).astype(x.dtype)
+            out.append(shifted)
+        return out
+
+
+def position_shift(sd: float, names: list[str], train: list[np.ndarray], seed: int) -> PositionShift | None:
+    """The shift of ``--augment-shift sd`` for features ``names`` (stacked order) fitted on the training
+    inputs ``train`` (as the model sees them, normalised); None for sd 0 or no position column."""
+    columns = np.array([i for i, name in enumerate(names) if is_position(name)], dtype=np.int64)
+    if not sd or not columns.size or not train:
+        return None
+    spread = np.concatenate([x[:, columns] for x in train], axis=0).std(axis=0)
+    return PositionShift(columns, sd * spread, np.random.default_rng([seed, STREAM]))
