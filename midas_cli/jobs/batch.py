@@ -77,7 +77,9 @@ def run_plan(task: str, units: Sequence[Unit], choice: ExecutorChoice, label: st
     """Run ``units`` of ``task`` with ``choice``; ``label`` names the batch on the progress display;
     ``extra`` keyword arguments go to the task function when units run in this process (a progress
     callback). The run folder: ``choice.run_dir``; with slurm by default ``midas-runs/<task>-<key>/``
-    here; otherwise a temporary one."""
+    here; otherwise a temporary one. No units: nothing is run or written (a plan has one or more)."""
+    if not units:
+        return Outcome(choice.run_dir, [], [])
     if choice.run_dir is not None:
         return _run_in(RunDir(choice.run_dir), task, units, choice, label, watch, extra)
     if choice.executor == "slurm":

@@ -224,11 +224,14 @@ class RunDir:
 
 
 def _plan_problem(data: Any) -> str | None:
-    """What is wrong with plan.json's content (None: a task name and units numbered 0..n-1 in order)."""
+    """What is wrong with plan.json's content (None: a task name and one or more units numbered 0..n-1 in
+    order)."""
     if not isinstance(data, dict) or not isinstance(data.get("task"), str) or not isinstance(data.get("units"), list):
         return "expected {\"task\": name, \"units\": [...]}"
     if not isinstance(data.get("created", ""), str):
         return "created should be a str"
+    if not data["units"]:
+        return "no units: midas never plans an empty run"
     for k, unit in enumerate(data["units"]):
         if not isinstance(unit, dict):
             return f"unit {k} is not an object"

@@ -111,6 +111,7 @@ def test_jobs_status_reads_the_undamaged_run_folder(run_folder):
     ("units/1/running.json", {"host": 7, "pid": 12}, "host = 7 should be a string"),
     ("submissions.json", [{"executor": "local", "units": "0"}], "entry 0: units = \"0\" should be a list"),
     ("plan.json", {"task": "align", "units": {}}, "plan.json is malformed"),
+    ("plan.json", {"task": "align", "units": []}, "no units"),
     ("plan.json", {"task": "align", "units": [{"index": 0, "name": "a", "args": {}}]}, "unit 0: no fingerprint"),
     ("plan.json", {"task": "align", "units": [{"index": 3, "name": "a", "args": {}, "fingerprint": "f"}]},
      "unit 0 says index 3"),
