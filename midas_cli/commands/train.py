@@ -63,6 +63,8 @@ AUGMENT_SHIFT_OPT = typer.Option(0.0, "--augment-shift", rich_help_panel=TRAININ
                                  "augmentation: each training sequence, each epoch, moves every position column by a "
                                  "constant drawn from N(0, (SD x its sd over the training split)^2): users' offsets blurred "
                                  "(default 0: off). Nothing changes at test time.")
+AUGMENT_FEATURES_OPT = typer.Option("pos", "--augment-features", rich_help_panel=TRAINING_PANEL, help="The columns "
+                                    "--augment-shift moves: pos (default), ori (orientations) or pos,ori.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -93,6 +95,7 @@ class Training:
     curve_every: int = 0
     delay: float = 0.0
     augment_shift: float = 0.0
+    augment_features: str = "pos"
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
@@ -100,7 +103,8 @@ class Training:
 
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
                            causal=self.causal, min_segment=self.min_segment, curve_every=self.curve_every,
-                           delay_s=self.delay, augment_shift=self.augment_shift, **fields)
+                           delay_s=self.delay, augment_shift=self.augment_shift,
+                           augment_features=self.augment_features, **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
@@ -108,7 +112,7 @@ training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
     ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float),
-    ("augment_shift", AUGMENT_SHIFT_OPT, float)))
+    ("augment_shift", AUGMENT_SHIFT_OPT, float), ("augment_features", AUGMENT_FEATURES_OPT, str)))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:

@@ -68,6 +68,15 @@ def is_position(name: str) -> bool:
     return not name.startswith("d/dt ") and name.endswith(("_x_mm", "_y_mm", "_z_mm"))
 
 
+def is_orientation(name: str) -> bool:
+    """Whether feature ``name`` is an orientation value (the ``ori`` set: a robot arm's rotation-matrix
+    entry or quaternion component, an EmHT angle's sine or cosine)."""
+    if name.startswith(("sin emht.", "cos emht.")):
+        return True
+    tail = name.rsplit("_", 1)[-1]
+    return (len(tail) == 3 and tail[0] == "R" and tail[1:].isdigit()) or tail in ("qx", "qy", "qz", "qw")
+
+
 def _emht_sensors(sides: Sequence[str]) -> list[int]:
     """EmHT sensor numbers worn on ``sides`` (HANDS), ascending."""
     return sorted(n for side in sides for n in HANDS[side])

@@ -32,7 +32,7 @@ from torch.func import functional_call, stack_module_state
 from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
-from midas_cli.models.augment import PositionShift
+from midas_cli.models.augment import ColumnShift
 from midas_cli.models.train import (ProgressFn, Sequences, TrainConfig, epoch_inputs, finish_run, frame_accuracy,
                                     padded_batches, prepare_fold, seeded_model, torch_device)
 
@@ -86,7 +86,7 @@ class StepState:
 
 def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: list[Sequences], config: TrainConfig,
                 device: torch.device, progress: ProgressFn | None = None,
-                augments: Sequence[PositionShift | None] | None = None) -> list[list[dict]]:
+                augments: Sequence[ColumnShift | None] | None = None) -> list[list[dict]]:
     """``fit`` for K models of one architecture at once (see the module text); the models get their
     trained (or best-validation) weights; ``augments``: each fold's (``fit``'s ``augment``). Returns each
     fold's history."""

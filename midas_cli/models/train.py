@@ -31,7 +31,7 @@ import torch
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models import postprocess
-from midas_cli.models.augment import PositionShift, position_shift
+from midas_cli.models.augment import ColumnShift, check_sets, input_shift
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
@@ -66,6 +66,7 @@ class TrainConfig:
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
     delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
     augment_shift: float = 0.0  # training inputs' position columns shifted by N(0, (this x their sd)^2) (models/augment.py)
+    augment_features: str = "pos"  # which columns the shift moves: pos, ori or pos,ori
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
@@ -78,6 +79,7 @@ class TrainConfig:
             raise ConfigError("--delay is for --causal models (a model that is not causal sees every later frame)")
         if not 0.0 <= self.augment_shift < float("inf"):
             raise ConfigError(f"--augment-shift must be >= 0 (standard deviations), got {self.augment_shift}")
+        check_sets(self.augment_features)
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -133,7 +135,7 @@ class PreparedFold:
     split: Split
     normaliser: Normaliser | None
     parts: dict[str, Sequences]
-    augment: PositionShift | None = None
+    augment: ColumnShift | None = None
 
 
 def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
@@ -148,9 +150,10 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
     if config.shuffle_labels:
         parts["train"].y = shuffled_instance_labels(parts["train"].y, config.seed)
     names = [name for modality in order for name in dataset.feature_names[modality]]
-    augment = position_shift(config.augment_shift, names, parts["train"].x, config.seed)
+    augment = input_shift(config.augment_shift, config.augment_features, names, parts["train"].x, config.seed)
     if config.augment_shift and augment is None:
-        log.warning("--augment-shift %g: the features have no position column, nothing is shifted", config.augment_shift)
+        log.warning("--augment-shift %g: the features have no %s column, nothing is shifted", config.augment_shift,
+                    config.augment_features)
     return PreparedFold(split, normaliser, parts, augment)
 
 
@@ -241,7 +244,7 @@ def build_model(name: str, modality_dims: dict[str, int], n_classes: int, option
 
 def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
         progress: ProgressFn | None = None, curve: Sequences | None = None,
-        augment: PositionShift | None = None) -> list[dict]:
+        augment: ColumnShift | None = None) -> list[dict]:
     """Adam on the training units for ``config.epochs`` (None fields: the model's recipe); keeps the
     last epoch's weights, or with selection "best-val" restores the best validation epoch's. On CUDA
     the forward pass and loss run in mixed precision (autocast float16, the loss scaled by GradScaler);
@@ -282,7 +285,7 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     return history
 
 
-def epoch_inputs(train: Sequences, augment: PositionShift | None) -> Sequences:
+def epoch_inputs(train: Sequences, augment: ColumnShift | None) -> Sequences:
     """One epoch's training inputs: ``train`` as it is, or with ``augment``'s new draws."""
     return train if augment is None else replace(train, x=augment(train.x))
 

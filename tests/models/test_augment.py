@@ -11,23 +11,36 @@ import torch
 from helpers.cli import midas
 from helpers.gesture_sessions import write_gesture_dataset
 from midas_cli.errors import ConfigError
-from midas_cli.models.augment import position_shift
-from midas_cli.models.features import is_position
+from midas_cli.models.augment import input_shift
+from midas_cli.models.features import is_orientation, is_position
 from midas_cli.models.train import Sequences, TrainConfig, build_model, fit, predict
 
 NAMES = ["psm.left_x_mm", "d/dt emht.s1_x_mm", "psm.left_vx_mm_s", "psm.left_R00", "emht.s2_z_mm",
-         "handkp.right_thumb_y_mm", "psm.left_grasper_deg"]
+         "handkp.right_thumb_y_mm", "psm.left_grasper_deg", "mtm.right_qw", "sin emht.s3_roll_deg",
+         "psm.left_R12_w", "emht.s1_x_mm_R00x"]
 
 
-def test_only_position_columns_count_as_positions():
-    assert [is_position(n) for n in NAMES] == [True, False, False, False, True, True, False]
+def test_position_and_orientation_columns_are_told_apart():
+    assert [is_position(n) for n in NAMES] == [True, False, False, False, True, True, False, False, False, False,
+                                               False]
+    assert [is_orientation(n) for n in NAMES] == [False, False, False, True, False, False, False, True, True, False,
+                                                  False]
+
+
+def test_orientation_shifts_move_orientation_columns_only_and_bad_sets_are_refused():
+    x = [np.random.default_rng(0).normal(size=(20, len(NAMES))).astype(np.float32)]
+    assert list(input_shift(1.0, "ori", NAMES, x, 0).columns) == [3, 7, 8]
+    assert list(input_shift(1.0, "pos,ori", NAMES, x, 0).columns) == [0, 3, 4, 5, 7, 8]
+    for bad in ("vel", "pos,pos", "", "pos;ori"):
+        with pytest.raises(ConfigError, match="augment-features"):
+            TrainConfig(augment_shift=1.0, augment_features=bad)
 
 
 def test_each_sequence_gets_one_constant_per_position_column_and_new_draws_every_epoch():
     rng = np.random.default_rng(0)
     train = [rng.normal(size=(50, len(NAMES))).astype(np.float32) * 2.0 for _ in range(3)]
     before = [x.copy() for x in train]
-    shift = position_shift(0.5, NAMES, train, seed=1)
+    shift = input_shift(0.5, "pos", NAMES, train, seed=1)
     assert shift is not None and list(shift.columns) == [0, 4, 5]
     first, second = shift(train), shift(train)
     for x, old, a, b in zip(train, before, first, second):
@@ -40,14 +53,14 @@ def test_each_sequence_gets_one_constant_per_position_column_and_new_draws_every
     # the spread of the draws is the asked one
     many = np.stack([(shift([train[0]])[0] - train[0])[0, [0, 4, 5]] for _ in range(4000)])
     np.testing.assert_allclose(many.std(axis=0), shift.scale, rtol=0.06)
-    again = position_shift(0.5, NAMES, train, seed=1)
+    again = input_shift(0.5, "pos", NAMES, train, seed=1)
     np.testing.assert_array_equal(again(train)[0], first[0])  # seeded
 
 
 def test_off_when_zero_or_without_positions():
     x = [np.ones((5, 2), dtype=np.float32)]
-    assert position_shift(0.0, ["psm.left_x_mm", "psm.left_R00"], x, 0) is None
-    assert position_shift(1.0, ["psm.left_vx_mm_s", "psm.left_R00"], x, 0) is None
+    assert input_shift(0.0, "pos", ["psm.left_x_mm", "psm.left_R00"], x, 0) is None
+    assert input_shift(1.0, "pos", ["psm.left_vx_mm_s", "psm.left_R00"], x, 0) is None
     with pytest.raises(ConfigError, match="augment-shift"):
         TrainConfig(augment_shift=-0.1)
 
@@ -83,7 +96,7 @@ def test_a_shifted_user_is_read_from_the_motion_not_from_where_it_happens():
         return float(np.mean(np.concatenate(predict(model, test, torch.device("cpu"))) == np.concatenate(test.y)))
 
     plain = accuracy(_trained(train, None))
-    shifted = accuracy(_trained(train, position_shift(3.0, names, train.x, seed=0)))
+    shifted = accuracy(_trained(train, input_shift(3.0, "pos", names, train.x, seed=0)))
     assert plain < 0.65  # the position decides, and the offset user's is all one class
     assert shifted > 0.8 and shifted > plain + 0.2  # the velocity decides (0.88 measured; plain 0.53)
 
