@@ -7,7 +7,8 @@ Why: a fold of MS-TCN++ at batch size 1 is hundreds of small kernels a step; on 
 
 Every fold trains exactly as its own run would (models/train.py ``fit``): the same initial weights
 (``torch.manual_seed(seed)`` before building each model), the same batch order (its own
-``default_rng(seed)``), its own Adam state and step count. At each step every fold takes its next
+``default_rng(seed)``), its own Adam state and step count, its own input shifts (``--augment-shift``,
+models/augment.py). At each step every fold takes its next
 batch; the batches are padded to a common length (the models mask every padding frame, so a real
 frame's output does not change) and stacked. A fold whose epoch has fewer batches than another's has
 no batch at the last steps: its loss is left out and its step is masked (weights, Adam moments and

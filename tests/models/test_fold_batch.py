@@ -17,6 +17,7 @@ from helpers.gesture_sessions import write_gesture_session
 from midas_cli.commands.train import FOLD_BATCH_MODES
 from midas_cli.errors import ConfigError
 from midas_cli.models import fold_batch
+from midas_cli.models.augment import input_shift
 from midas_cli.models.train import Sequences, TrainConfig, build_model, fit
 
 DIMS, CLASSES = {"emht": 5}, 3
@@ -44,17 +45,27 @@ SMALL = {"mstcn": {"pg_layers": 3, "refinement_stages": 1, "refinement_layers": 
 FOLDS = [[40, 23, 31], [17, 44, 29], [35, 26]]
 
 
-@pytest.mark.parametrize("name,batch_size,selection,decay", [("mstcn", 1, "last", 0.0),
-                                                             ("transformer", 2, "best-val", 1e-3)])
-def test_batched_folds_end_where_separate_runs_end(name, batch_size, selection, decay):
+NAMES = ["emht.s1_x_mm", "emht.s1_y_mm", "d/dt emht.s1_x_mm", "sin emht.s1_roll_deg", "emht.s1_grasper_mm"]
+
+
+def _shifts(trains: list[Sequences], augment: bool) -> list:
+    """Each fold's position shift (``fit``'s augment), or None each."""
+    return [input_shift(1.0, "pos", NAMES, t.x, seed=4) if augment else None for t in trains]
+
+
+@pytest.mark.parametrize("name,batch_size,selection,decay,augment", [("mstcn", 1, "last", 0.0, False),
+                                                                     ("transformer", 2, "best-val", 1e-3, False),
+                                                                     ("mstcn", 1, "last", 0.0, True)])
+def test_batched_folds_end_where_separate_runs_end(name, batch_size, selection, decay, augment):
     config = TrainConfig(model=name, epochs=3, batch_size=batch_size, lr=3e-3, selection=selection,
                          weight_decay=decay, seed=4)
     trains = [_sequences(k, lengths) for k, lengths in enumerate(FOLDS)]
     vals = [_sequences(10 + k, [30]) for k in range(len(FOLDS))]
     alone = [_model(name, SMALL[name]) for _ in FOLDS]
-    histories = [fit(model, train, val, config, torch.device("cpu")) for model, train, val in zip(alone, trains, vals)]
+    histories = [fit(model, train, val, config, torch.device("cpu"), augment=shift)
+                 for model, train, val, shift in zip(alone, trains, vals, _shifts(trains, augment))]
     together = [_model(name, SMALL[name]) for _ in FOLDS]
-    stacked = fold_batch.fit_stacked(together, trains, vals, config, torch.device("cpu"))
+    stacked = fold_batch.fit_stacked(together, trains, vals, config, torch.device("cpu"), augments=_shifts(trains, augment))
     start = _model(name, SMALL[name]).state_dict()
     for k, (a, b) in enumerate(zip(alone, together)):
         for key, value in a.state_dict().items():
