@@ -42,13 +42,32 @@ def run_local(run_dir: RunDir, indices: Sequence[int], fn: TaskFn, jobs: int = 1
     # deadlock; each worker imports what it needs once and runs several units
     context = multiprocessing.get_context("spawn")
     workers = min(jobs, len(indices))
-    with _threads_per_worker(workers), \
-            ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-        futures = {pool.submit(_run_quietly, run_dir, k, fn): k for k in indices}
-        for future in as_completed(futures):
-            ok = future.result()
-            if on_unit:
-                on_unit(futures[future], ok)
+    with _threads_per_worker(workers):
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+        try:
+            futures = {pool.submit(_run_quietly, run_dir, k, fn): k for k in indices}
+            for future in as_completed(futures):
+                ok = future.result()
+                if on_unit:
+                    on_unit(futures[future], ok)
+        except BaseException:
+            # a stop signal (SystemExit from __main__'s handler: `kill PID` reaches this process alone) or
+            # an error: the workers stop now, not when their units end (leaving the pool's `with` waits for
+            # them: minutes of training); their units stay unfinished and run again next time
+            _stop_workers(pool)
+            raise
+        pool.shutdown(wait=True)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate ``pool``'s worker processes (SIGTERM), wait briefly for them, drop the queued units."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())  # no public way before Python 3.14
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    for process in processes:
+        process.join(timeout=5)
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 @contextmanager

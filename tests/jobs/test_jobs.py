@@ -306,3 +306,35 @@ def test_a_run_larger_than_the_clusters_max_array_size_is_refused(tmp_path, monk
     with pytest.raises(ConfigError, match="12 units but the cluster's MaxArraySize is 10"):
         slurm.submit(run, "double", list(range(12)), SlurmSettings())
     assert not list(run.path.glob("slurm-*.sh"))
+
+
+def test_a_stop_signal_to_the_batch_process_alone_stops_its_workers_too(tmp_path):
+    """`kill PID` (a script's timeout, a scheduler) signals the batch process, not its process group: the
+    worker processes must stop with it, not train on for minutes while the batch waits for them."""
+    import signal
+    import subprocess
+    import sys
+
+    from helpers.cli import wait_for
+    from helpers.gesture_sessions import write_gesture_dataset
+
+    sessions = write_gesture_dataset(tmp_path / "data", n_trials=4, subjects=2, n_frames=200)
+    out = tmp_path / "cv"
+    command = [sys.executable, "-m", "midas_cli", "train", "gestures", *map(str, sessions), "--model", "mstcn",
+               "--modalities", "emht", "--features", "pos", "--epochs", "100000", "--split", "louo", "--fold", "all",
+               "--jobs", "2", "--no-baseline", "--out", str(out)]
+    batch = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True)  # its own group: the signal reaches the batch process only
+    try:
+        wait_for(lambda: len(list((out / "jobs" / "units").glob("*/running.json"))) == 2, timeout_s=300, step_s=0.2)
+        workers = [json.loads(p.read_text())["pid"] for p in (out / "jobs" / "units").glob("*/running.json")]
+        batch.send_signal(signal.SIGTERM)
+        _, stderr = batch.communicate(timeout=120)  # the units would train for hours
+    finally:
+        if batch.poll() is None:
+            os.killpg(batch.pid, signal.SIGKILL)
+    assert batch.returncode == 128 + signal.SIGTERM and "stopped by SIGTERM" in stderr
+    for pid in workers:  # reaped by the batch process (a zombie would still answer kill 0)
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    assert not list((out / "jobs" / "units").glob("*/done.json"))  # nothing claims to have finished
