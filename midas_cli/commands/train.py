@@ -59,12 +59,13 @@ MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING
 CURVE_EVERY_OPT = typer.Option(0, "--curve-every", rich_help_panel=TRAINING_PANEL, min=0, help="Score the test split "
                                "every N epochs (and after the last) into run.json's history: a learning curve for "
                                "choosing --epochs on development data (never used to train or to pick weights).")
-AUGMENT_SHIFT_OPT = typer.Option(0.0, "--augment-shift", rich_help_panel=TRAINING_PANEL, min=0.0, help="Training "
-                                 "augmentation: each training sequence, each epoch, moves every position column by a "
-                                 "constant drawn from N(0, (SD x its sd over the training split)^2): users' offsets blurred "
-                                 "(default 0: off). Nothing changes at test time.")
-AUGMENT_FEATURES_OPT = typer.Option("pos", "--augment-features", rich_help_panel=TRAINING_PANEL, help="The columns "
-                                    "--augment-shift moves: pos (default), ori (orientations) or pos,ori.")
+AUGMENT_SHIFT_OPT = typer.Option(None, "--augment-shift", rich_help_panel=TRAINING_PANEL, min=0.0, help="Training "
+                                 "augmentation: each training sequence, each epoch, moves every --augment-features "
+                                 "column by a constant drawn from N(0, (SD x its sd over the training split)^2): users' "
+                                 "offsets blurred; 0: off. Nothing changes at test time. Default: the model's recipe.")
+AUGMENT_FEATURES_OPT = typer.Option(None, "--augment-features", rich_help_panel=TRAINING_PANEL, help="The columns "
+                                    "--augment-shift moves: pos, ori (orientations) or pos,ori. Default: the model's "
+                                    "recipe.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -94,8 +95,8 @@ class Training:
     min_segment: str
     curve_every: int = 0
     delay: float = 0.0
-    augment_shift: float = 0.0
-    augment_features: str = "pos"
+    augment_shift: Optional[float] = None
+    augment_features: Optional[str] = None
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
@@ -112,7 +113,7 @@ training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
     ("min_segment", MIN_SEGMENT_OPT, str), ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float),
-    ("augment_shift", AUGMENT_SHIFT_OPT, float), ("augment_features", AUGMENT_FEATURES_OPT, str)))
+    ("augment_shift", AUGMENT_SHIFT_OPT, Optional[float]), ("augment_features", AUGMENT_FEATURES_OPT, Optional[str])))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:

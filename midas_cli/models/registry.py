@@ -24,13 +24,17 @@ Builder = Callable[[dict[str, int], int], tuple[Callable[[Any], Any], Any]]
 @dataclass(frozen=True)
 class Recipe:
     """How a model is trained where TrainConfig leaves a field None: epochs, batch size, Adam learning
-    rate, and which epoch's weights are kept (``last``, or ``best-val``: the best validation frame
-    accuracy's; without a validation set "best-val" falls back to the last epoch)."""
+    rate, which epoch's weights are kept (``last``, or ``best-val``: the best validation frame
+    accuracy's; without a validation set "best-val" falls back to the last epoch), and the training
+    inputs' shift augmentation (``augment_shift`` standard deviations of the ``augment_features`` columns,
+    models/augment.py; 0: none)."""
 
     epochs: int
     batch_size: int
     lr: float
     selection: str
+    augment_shift: float = 0.0
+    augment_features: str = "pos"
 
 
 @dataclass(frozen=True)

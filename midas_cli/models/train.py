@@ -65,8 +65,8 @@ class TrainConfig:
     min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
     delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
-    augment_shift: float = 0.0  # training inputs' position columns shifted by N(0, (this x their sd)^2) (models/augment.py)
-    augment_features: str = "pos"  # which columns the shift moves: pos, ori or pos,ori
+    augment_shift: float | None = None  # training inputs' columns shifted by N(0, (this x their sd)^2) (models/augment.py)
+    augment_features: str | None = None  # which columns the shift moves: pos, ori or pos,ori
 
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
@@ -77,9 +77,10 @@ class TrainConfig:
             raise ConfigError(f"--delay must be >= 0 seconds, got {self.delay_s}")
         if self.delay_s and not self.causal:
             raise ConfigError("--delay is for --causal models (a model that is not causal sees every later frame)")
-        if not 0.0 <= self.augment_shift < float("inf"):
+        if self.augment_shift is not None and not 0.0 <= self.augment_shift < float("inf"):
             raise ConfigError(f"--augment-shift must be >= 0 (standard deviations), got {self.augment_shift}")
-        check_sets(self.augment_features)
+        if self.augment_features is not None:
+            check_sets(self.augment_features)
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
@@ -150,7 +151,9 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
     if config.shuffle_labels:
         parts["train"].y = shuffled_instance_labels(parts["train"].y, config.seed)
     names = [name for modality in order for name in dataset.feature_names[modality]]
-    augment = input_shift(config.augment_shift, config.augment_features, names, parts["train"].x, config.seed)
+    config = config.resolved()
+    augment = input_shift(config.augment_shift or 0.0, config.augment_features or "pos", names, parts["train"].x,
+                          config.seed)
     if config.augment_shift and augment is None:
         log.warning("--augment-shift %g: the features have no %s column, nothing is shifted", config.augment_shift,
                     config.augment_features)

@@ -61,7 +61,8 @@ def test_mstcn_default_is_the_published_network_and_recipe_with_50_epochs():
     model = MSTCN(cfg)
     assert len(model.generation.layers) == 11 and [len(r.layers) for r in model.refinements] == [10, 10, 10]
     assert model(torch.randn(1, 6, 20), torch.ones(1, 20, dtype=torch.bool)).shape == (4, 1, 4, 20)
-    assert RECIPES["mstcn"] == {"epochs": 50, "batch_size": 1, "lr": 5e-4, "selection": "last"}
+    assert RECIPES["mstcn"] == {"epochs": 50, "batch_size": 1, "lr": 5e-4, "selection": "last", "augment_shift": 0.0,
+                                "augment_features": "pos"}
     resolved = TrainConfig(model="mstcn", epochs=3).resolved()
     assert (resolved.epochs, resolved.batch_size, resolved.lr, resolved.selection) == (3, 1, 5e-4, "last")
     with pytest.raises(ConfigError, match="selection"):
