@@ -56,9 +56,10 @@ def _title(row: dict[str, Any], rows: list[dict[str, Any]]) -> str:
 
 def offline_partner(row: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     """The offline row a causal ``row`` is compared with: the same model (and task), not causal, the same
-    variant or else the same inputs; where ``row`` has a learning curve, one with a curve sharing an epoch
-    on the same folds (any epochs option: the curve's epochs say what is compared), else the same epochs
-    option. The same variant first, then the curve that shares the most epochs."""
+    variant or else the same inputs, trained with the same options but the causal ones (PARTNER_IGNORES:
+    a shifted-input causal run against the offline run with shifted inputs); where ``row`` has a learning
+    curve, one with a curve sharing an epoch on the same folds (any epochs option: the curve's epochs say
+    what is compared), else the same epochs option. The same variant first, then the curve that shares the most epochs."""
     def shares_epochs(r: dict[str, Any]) -> bool:
         if row.get("curve") and r.get("curve"):
             return bool(curve_deltas(row["curve"], r["curve"]))
@@ -66,6 +67,7 @@ def offline_partner(row: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str
 
     found = [r for r in rows if r["model"] == row["model"] and not r.get("causal") and r["task"] == row["task"]
              and (r.get("variant") == row.get("variant") or _same_inputs(r.get("inputs"), row.get("inputs")))
+             and _training_options(r.get("train_args", "")) == _training_options(row.get("train_args", ""))
              and shares_epochs(r)]
     found.sort(key=lambda r: (r.get("variant") != row.get("variant"), not (row.get("curve") and r.get("curve")),
                               -len(curve_deltas(row["curve"], r["curve"])) if row.get("curve") and r.get("curve") else 0))
@@ -120,6 +122,25 @@ def causal_table(rows: list[dict[str, Any]]) -> list[str]:
         shared = " ".join(folds) if folds is not None else f"{r['curve'].get('folds', '?')} (both)"
         out.append(f"| {r['task']} | {_title(r, rows).split(' (causal')[0]} | {_title(o, rows)} | {shared} | {cells} |")
     return out + [""]
+
+
+# --train-args options left out when a causal run looks for its offline partner: the causal ones, the
+# learning curve's (it does not change the weights), and the inputs' (compared by _same_inputs)
+PARTNER_IGNORES = ("--delay", "--curve-every", "--modalities", "--features", "--model-rate", "--sides")
+
+
+def _training_options(train_args: str) -> list[str]:
+    """A run's ``--train-args`` without ``--causal`` and the PARTNER_IGNORES options (and their values)."""
+    kept: list[str] = []
+    skip = False
+    for word in train_args.split():
+        if skip:
+            skip = False
+        elif word in PARTNER_IGNORES:
+            skip = True
+        elif word != "--causal" and not word.startswith(tuple(f"{o}=" for o in PARTNER_IGNORES)):
+            kept.append(word)
+    return kept
 
 
 def _same_inputs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:

@@ -150,3 +150,26 @@ def test_an_unfinished_causal_run_is_compared_on_its_own_folds_only() -> None:
     assert curve_deltas(elsewhere["curve"], offline["curve"]) == []
     old = {k: v for k, v in causal["curve"].items() if k != "by_fold"}  # a curve from before by_fold
     assert curve_deltas(old, {k: v for k, v in offline["curve"].items() if k != "by_fold"}) == []  # 2 vs 3 folds
+
+
+def test_a_causal_run_with_other_training_options_is_compared_with_the_offline_run_trained_alike() -> None:
+    """Causal MS-TCN++ with shifted inputs against offline MS-TCN++ with shifted inputs (-7.0 here), never
+    against the offline run without the shift (-3.0), even where that one has the longer curve."""
+    from report_gestures import causal_table
+
+    def curve(points: dict[int, float]) -> dict[str, Any]:
+        return {"folds": 1, "epochs": list(points), "accuracy": list(points.values()), "edit": [70.0] * len(points),
+                "by_fold": {"B": {str(e): [round(a * 1000), 1000] for e, a in points.items()}}}
+
+    plain = {**_row("mstcn", 0.74, 80.0), "variant": "curve10", "train_args": "--curve-every 10",
+             "curve": curve({10: 0.72, 20: 0.74, 30: 0.75})}
+    shifted = {**_row("mstcn", 0.78, 80.0), "variant": "shift", "train_args": "--augment-shift 1 --curve-every 10",
+               "curve": curve({10: 0.76, 20: 0.78})}
+    causal = {**_row("mstcn", 0.71, 60.0), "causal": True, "variant": "shift-delay1s",
+              "train_args": "--augment-shift 1 --delay 1 --curve-every 10", "curve": curve({10: 0.70, 20: 0.71})}
+    assert any("(causal; acc -7.0 vs offline, raw, epoch 20)" in line
+               for line in gestures_jigsaws_table(_report([plain, shifted, causal])))
+    assert "| MS-TCN++ [shift: `--augment-shift 1 --curve-every 10`] |" in causal_table([plain, shifted, causal])[-2]
+    alone = gestures_jigsaws_table(_report([plain, causal]))  # no offline run trained alike: no difference shown
+    assert any("| MS-TCN++ [shift-delay1s" in line and "vs offline" not in line for line in alone)
+

@@ -54,17 +54,21 @@ def test_smoothing_gradient_flows_only_into_the_later_frame():
     assert torch.all(logits.grad[:, :, 0] == 0) and torch.any(logits.grad[:, :, 1] != 0)
 
 
-def test_mstcn_default_is_the_published_network_and_recipe_with_50_epochs():
+def test_mstcn_default_is_the_published_network_and_recipe_with_20_epochs_and_shifted_inputs():
     cfg = MSTCNConfig(in_features=6, n_classes=4)
     assert (cfg.pg_layers, cfg.refinement_stages, cfg.refinement_layers, cfg.feature_maps) == (11, 3, 10, 64)
     assert (cfg.dropout, cfg.smoothing_weight, cfg.tau) == (0.5, 0.15, 4.0)
     model = MSTCN(cfg)
     assert len(model.generation.layers) == 11 and [len(r.layers) for r in model.refinements] == [10, 10, 10]
     assert model(torch.randn(1, 6, 20), torch.ones(1, 20, dtype=torch.bool)).shape == (4, 1, 4, 20)
-    assert RECIPES["mstcn"] == {"epochs": 50, "batch_size": 1, "lr": 5e-4, "selection": "last", "augment_shift": 0.0,
-                                "augment_features": "pos"}
+    assert RECIPES["mstcn"] == {"epochs": 20, "batch_size": 1, "lr": 5e-4, "selection": "last", "augment_shift": 1.0,
+                                "augment_features": "pos,ori"}
     resolved = TrainConfig(model="mstcn", epochs=3).resolved()
     assert (resolved.epochs, resolved.batch_size, resolved.lr, resolved.selection) == (3, 1, 5e-4, "last")
+    assert (resolved.augment_shift, resolved.augment_features) == (1.0, "pos,ori")
+    off = TrainConfig(model="mstcn", augment_shift=0.0).resolved()  # the official recipe's inputs: 0 is not "unset"
+    assert off.augment_shift == 0.0 and TrainConfig(model="transformer").resolved().augment_shift == 1.0
+    assert TrainConfig(model="baseline").resolved().augment_shift == 0.0  # a frame alone: nothing to fall back on
     with pytest.raises(ConfigError, match="selection"):
         TrainConfig(selection="best")
 
