@@ -151,12 +151,12 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
     if config.shuffle_labels:
         parts["train"].y = shuffled_instance_labels(parts["train"].y, config.seed)
     names = [name for modality in order for name in dataset.feature_names[modality]]
-    config = config.resolved()
-    augment = input_shift(config.augment_shift or 0.0, config.augment_features or "pos", names, parts["train"].x,
-                          config.seed)
-    if config.augment_shift and augment is None:
+    recipe = config.resolved()
+    augment = input_shift(recipe.augment_shift or 0.0, recipe.augment_features or "pos", names, parts["train"].x,
+                          recipe.seed)
+    if config.augment_shift and augment is None:  # asked for (a recipe's shift is quietly nothing here)
         log.warning("--augment-shift %g: the features have no %s column, nothing is shifted", config.augment_shift,
-                    config.augment_features)
+                    recipe.augment_features)
     return PreparedFold(split, normaliser, parts, augment)
 
 
