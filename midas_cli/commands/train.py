@@ -17,7 +17,7 @@ from midas_cli.commands.options import (JSON_OPTION, SESSION_TREES_ARG, accelera
 from midas_cli.commands.progress import progress_display
 from midas_cli.errors import ConfigError
 from midas_cli.jobs.options import BatchOptions
-from midas_cli.models.registry import model_help
+from midas_cli.models.registry import ENTRIES, model_help
 from midas_cli.session.reader import find_sessions
 
 if TYPE_CHECKING:
@@ -44,7 +44,7 @@ BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", rich_help_panel=TR
                             "and ablation: also train the per-frame logistic-regression baseline and add its row to "
                             "every table.")
 EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=0, help="Training epochs (default: "
-                          "the model's recipe: mstcn 50, transformer 10, transformer-plain and the baselines 50).")
+                          "the model's recipe: " + ", ".join(f"{e.name} {e.recipe.epochs}" for e in ENTRIES) + ").")
 CAUSAL_OPT = typer.Option(False, "--causal", rich_help_panel=TRAINING_PANEL, help="Causal sequence models (frame t "
                           "sees frames <= t only: causal convolutions, masked attention), trained as such: the models "
                           "`record --live-model` can run. Per-frame baselines are causal as they are.")
