@@ -2,7 +2,7 @@
 (``--augment-shift SD``, ``--augment-features pos[,ori]``).
 
 Why: on real kinematics the positions carry offsets per user and per setup (JIGSAWS Needle Passing,
-training-split z-score units: user B's right patient-side arm sits 1.2 sd off in x and 1.6 in y; the
+training-split z-score units: user B's right patient-side arm sits 1.6 sd off in x and 2.3 in y; the
 master arms' positions fall into two groups of users 2-3 sd apart, from where each surgeon clutched).
 A model trained on the other users learns their positions and misreads a user who sits elsewhere. Each
 training sequence, each epoch, gets every position column moved by its own constant, drawn from
