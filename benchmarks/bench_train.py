@@ -95,7 +95,8 @@ def case(model_name: str, folder: Path, n_trials: int, epochs: int) -> dict:
     import torch
 
     from midas_cli.models.data import DatasetConfig, build_dataset
-    from midas_cli.models.train import Sequences, TrainConfig, build_model, fit
+    from midas_cli.models.sequences import Sequences
+    from midas_cli.models.train import TrainConfig, build_model, fit
 
     torch.manual_seed(0)
     t0 = time.monotonic()
@@ -119,7 +120,7 @@ def case(model_name: str, folder: Path, n_trials: int, epochs: int) -> dict:
 def whole_trials(dataset):  # noqa: ANN001, ANN201 - GestureDataset -> Sequences
     """Every trial as one training unit, normalised over all frames (the loop's input: (T, D) float32)."""
     from midas_cli.models.data import Normaliser
-    from midas_cli.models.train import Sequences
+    from midas_cli.models.sequences import Sequences
 
     order = list(dataset.config.modalities)
     blocks = [t.stacked(order) for t in dataset.trials]
@@ -174,7 +175,8 @@ def louo_case(folder: Path, device_name: str) -> dict:
 
     from midas_cli.models.data import DatasetConfig, build_dataset
     from midas_cli.models.splits import make_split
-    from midas_cli.models.train import RECIPES, TrainConfig, _sequences, build_model, fit, fit_normaliser, predict
+    from midas_cli.models.sequences import fit_normaliser, sequences
+    from midas_cli.models.train import RECIPES, TrainConfig, build_model, fit, predict
 
     torch.manual_seed(0)
     device = torch.device(device_name)
@@ -184,7 +186,7 @@ def louo_case(folder: Path, device_name: str) -> dict:
     split = make_split(dataset, "louo", 0, 0)  # the default: no validation set, every other subject trains
     order = list(dataset.config.modalities)
     normaliser = fit_normaliser(dataset, split.units["train"], order)
-    parts = {part: _sequences(dataset, units, normaliser, order) for part, units in split.units.items()}
+    parts = {part: sequences(dataset, units, normaliser, order) for part, units in split.units.items()}
     model, _ = build_model("mstcn", dataset.modality_dims, len(dataset.classes), {})
     model.to(device)
     fit(model, parts["train"], parts["val"], TrainConfig(model="mstcn", epochs=1), device)  # warm-up

@@ -34,8 +34,9 @@ from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
 from midas_cli.models.augment import ColumnShift
-from midas_cli.models.train import (ProgressFn, Sequences, TrainConfig, epoch_inputs, finish_run, frame_accuracy,
-                                    padded_batches, prepare_fold, seeded_model, torch_device)
+from midas_cli.models.sequences import Sequences, epoch_inputs, padded_batches
+from midas_cli.models.train import (ProgressFn, TrainConfig, finish_run, frame_accuracy, prepare_fold, seeded_model,
+                                    torch_device)
 
 log = logging.getLogger(__name__)
 

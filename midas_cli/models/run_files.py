@@ -18,7 +18,7 @@ from midas_cli.models.plots import write_confusion_png, write_timeline_png
 from midas_cli.session.outputs import out_child, out_folder, out_target, replacing, write_text
 
 if TYPE_CHECKING:
-    from midas_cli.models.train import Sequences
+    from midas_cli.models.sequences import Sequences
 
 
 def write_run(out_dir: Path, run: dict, result: dict, model: torch.nn.Module, dataset: GestureDataset,

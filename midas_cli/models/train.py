@@ -36,6 +36,7 @@ from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, bui
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
 from midas_cli.models.run_files import run_folder, write_run
+from midas_cli.models.sequences import Sequences, epoch_inputs, fit_normaliser, padded_batches, sequences
 from midas_cli.models.splits import PARTS, Split, instances, make_split
 from midas_cli.models.torch_io import load_weights_only
 
@@ -95,15 +96,6 @@ class TrainConfig:
 
 
 @dataclass
-class Sequences:
-    """The units of one split part as arrays: ``x`` (T_i, D) float32 normalised, ``y`` (T_i,) int64."""
-
-    units: list[tuple[str, int, int]]
-    x: list[np.ndarray]
-    y: list[np.ndarray]
-
-
-@dataclass
 class RunResult:
     out_dir: Path
     metrics: dict
@@ -145,7 +137,7 @@ def prepare_fold(dataset: GestureDataset, config: TrainConfig) -> PreparedFold:
     split = make_split(dataset, config.split, config.seed, config.fold, config.validation)
     order = list(dataset.config.modalities)
     normaliser = fit_normaliser(dataset, split.units["train"], order)
-    parts = {part: _sequences(dataset, split.units[part], normaliser, order) for part in PARTS}
+    parts = {part: sequences(dataset, split.units[part], normaliser, order) for part in PARTS}
     if not parts["train"].units or not parts["test"].units:
         raise SessionError(f"split {split.kind} left no training or no test units: more labelled data needed")
     if config.shuffle_labels:
@@ -203,7 +195,7 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
                            f"{ {m: len(v) for m, v in saved['feature_names'].items()} }")
     split = Split.from_json(saved["split"])
     normaliser = Normaliser.from_json(saved["normaliser"]) if data_config.normalise == "train" else None
-    test = _sequences(dataset, split.units["test"], normaliser, list(data_config.modalities))
+    test = sequences(dataset, split.units["test"], normaliser, list(data_config.modalities))
     name = saved["model"]
     if name == "transformer" and "refinement_stages" not in saved.get("model_config", {}):
         name = "transformer-plain"  # a checkpoint from before the refinement stages existed
@@ -288,11 +280,6 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     return history
 
 
-def epoch_inputs(train: Sequences, augment: ColumnShift | None) -> Sequences:
-    """One epoch's training inputs: ``train`` as it is, or with ``augment``'s new draws."""
-    return train if augment is None else replace(train, x=augment(train.x))
-
-
 def learning_curve_point(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> dict:
     """The raw predictions' (no --min-segment) labelled frames and correct ones (pooled accuracy over
     folds = sum correct / sum frames) and each unit's edit score, in unit order."""
@@ -331,50 +318,6 @@ def load_checkpoint(path: Path) -> dict:
     if not isinstance(saved, dict) or saved.get("format") != CHECKPOINT_FORMAT:
         raise SessionError(f"{path} is not a midas gesture checkpoint (expected format {CHECKPOINT_FORMAT})")
     return saved
-
-
-def fit_normaliser(dataset: GestureDataset, train_units: list[tuple[str, int, int]],
-                   order: list[str]) -> Normaliser | None:
-    """The training-set normaliser for ``normalise == "train"``; None otherwise (per trial or none)."""
-    if dataset.config.normalise != "train":
-        return None
-    return Normaliser.fit([dataset.trials[dataset.trial_index(n)].stacked(order)[a:b] for n, a, b in train_units])
-
-
-def _sequences(dataset: GestureDataset, units: list[tuple[str, int, int]], normaliser: Normaliser | None,
-               order: list[str]) -> Sequences:
-    """Units as arrays, normalised per ``dataset.config.normalise``: with the training-set
-    ``normaliser``, with each whole trial's own mean and std ("trial"), or not at all ("none")."""
-    xs, ys = [], []
-    for name, start, stop in units:
-        trial = dataset.trials[dataset.trial_index(name)]
-        x = trial.stacked(order)
-        if dataset.config.normalise == "trial":
-            xs.append(Normaliser.fit([x]).apply(x[start:stop]))
-        elif normaliser is None:
-            xs.append(x[start:stop].astype(np.float32))
-        else:
-            xs.append(normaliser.apply(x[start:stop]))
-        ys.append(trial.labels[start:stop])
-    return Sequences(list(units), xs, ys)
-
-
-def padded_batches(seqs: Sequences, order: np.ndarray, batch_size: int):
-    """Padded batches: x (B, D, T_max) float32, y (B, T_max) long (-1 on padding), mask (B, T_max) bool."""
-    for start in range(0, len(order), batch_size):
-        pick = order[start:start + batch_size]
-        t_max = max(len(seqs.y[i]) for i in pick)
-        dim = seqs.x[pick[0]].shape[1]
-        x = np.zeros((len(pick), dim, t_max), dtype=np.float32)
-        y = np.full((len(pick), t_max), -1, dtype=np.int64)
-        for row, i in enumerate(pick):
-            t = len(seqs.y[i])
-            x[row, :, :t] = seqs.x[i].T  # (T, D) -> (D, T)
-            y[row, :t] = seqs.y[i]
-        mask = np.zeros((len(pick), t_max), dtype=bool)
-        for row, i in enumerate(pick):
-            mask[row, :len(seqs.y[i])] = True
-        yield torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(mask)
 
 
 def frame_accuracy(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> float:

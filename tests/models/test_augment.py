@@ -13,7 +13,8 @@ from helpers.gesture_sessions import write_gesture_dataset
 from midas_cli.errors import ConfigError
 from midas_cli.models.augment import input_shift
 from midas_cli.models.features import is_orientation, is_position
-from midas_cli.models.train import Sequences, TrainConfig, build_model, fit, predict
+from midas_cli.models.sequences import Sequences
+from midas_cli.models.train import TrainConfig, build_model, fit, predict
 
 NAMES = ["psm.left_x_mm", "d/dt emht.s1_x_mm", "psm.left_vx_mm_s", "psm.left_R00", "emht.s2_z_mm",
          "handkp.right_thumb_y_mm", "psm.left_grasper_deg", "mtm.right_qw", "sin emht.s3_roll_deg",

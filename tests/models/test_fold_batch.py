@@ -18,7 +18,8 @@ from midas_cli.commands.train import FOLD_BATCH_MODES
 from midas_cli.errors import ConfigError
 from midas_cli.models import fold_batch
 from midas_cli.models.augment import input_shift
-from midas_cli.models.train import Sequences, TrainConfig, build_model, fit
+from midas_cli.models.sequences import Sequences
+from midas_cli.models.train import TrainConfig, build_model, fit
 
 DIMS, CLASSES = {"emht": 5}, 3
 EMPTY = Sequences([], [], [])  # no validation units

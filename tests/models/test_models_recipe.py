@@ -16,7 +16,8 @@ from midas_cli.errors import ConfigError
 from midas_cli.geometry import angular_velocities, matrices_from_angles, matrices_from_quaternions
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.mstcn import MSTCN, MSTCNConfig, segmentation_loss, smoothing_loss
-from midas_cli.models.train import RECIPES, TrainConfig, _sequences, build_model, fit_normaliser
+from midas_cli.models.sequences import fit_normaliser, sequences
+from midas_cli.models.train import RECIPES, TrainConfig, build_model
 from midas_cli.models.transformer import GestureTransformer, TransformerConfig
 
 
@@ -171,7 +172,7 @@ def test_normalise_options(sessions, mode):
     ds = build_dataset(sessions, DatasetConfig(("mtm",), ("pos", "grasper"), normalise=mode))
     units = [(t.name, 0, len(t.labels)) for t in ds.trials]
     normaliser = fit_normaliser(ds, units[:2], ["mtm"])
-    seqs = _sequences(ds, units, normaliser, ["mtm"])
+    seqs = sequences(ds, units, normaliser, ["mtm"])
     if mode == "train":
         train = np.concatenate(seqs.x[:2])
         assert np.allclose(train.mean(axis=0), 0, atol=1e-4) and np.allclose(train.std(axis=0), 1, atol=1e-3)
