@@ -51,12 +51,22 @@ def test_every_model_builds_and_has_a_recipe_and_a_title(entry) -> None:
     logits = network.frame_logits(network(torch.randn(1, 5, 12), mask))
     assert logits.shape == (1, 4, 12)  # (B, classes, T): the entry's builder saw the dims and class count
     assert config["n_classes"] == 4
-    assert entry.recipe.epochs > 0 and entry.recipe.batch_size > 0 and entry.recipe.lr > 0
-    assert entry.recipe.selection in SELECTIONS
     assert RECIPES[entry.name] == asdict(entry.recipe)
-    resolved = TrainConfig(model=entry.name).resolved()
-    assert (resolved.epochs, resolved.lr) == (entry.recipe.epochs, entry.recipe.lr)
+    for name, recipe in _trained_recipes(entry, config):
+        assert recipe.epochs > 0 and recipe.batch_size > 0 and recipe.lr > 0
+        assert recipe.selection in SELECTIONS
+        resolved = TrainConfig(model=name).resolved()
+        assert (resolved.epochs, resolved.lr) == (recipe.epochs, recipe.lr)
     assert entry.title
+
+
+def _trained_recipes(entry, config: dict) -> list:
+    """(model, recipe) of the networks the entry trains: its own, or an ensemble's members' (its own
+    leaves epochs, batch size, lr and selection to them)."""
+    if "members" not in config:
+        return [(entry.name, entry.recipe)]
+    assert (entry.recipe.epochs, entry.recipe.batch_size, entry.recipe.lr, entry.recipe.selection) == (None,) * 4
+    return [(m, MODELS[m].recipe) for m in config["members"]]
 
 
 def test_model_names_and_titles_are_unique() -> None:

@@ -44,7 +44,8 @@ BASELINE_OPT = typer.Option(True, "--baseline/--no-baseline", rich_help_panel=TR
                             "and ablation: also train the per-frame logistic-regression baseline and add its row to "
                             "every table.")
 EPOCHS_OPT = typer.Option(None, "--epochs", rich_help_panel=TRAINING_PANEL, min=0, help="Training epochs (default: "
-                          "the model's recipe: " + ", ".join(f"{e.name} {e.recipe.epochs}" for e in ENTRIES) + ").")
+                          "the model's recipe: " + ", ".join(f"{e.name} {e.recipe.epochs}" for e in ENTRIES if e.recipe.epochs) + "; "
+                          "an ensemble's members each their own; given, every member's).")
 CAUSAL_OPT = typer.Option(False, "--causal", rich_help_panel=TRAINING_PANEL, help="Causal sequence models (frame t "
                           "sees frames <= t only: causal convolutions, masked attention), trained as such: the models "
                           "`record --live-model` can run. Per-frame baselines are causal as they are.")

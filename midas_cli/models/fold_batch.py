@@ -34,9 +34,10 @@ from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
 from midas_cli.models.augment import ColumnShift
+from midas_cli.models.ensemble import Ensemble
 from midas_cli.models.sequences import Sequences, epoch_inputs, padded_batches
-from midas_cli.models.train import (ProgressFn, TrainConfig, finish_run, frame_accuracy, prepare_fold, seeded_model,
-                                    torch_device)
+from midas_cli.models.train import (ProgressFn, TrainConfig, each_member, finish_run, frame_accuracy, member_records,
+                                    prepare_fold, seeded_model, torch_device)
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +92,16 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
                 augments: Sequence[ColumnShift | None] | None = None) -> list[list[dict]]:
     """``fit`` for K models of one architecture at once (see the module text); the models get their
     trained (or best-validation) weights; ``augments``: each fold's (``fit``'s ``augment``). Returns each
-    fold's history."""
+    fold's history. Ensembles: each member's K copies stacked in turn (train.py ``each_member``)."""
     config = config.resolved()
+    if isinstance(models[0], Ensemble):
+        histories: list[list[dict]] = [[] for _ in models]
+        for i, member_config, member_progress in each_member(config, models[0].cfg.members, progress):
+            fitted = fit_stacked([m.members[i] for m in models], trains, vals, member_config, device, member_progress,
+                                 augments)
+            for history, records in zip(histories, fitted):
+                history += member_records(i, member_config, records)
+        return histories
     params, buffers = stack_module_state(models)  # type: ignore[arg-type]
     names = list(params)
     for p in params.values():
@@ -102,7 +111,7 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
     step = _stacked_loss(models[0], mixed, device)
     rngs = [np.random.default_rng(config.seed) for _ in models]
     augments = list(augments) if augments is not None else [None] * len(models)
-    histories: list[list[dict]] = [[] for _ in models]
+    histories = [[] for _ in models]
     best: list[tuple[float, dict | None]] = [(-1.0, None) for _ in models]
     for epoch in range(1, config.epochs + 1):
         batches = [list(padded_batches(epoch_inputs(t, a), r.permutation(len(t.x)), config.batch_size))

@@ -27,12 +27,13 @@ class Recipe:
     rate, which epoch's weights are kept (``last``, or ``best-val``: the best validation frame
     accuracy's; without a validation set "best-val" falls back to the last epoch), and the training
     inputs' shift augmentation (``augment_shift`` standard deviations of the ``augment_features`` columns,
-    models/augment.py; 0: none)."""
+    models/augment.py; 0: none). An ensemble's epochs, batch size, lr and selection are None: each member
+    trains with its own recipe's."""
 
-    epochs: int
-    batch_size: int
-    lr: float
-    selection: str
+    epochs: int | None
+    batch_size: int | None
+    lr: float | None
+    selection: str | None
     augment_shift: float = 0.0
     augment_features: str = "pos"
 
@@ -65,6 +66,12 @@ def _transformer(refined: bool) -> Builder:
         return GestureTransformer, TransformerConfig(modality_dims=dict(dims), n_classes=n_classes, **plain)
 
     return build
+
+
+def _ensemble(dims: dict[str, int], n_classes: int) -> tuple[Callable[[Any], Any], Any]:
+    from midas_cli.models.ensemble import Ensemble, EnsembleConfig
+
+    return Ensemble, EnsembleConfig(modality_dims=dict(dims), n_classes=n_classes)
 
 
 def _baseline(hidden: int) -> Builder:
@@ -100,6 +107,8 @@ ENTRIES = (
     ModelEntry("mstcn", "MS-TCN++", "MS-TCN++", Recipe(20, 1, 5e-4, "last", 1.0, "pos,ori"), _mstcn),
     ModelEntry("transformer", "MTRSAP", "MTRSAP-style with MS-TCN++ refinement stages",
                Recipe(10, 4, 1e-3, "best-val", 1.0, "pos,ori"), _transformer(refined=True)),
+    ModelEntry("ensemble", "Ensemble", "two MS-TCN++ and two transformers averaged",
+               Recipe(None, None, None, None, 1.0, "pos,ori"), _ensemble),
     ModelEntry("transformer-plain", "MTRSAP (plain)", "without", Recipe(50, 4, 1e-3, "best-val"),
                _transformer(refined=False)),
     ModelEntry("baseline", "Baseline (LR)", "per-frame logistic regression", Recipe(50, 4, 1e-2, "best-val"),

@@ -12,7 +12,7 @@ same frames up to float rounding (tests/models/test_streaming.py). A delayed mod
 (``analysis/live_gestures.py`` keeps the frames waiting for theirs and flushes them with zero frames).
 
 ``frame_stepper(model)`` builds the stepper of a trained network (MS-TCN++, the transformer, the
-per-frame baselines); a sequence model trained without ``causal`` is refused (it would need frames
+per-frame baselines, an ensemble of them); a sequence model trained without ``causal`` is refused (it would need frames
 after t).
 """
 
@@ -27,6 +27,7 @@ from torch import nn
 
 from midas_cli.errors import ConfigError
 from midas_cli.models.baseline import FrameBaseline
+from midas_cli.models.ensemble import TINY, Ensemble
 from midas_cli.models.mstcn import MSTCN, DualDilatedLayer, PredictionGeneration, Refinement
 from midas_cli.models.transformer import GestureTransformer
 
@@ -237,6 +238,21 @@ class StepBaseline:
         return 0
 
 
+class StepEnsemble:
+    """An ensemble's members stepped side by side; the logits are the log of their mean probabilities, as
+    ``Ensemble.forward`` gives them (the members share the ensemble's delay, so their steps label one frame)."""
+
+    def __init__(self, model: Ensemble) -> None:
+        self.members = [frame_stepper(member) for member in model.members]
+
+    def step(self, x: np.ndarray) -> np.ndarray:
+        probs = np.mean([_softmax(member.step(x)) for member in self.members], axis=0)
+        return np.log(np.maximum(probs, TINY))
+
+    def state_floats(self) -> int:
+        return sum(member.state_floats() for member in self.members)
+
+
 def frame_stepper(model: nn.Module) -> FrameStepper:
     """The stepper of a trained causal network; ConfigError for one that is not causal."""
     if isinstance(model, FrameBaseline):
@@ -244,6 +260,8 @@ def frame_stepper(model: nn.Module) -> FrameStepper:
     if not getattr(model.cfg, "causal", False):
         raise ConfigError(f"the {type(model).__name__} model was not trained with --causal: it needs frames after "
                           "t and cannot run one frame at a time")
+    if isinstance(model, Ensemble):
+        return StepEnsemble(model)
     if isinstance(model, MSTCN):
         return StepMSTCN(model)
     if isinstance(model, GestureTransformer):

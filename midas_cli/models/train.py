@@ -33,6 +33,7 @@ from midas_cli.models import metrics as M
 from midas_cli.models import postprocess
 from midas_cli.models.augment import ColumnShift, check_sets, input_shift
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
+from midas_cli.models.ensemble import Ensemble
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
 from midas_cli.models.run_files import run_folder, write_run
@@ -74,6 +75,9 @@ class TrainConfig:
         postprocess.check(self.min_segment)
         if self.curve_every < 0:
             raise ConfigError(f"--curve-every must be >= 0 epochs, got {self.curve_every}")
+        if self.curve_every and self.model == "ensemble":
+            raise ConfigError("--curve-every scores one network as it trains; an ensemble's members train one after "
+                              "another: take the curves of its models alone")
         if not 0.0 <= self.delay_s < float("inf"):
             raise ConfigError(f"--delay must be >= 0 seconds, got {self.delay_s}")
         if self.delay_s and not self.causal:
@@ -247,8 +251,11 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     scored every that many epochs and after the last (``learning_curve_point``): a learning curve for
     choosing the epochs on development data, never used by training or selection (an evaluation in
     eval mode draws no random numbers: the weights are the same with it or without). ``augment``
-    (``prepare_fold``'s) redraws the training inputs' position shifts every epoch."""
+    (``prepare_fold``'s) redraws the training inputs' position shifts every epoch. An ``Ensemble`` trains
+    its members one after another (``fit_members``)."""
     config = config.resolved()
+    if isinstance(model, Ensemble):
+        return fit_members(model, train, val, config, device, progress, augment)
     # fused: the same update in one kernel over all parameters (MS-TCN++ step at the defaults: -7 % on the CPU)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay, fused=True)
     rng = np.random.default_rng(config.seed)
@@ -278,6 +285,43 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     if best[1] is not None:
         model.load_state_dict(best[1])
     return history
+
+
+def member_configs(config: TrainConfig, members: Sequence[str]) -> list[TrainConfig]:
+    """Each ensemble member's training config: the run's, with the member's model, the member's recipe
+    wherever the run leaves a field to the recipe (an ensemble's recipe leaves epochs, batch size, lr and
+    selection to its members), and seed + the member's index (two members of one family differ)."""
+    return [replace(config, model=name, seed=config.seed + i, model_options={}).resolved()
+            for i, name in enumerate(members)]
+
+
+def fit_members(model: Ensemble, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
+                progress: ProgressFn | None = None, augment: ColumnShift | None = None) -> list[dict]:
+    """``fit`` for each member of ``model`` in turn (``each_member``)."""
+    history: list[dict] = []
+    for i, member_config, member_progress in each_member(config, model.cfg.members, progress):
+        history += member_records(i, member_config, fit(model.members[i], train, val, member_config, device,
+                                                        member_progress, augment=augment))
+    return history
+
+
+def each_member(config: TrainConfig, members: Sequence[str], progress: ProgressFn | None):
+    """(index, ``member_configs``' config, its progress callback) per ensemble member: one progress count
+    over all the members' epochs."""
+    configs = member_configs(config, members)
+    total, done = sum(c.epochs for c in configs), 0
+    for i, member_config in enumerate(configs):
+        def member_progress(epoch: int, _: int, record: dict, offset: int = done) -> None:
+            if progress:
+                progress(offset + epoch, total, record)
+
+        yield i, member_config, member_progress
+        done += member_config.epochs
+
+
+def member_records(i: int, member_config: TrainConfig, records: list[dict]) -> list[dict]:
+    """A member's history records, each with the member's index and model."""
+    return [{"member": i, "model": member_config.model, **record} for record in records]
 
 
 def learning_curve_point(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> dict:
@@ -350,8 +394,17 @@ def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | 
                        for t in dataset.trials],
             "split": split.to_json(), "normalise": dataset.config.normalise,
             "normaliser": normaliser.to_json() if normaliser is not None else None,
-            "recipe": {k: getattr(config, k) for k in RECIPES[config.model]},
+            "recipe": _recipe_record(config, model_cfg),
             "data_fingerprint": dataset.fingerprint(), "code": code_version(torch.__version__), "history": history}
+
+
+def _recipe_record(config: TrainConfig, model_cfg: dict) -> dict:
+    """The recipe fields of ``config`` as trained (an ensemble's: its own and each member's)."""
+    record = {k: getattr(config, k) for k in RECIPES[config.model]}
+    if "members" in model_cfg:
+        record["members"] = [{"model": c.model, "seed": c.seed, **{k: getattr(c, k) for k in RECIPES[c.model]}}
+                             for c in member_configs(config, model_cfg["members"])]
+    return record
 
 
 def torch_device(name: str) -> torch.device:

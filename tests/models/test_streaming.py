@@ -20,6 +20,7 @@ CONFIGS = {
     "transformer": {"cnn_channels": 8, "kernel_size": 5, "d_model": 16, "n_heads": 4, "ff_dim": 24, "window": 32,
                     "refinement_layers": 6, "refinement_maps": 8},
     "baseline-mlp": {"hidden": 6},
+    "ensemble": {"members": ("mstcn", "transformer")},  # the members at their full size
 }
 
 

@@ -1,0 +1,85 @@
+"""Several gesture networks as one model: each frame's class probabilities averaged over the members.
+
+Networks of different families make different mistakes: on the JIGSAWS development tasks (all LOUO
+folds, BENCHMARKS.md) MS-TCN++ breaks its segments in other places than the MTRSAP-style transformer,
+and two draws of either (other initial weights, batch orders, dropout) disagree on the hard users. The
+average of their probabilities is right more often than any one of them. ``--model ensemble`` is
+MS-TCN++ and the transformer, two of each.
+
+Each member trains alone, one after another, with its own recipe (models/registry.py: epochs, batch
+size, learning rate, which epoch's weights are kept) unless the run overrides a field for all of them
+(``--epochs`` ...), and its own seed (the run's seed + its index, so two members of one family differ);
+the ensemble's inputs, normaliser and shift augmentation are the run's, shared by all (models/train.py
+``fit``, models/fold_batch.py ``fit_stacked``). A checkpoint holds every member's weights; the network
+is rebuilt from ``EnsembleConfig`` alone. ``causal`` / ``delay`` go to every member, so a causal
+ensemble runs live (models/streaming.py averages its members' steps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+import torch
+from torch import nn
+
+from midas_cli.errors import ConfigError
+from midas_cli.models.registry import MODELS, model_entry
+
+MEMBERS = ("mstcn", "transformer", "mstcn", "transformer")
+TINY = 1e-12  # log of an averaged probability: never log(0)
+
+
+@dataclass
+class EnsembleConfig:
+    modality_dims: dict[str, int]
+    n_classes: int
+    members: tuple[str, ...] = field(default=MEMBERS)  # model names (models/registry.py), in training order
+    member_options: dict[str, dict] = field(default_factory=dict)  # per model name: its config's overrides
+    causal: bool = False
+    delay: int = 0
+
+    def __post_init__(self) -> None:
+        self.members = tuple(self.members)  # a list when read back from run.json
+        if not self.members:
+            raise ConfigError("an ensemble needs at least one member")
+        bad = [m for m in self.members if m not in MODELS or m == "ensemble"]
+        if bad:
+            raise ConfigError(f"ensemble member {bad[0]!r} is not a single model (known: "
+                              f"{', '.join(m for m in MODELS if m != 'ensemble')})")
+        stray = set(self.member_options) - set(self.members)
+        if stray:
+            raise ConfigError(f"ensemble member_options for {', '.join(sorted(stray))}: not a member")
+
+
+class Ensemble(nn.Module):
+    """``forward`` gives log of the members' mean frame probabilities (B, C, T); it has no loss of its
+    own: its members are trained one by one."""
+
+    def __init__(self, cfg: EnsembleConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        nets = []
+        for name in cfg.members:
+            cls, member_cfg = model_entry(name).build(cfg.modality_dims, cfg.n_classes)
+            fields = asdict(member_cfg)
+            options = {**cfg.member_options.get(name, {}),
+                       **{k: getattr(cfg, k) for k in ("causal", "delay") if k in fields}}
+            unknown = set(options) - set(fields)
+            if unknown:
+                raise ConfigError(f"model options {', '.join(sorted(unknown))} do not exist for ensemble member "
+                                  f"{name} (known: {', '.join(fields)})")
+            nets.append(cls(replace(member_cfg, **options)))
+        self.members = nn.ModuleList(nets)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        logits = [m.frame_logits(m(x, mask)) for m in self.members]  # float16 under autocast: averaged in float32
+        probs = [torch.softmax(z.to(torch.promote_types(z.dtype, torch.float32)), dim=1) for z in logits]
+        return torch.log(torch.stack(probs).mean(dim=0).clamp_min(TINY))
+
+    @staticmethod
+    def frame_logits(out: torch.Tensor) -> torch.Tensor:
+        """``forward``'s output is already per-frame (log-probabilities)."""
+        return out
+
+    def loss(self, out: torch.Tensor, y: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        raise TypeError("an ensemble is trained member by member (models/train.py fit), not as one network")
