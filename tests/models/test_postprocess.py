@@ -31,8 +31,8 @@ def test_short_segments_go_to_their_longer_neighbour_shortest_first():
 
 def test_the_minimum_comes_from_the_training_labels_seconds_or_nothing():
     labels = [np.array([0] * 10 + [1] * 20 + [-1] * 3 + [2] * 40), np.array([1] * 30 + [0] * 50)]
-    lengths = [10, 20, 40, 30, 50]  # unlabelled runs (-1) are no gesture
-    assert postprocess.min_frames("auto", labels, 10.0, causal=False) == int(np.floor(np.percentile(lengths, 5)))
+    # gesture lengths 10, 20, 40, 30, 50 (unlabelled runs, -1, are no gesture): 2nd percentile 10.8 (the 5th: 12)
+    assert postprocess.min_frames("auto", labels, 10.0, causal=False) == 10
     assert postprocess.min_frames("auto", labels, 10.0, causal=True) == 0  # a live model cannot look ahead
     assert postprocess.min_frames("1.5", labels, 10.0, causal=False) == 15
     assert postprocess.min_frames("none", labels, 10.0, causal=False) == 0
