@@ -6,8 +6,9 @@ from __future__ import annotations
 import json
 from typing import Any
 
-TITLES = {"baseline": "baseline (per-frame logistic regression)", "mstcn": "MS-TCN++", "transformer": "transformer"}
-ORDER = ("baseline", "mstcn", "transformer")
+TITLES = {"baseline": "baseline (per-frame logistic regression)", "mstcn": "MS-TCN++", "transformer": "transformer",
+          "ensemble": "ensemble (2 MS-TCN++ + 2 transformers)"}
+ORDER = ("baseline", "mstcn", "transformer", "ensemble")
 
 
 def _pct(value: float) -> str:
