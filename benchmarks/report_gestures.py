@@ -264,7 +264,8 @@ def rescored_table(rows: list[dict[str, Any]]) -> list[str]:
            "| video edit |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, v = r["pooled"], r["per_video"]
-        out.append(f"| {r['task']} | {r['run_dir'].rstrip('/').rsplit('/', 1)[-1]} | {r['setting']} | {r['folds']} | "
+        runs = " + ".join(run.rstrip("/").rsplit("/", 1)[-1] for run in r["run_dir"].split(" + "))
+        out.append(f"| {r['task']} | {runs} | {r['setting']} | {r['folds']} | "
                    f"{' '.join(map(str, r['min_segment_frames']))} | {100 * p['accuracy']:.1f} | {p['edit']:.1f} | "
                    f"{p['f1@10']:.1f} | {p['f1@25']:.1f} | {p['f1@50']:.1f} | {100 * v['accuracy']:.1f} | "
                    f"{v['edit']:.1f} |")
@@ -275,7 +276,9 @@ def rescored_section(report: dict[str, Any]) -> list[str]:
     """The clean-up's effect (``--min-segment``) on the development runs' raw predictions."""
     return ["### The offline clean-up on the development tasks (`rescore_jigsaws.py`)", "",
             f"Rendered from `results/gestures_jigsaws_rescored.json` ({report['machine']['date_utc'][:10]}): the raw "
-            "predictions of the runs above re-scored with `--min-segment` settings (no training again; each fold's "
-            "minimum from its own training split, as `train gestures` computes it; `auto` = the 5th percentile of "
-            "the training gestures' lengths, the default since it was chosen here). acc in %.", "",
+            "predictions of the runs above (from their checkpoints) re-scored with `--min-segment` settings (no "
+            "training again; each fold's minimum from its own training split, as `train gestures` computes it; `pN` = "
+            "the N-th percentile of the training gestures' lengths, `auto` the default's: the 5th until 2026-11-27, "
+            "the 2nd since, chosen here); `A + B`: the ensemble of those runs, their frame probabilities averaged "
+            "per fold (what `--model ensemble` does with its members). acc in %.", "",
             *rescored_table(report["rows"]), ""]

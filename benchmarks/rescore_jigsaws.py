@@ -1,16 +1,18 @@
 """Re-score finished JIGSAWS cross-validation runs (gestures_jigsaws.py) with `--min-segment` settings,
-from their raw predictions: how the offline clean-up changes accuracy, edit and F1@k on the development
-tasks, without training again.
+and ensembles of them, from their raw predictions: how the offline clean-up and averaging runs change
+accuracy, edit and F1@k on the development tasks, without training again.
 
-For each run folder (``fold-<k>/`` with run.json and predictions/), each fold's minimum segment comes
-from that fold's own training split exactly as ``train gestures`` computes it (``models.postprocess``:
-the dataset rebuilt with the run's dataset config, the training units' labels at the model rate); the
-fold's test predictions are merged and scored with ``models.metrics``: pooled over all test videos (the
-MS-TCN way) and averaged per video. The runs must hold raw predictions: trained before the option existed
-or with ``--min-segment none``.
+Each fold's raw predictions come from its checkpoint (the saved network on the fold's test trials, as
+``train gestures --eval-only`` runs it, before any clean-up), so runs trained with a clean-up rescore
+too. ``RUN+RUN+...`` scores the ensemble of those runs: per fold, the frame probabilities of every run's
+network averaged (what ``--model ensemble`` predicts from its members), on folds every run has; the runs
+must have split the same trials. Each fold's minimum segment comes from that fold's own training split
+exactly as ``train gestures`` computes it (``models.postprocess``); ``pN`` is the N-th percentile of the
+training gestures' lengths (``auto`` is the default's percentile). Scores: pooled over all test videos
+(the MS-TCN way) and averaged per video.
 
-    .venv/bin/python benchmarks/rescore_jigsaws.py RUN_DIR:SESSIONS_DIR:TASK ... [--settings none,auto,1.0,2.0]
-        # -> results/gestures_jigsaws_rescored.json and a table on stdout
+    .venv/bin/python benchmarks/rescore_jigsaws.py RUN_DIR[+RUN_DIR...]:SESSIONS_DIR:TASK ... \
+        [--settings none,auto,p1,p5,1.0,2.0]   # -> results/gestures_jigsaws_rescored.json and a table
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
+import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -32,63 +34,97 @@ from report_gestures import rescored_table  # noqa: E402
 
 from midas_cli.models import metrics as M  # noqa: E402
 from midas_cli.models import postprocess  # noqa: E402
-from midas_cli.models.data import DatasetConfig, build_dataset  # noqa: E402
+from midas_cli.models.data import DatasetConfig, Normaliser, build_dataset  # noqa: E402
+from midas_cli.models.sequences import sequences  # noqa: E402
 from midas_cli.models.splits import Split  # noqa: E402
+from midas_cli.models.train import build_model, load_checkpoint, saved_structure  # noqa: E402
 
 KEYS = ("accuracy", "edit", "f1@10", "f1@25", "f1@50")
 
 
-def fold_data(fold: Path, cache: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], float,
-                                                            list[str]]:
-    """A fold's test predictions and truths (class indices, per trial), its training labels and rate."""
-    run = json.loads((fold / "run.json").read_text(encoding="utf-8"))
-    classes = list(run["classes"])
-    key = json.dumps(run["dataset_config"], sort_keys=True)
-    if key not in cache:
-        cache[key] = build_dataset(cache["sessions"], DatasetConfig.from_json(run["dataset_config"]), classes=classes)
-    dataset = cache[key]
-    split = Split.from_json(run["split"])
+def fold_data(folds: list[Path], cache: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray],
+                                                                float, list[str]]:
+    """One fold of one or more runs: the raw test predictions (class indices per trial; several runs: from
+    their mean probabilities), truths, the training labels and the model rate."""
+    probs, first = [], None
+    for fold in folds:
+        saved = load_checkpoint(fold / "checkpoint.pt")
+        key = json.dumps(saved["dataset_config"], sort_keys=True)
+        if key not in cache:
+            cache[key] = build_dataset(cache["sessions"], DatasetConfig.from_json(saved["dataset_config"]),
+                                       classes=saved["classes"])
+        dataset = cache[key]
+        split = Split.from_json(saved["split"])
+        if first is None:
+            first = (saved, dataset, split)
+        elif split.units["test"] != first[2].units["test"] or saved["classes"] != first[0]["classes"]:
+            raise SystemExit(f"{fold}: other test trials or classes than {folds[0]}: not an ensemble of one split")
+        probs.append(test_probabilities(saved, dataset, split))
+    saved, dataset, split = first  # type: ignore[misc]
+    test = sequences(dataset, split.units["test"], None, list(dataset.config.modalities))
     train = [dataset.trials[dataset.trial_index(name)].labels[a:b] for name, a, b in split.units["train"]]
-    index = {c: i for i, c in enumerate(classes)}
-    preds, truths = [], []
-    for path in sorted((fold / "predictions").glob("*.csv")):
-        table = pd.read_csv(path, dtype=str, keep_default_na=False)
-        preds.append(np.array([index[c] for c in table["prediction"]]))
-        truths.append(np.array([index.get(c, -1) if c else -1 for c in table["truth"]]))
-    return preds, truths, train, dataset.trials[0].rate_hz, classes
+    preds = [np.mean([p[i] for p in probs], axis=0).argmax(axis=0) for i in range(len(test.y))]
+    return preds, test.y, train, dataset.trials[0].rate_hz, list(saved["classes"])
 
 
-def rescore(run_dir: Path, sessions: list[Path], settings: list[str]) -> list[dict[str, Any]]:
-    """One row per setting: pooled and per-video figures over the run's finished folds."""
+def test_probabilities(saved: dict, dataset: Any, split: Split) -> list[np.ndarray]:
+    """The saved network's class probabilities (C, T) on each test trial of its split, in eval mode."""
+    normaliser = Normaliser.from_json(saved["normaliser"]) if saved["dataset_config"]["normalise"] == "train" else None
+    test = sequences(dataset, split.units["test"], normaliser, list(dataset.config.modalities))
+    model, _ = build_model(saved["model"], dataset.modality_dims, len(dataset.classes), saved["model_options"],
+                           *saved_structure(saved))
+    model.load_state_dict(saved["state_dict"])
+    model.eval()
+    with torch.no_grad():
+        return [torch.softmax(model.frame_logits(model(torch.from_numpy(x.T[None]),
+                                                       torch.ones(1, len(x), dtype=torch.bool)))[0], dim=0).numpy()
+                for x in test.x]
+
+
+def min_frames(setting: str, train: list[np.ndarray], rate: float) -> int:
+    """``--min-segment`` ``setting``'s minimum, or ``pN``'s: the N-th percentile of the gesture lengths."""
+    if not setting.startswith("p"):
+        return postprocess.min_frames(setting, train, rate, causal=False)
+    lengths = [length for y in train for cls, length in postprocess._runs(y) if cls >= 0]
+    return int(np.floor(np.percentile(lengths, float(setting[1:])))) if lengths else 0
+
+
+def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> list[dict[str, Any]]:
+    """One row per setting: pooled and per-video figures over the folds every run finished."""
     cache: dict[str, Any] = {"sessions": sessions}
-    folds = [fold_data(f, cache) for f in sorted(run_dir.glob("fold-*")) if (f / "metrics.json").is_file()]
+    names = sorted(f.name for f in run_dirs[0].glob("fold-*") if (f / "metrics.json").is_file())
+    names = [n for n in names if all((r / n / "metrics.json").is_file() for r in run_dirs)]
+    folds = [fold_data([r / n for r in run_dirs], cache) for n in names]
     rows = []
     for setting in settings:
         preds, truths, minima = [], [], []
         for fold_preds, fold_truths, train, rate, _ in folds:
-            minimum = postprocess.min_frames(setting, train, rate, causal=False)
+            minimum = min_frames(setting, train, rate)
             minima.append(minimum)
             preds += [postprocess.merge_short_segments(p, minimum) for p in fold_preds]
             truths += fold_truths
         classes = folds[0][4]
         pooled = M.evaluate(preds, truths, classes)["summary"]
         videos = [M.evaluate([p], [t], classes)["summary"] for p, t in zip(preds, truths)]
-        rows.append({"run_dir": str(run_dir), "setting": setting, "folds": len(folds), "videos": len(preds),
-                     "min_segment_frames": minima, "pooled": {k: pooled[k] for k in KEYS},
+        rows.append({"run_dir": " + ".join(str(r) for r in run_dirs), "setting": setting, "folds": len(folds),
+                     "videos": len(preds), "min_segment_frames": minima, "pooled": {k: pooled[k] for k in KEYS},
                      "per_video": {k: float(np.mean([v[k] for v in videos])) for k in KEYS}})
     return rows
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", help="RUN_DIR:SESSIONS_DIR:TASK (the sessions the run trained on)")
-    parser.add_argument("--settings", default="none,auto,1.0,1.5,2.0")
+    parser.add_argument("runs", nargs="+", help="RUN_DIR[+RUN_DIR...]:SESSIONS_DIR:TASK (the sessions the runs "
+                        "trained on; several runs: their ensemble)")
+    parser.add_argument("--settings", default="none,auto,p5,1.0,1.5,2.0")
     args = parser.parse_args()
     rows = []
     for spec in args.runs:
-        run_dir, sessions_dir, task = spec.split(":")
+        run_dirs, sessions_dir, task = spec.split(":")
         sessions = sorted(p for p in Path(sessions_dir).iterdir() if (p / "manifest.json").is_file())
-        rows += [{"task": task, **row} for row in rescore(Path(run_dir), sessions, args.settings.split(","))]
+        runs = [Path(r) for r in run_dirs.split("+")]
+        rows += [{"task": task, **row} for row in rescore(runs, sessions, args.settings.split(","))]
+        print(f"rescore: {task} {' + '.join(r.name for r in runs)} done", file=sys.stderr, flush=True)
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "gestures_jigsaws_rescored.json").write_text(
         json.dumps({"machine": machine_info(), "rows": rows}, indent=2) + "\n", encoding="utf-8")

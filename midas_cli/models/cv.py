@@ -52,7 +52,7 @@ PROTOCOLS = {"louo": "leave one user out: fold k tests on every trial of subject
              "loto": "leave one trial out: fold k tests on session k (sorted by name)"}
 BASELINE = "baseline"
 MODEL_NAMES = {"mstcn": "MS-TCN++", "transformer": "MTRSAP", "baseline": "baseline (logistic regression)",
-               "baseline-mlp": "baseline (MLP)"}
+               "baseline-mlp": "baseline (MLP)", "ensemble": "ensemble (2 MS-TCN++ + 2 MTRSAP)"}
 FOLD_DIR = re.compile(r"^fold-(\d+)$")
 
 RunFn = Callable[[str, int, int], None]
