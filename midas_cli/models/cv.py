@@ -192,7 +192,7 @@ def collect(root: Path) -> dict:
     per_video = per_video_means(preds, truths)
     return {"protocol": split["kind"], "protocol_text": PROTOCOLS[split["kind"]],
             "validation": split.get("validation") or "next group (before issue 19)",
-            "model": first["model"], "epochs": first["train_config"]["epochs"], "seed": split["seed"],
+            "model": first["model"], "epochs": _epochs(first), "seed": split["seed"],
             "dataset_config": first["dataset_config"], "data_fingerprint": first["data_fingerprint"],
             "groups": groups, "n_folds": len(groups) or len(folds),
             "missing_folds": [k for k in range(len(groups)) if k not in runs],
@@ -208,6 +208,14 @@ def collect(root: Path) -> dict:
                                          "accuracy, edit and F1@k as papers that average per video report them",
                             "units": "accuracy, f1, precision, recall: fractions; edit, f1@k: 0-100",
                             **M.DEFINITIONS}}
+
+
+def _epochs(run: dict) -> int | str | None:
+    """The epochs a fold trained: its own, or an ensemble's members' joined by + (e.g. "20+10+20+10")."""
+    members = run.get("recipe", {}).get("members")
+    if run["train_config"]["epochs"] is None and members:
+        return "+".join(str(m["epochs"]) for m in members)
+    return run["train_config"]["epochs"]
 
 
 def per_video_means(preds: Sequence[np.ndarray], truths: Sequence[np.ndarray]) -> dict[str, float | int]:

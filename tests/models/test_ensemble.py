@@ -16,7 +16,7 @@ import torch
 from helpers.cli import midas
 from helpers.gesture_sessions import write_gesture_session
 from midas_cli.errors import ConfigError
-from midas_cli.models import fold_batch
+from midas_cli.models import cv, fold_batch
 from midas_cli.models.augment import input_shift
 from midas_cli.models.sequences import Sequences
 from midas_cli.models.train import TrainConfig, build_model, fit, member_configs
@@ -133,6 +133,7 @@ def test_cli_ensemble_run_records_its_members_and_reloads_from_its_checkpoint(ji
     assert [(m["model"], m["seed"], m["epochs"]) for m in record["recipe"]["members"]] == [
         ("mstcn", 0, 1), ("transformer", 1, 1), ("mstcn", 2, 1), ("transformer", 3, 1)]
     assert [h["member"] for h in record["history"]] == [0, 1, 2, 3]
+    assert cv._epochs(record) == "1+1+1+1"  # what cv.md says it trained
     again = midas("train", "gestures", str(jigsaws), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
                   "--out", str(tmp_path / "eval"), "--json")
     assert again.returncode == 0, again.stderr
