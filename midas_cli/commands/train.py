@@ -189,7 +189,7 @@ def _render_metrics(metrics: dict, run_dir: Path) -> None:
 @training_command
 def gestures(
     sessions: list[Path] = SESSION_TREES_ARG,
-    model: str = typer.Option("mstcn", "--model", help=model_help()),
+    model: str = typer.Option("ensemble", "--model", help=model_help()),
     modalities: str = MODALITIES_OPT,
     features: str = FEATURES_OPT,
     fold: str = typer.Option("0", "--fold", help="loto/louo/loso: which trial/subject/super-trial (sorted) is held "

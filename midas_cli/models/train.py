@@ -50,7 +50,7 @@ RECIPES = {name: asdict(entry.recipe) for name, entry in MODELS.items()}  # each
 
 @dataclass
 class TrainConfig:
-    model: str = "mstcn"
+    model: str = "ensemble"  # the default (README, "Defaults and why")
     split: str = "gesture"
     fold: int = 0
     validation: str = "none"  # group splits: none (fixed epochs, last epoch) or inner (models/splits.py)

@@ -79,7 +79,7 @@ def test_junk_label_file_is_exit_4_naming_it(gestures, tmp_path, name, content):
 def test_damaged_aligned_npz_is_exit_4_naming_it(gestures, tmp_path):
     session = copy_session(gestures[0], tmp_path)
     (session / "derived" / "aligned.npz").write_bytes(b"PK\x03\x04" + b"\x00" * 40)  # a zip that is not one
-    result = midas("train", "gestures", str(session), "--epochs", "1", "--out", str(tmp_path / "run"))
+    result = midas("train", "gestures", str(session), "--model", "mstcn", "--epochs", "1", "--out", str(tmp_path / "run"))
     assert_one_error(result, 4, "aligned.npz")
 
 
@@ -242,7 +242,7 @@ def test_record_without_room_for_its_final_manifest_names_the_folder_and_repair_
 
 def test_train_prints_plain_progress_lines_when_stderr_is_not_a_terminal(gestures, tmp_path):
     env = {"MIDAS_PROGRESS_INTERVAL_S": "0"}
-    result = midas("train", "gestures", *map(str, gestures), "--epochs", "2", "--out", str(tmp_path / "run"), env=env)
+    result = midas("train", "gestures", *map(str, gestures), "--model", "mstcn", "--epochs", "2", "--out", str(tmp_path / "run"), env=env)
     assert result.returncode == 0, result.stderr
     lines = [line for line in result.stderr.splitlines() if line.startswith("midas: progress: ")]
     assert [line.split(",")[0] for line in lines] == ["midas: progress: mstcn epochs: 1/2 (50%)",

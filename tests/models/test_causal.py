@@ -62,7 +62,7 @@ def data(tmp_path_factory) -> Path:
 
 
 def test_train_gestures_causal_records_it_and_re_evaluates_the_same(data, tmp_path):
-    run = midas("train", "gestures", str(data), "--causal", "--modalities", "emht", "--features", "pos,vel",
+    run = midas("train", "gestures", str(data), "--model", "mstcn", "--causal", "--modalities", "emht", "--features", "pos,vel",
                 "--epochs", "1", "--out", str(tmp_path / "run"), "--json", check=True)
     record = json.loads((tmp_path / "run" / "run.json").read_text(encoding="utf-8"))
     assert record["train_config"]["causal"] is True and record["model_config"]["causal"] is True

@@ -122,7 +122,7 @@ def test_a_bad_fold_batch_mode_is_one_line_and_exit_2(jigsaws, tmp_path):
                    "--out", str(tmp_path / "cv"))
     assert result.returncode == 2 and result.stderr.strip().count("\n") == 0 and "--fold-batch" in result.stderr
     assert not (tmp_path / "cv").exists()
-    curve = midas("train", "gestures", str(jigsaws), "--split", "louo", "--fold", "all", "--fold-batch", "on",
+    curve = midas("train", "gestures", str(jigsaws), "--model", "mstcn", "--split", "louo", "--fold", "all", "--fold-batch", "on",
                   "--curve-every", "5", "--out", str(tmp_path / "cv2"))  # batched folds are not scored per epoch
     assert curve.returncode == 2 and "--curve-every" in curve.stderr and curve.stderr.strip().count("\n") == 0
 
@@ -137,7 +137,7 @@ def jigsaws(tmp_path_factory) -> Path:
 
 def test_fold_all_batched_writes_the_fold_folders_and_cv_json(jigsaws, tmp_path):
     out = tmp_path / "cv"
-    result = midas("train", "gestures", str(jigsaws), "--modalities", "emht", "--features", "pos", "--split", "louo",
+    result = midas("train", "gestures", str(jigsaws), "--model", "mstcn", "--modalities", "emht", "--features", "pos", "--split", "louo",
                    "--fold", "all", "--epochs", "2", "--fold-batch", "on", "--jobs", "2", "--out", str(out), "--json")
     assert result.returncode == 0, result.stderr
     assert "3 mstcn folds train batched in one process on cpu (--fold-batch on; --jobs 2 is not used" in result.stderr
@@ -151,7 +151,7 @@ def test_fold_all_batched_writes_the_fold_folders_and_cv_json(jigsaws, tmp_path)
             assert len(run["history"]) == 2 and (root / f"fold-{k}" / "checkpoint.pt").is_file()
             tested = sorted(p.stem for p in (root / f"fold-{k}" / "predictions").iterdir())
             assert tested == sorted(u[0] for u in run["split"]["test"]) and len(tested) == 2
-    again = midas("train", "gestures", str(jigsaws), "--modalities", "emht", "--features", "pos", "--split", "louo",
+    again = midas("train", "gestures", str(jigsaws), "--model", "mstcn", "--modalities", "emht", "--features", "pos", "--split", "louo",
                   "--fold", "all", "--epochs", "2", "--fold-batch", "on", "--out", str(out), "--json")
     assert again.returncode == 0, again.stderr
     assert "train batched" not in again.stderr  # every fold finished: nothing is trained again

@@ -54,7 +54,7 @@ def _shortest_run(path: Path) -> int:
 
 
 def test_train_cleans_up_by_default_keeps_raw_and_re_evaluates_the_same(data, tmp_path):
-    args = ("train", "gestures", str(data), "--modalities", "emht", "--features", "pos,vel", "--epochs", "1",
+    args = ("train", "gestures", str(data), "--model", "mstcn", "--modalities", "emht", "--features", "pos,vel", "--epochs", "1",
             "--split", "louo", "--fold", "0", "--json")
     run = midas(*args, "--out", str(tmp_path / "run"), check=True)
     test = json.loads((tmp_path / "run" / "metrics.json").read_text(encoding="utf-8"))["test"]

@@ -140,9 +140,9 @@ def test_cli_skips_unlabelled_sessions_with_a_note_and_fails_only_when_none_rema
     assert summary["frames_all"] >= summary["frames"] > 0 and "accuracy_with_background" in summary
     for session in found:
         (session / "labels" / "gestures.csv").unlink(missing_ok=True)
-    none = midas("train", "gestures", str(tmp_path / "data"), "--epochs", "1", "--out", str(tmp_path / "x"))
+    none = midas("train", "gestures", str(tmp_path / "data"), "--model", "mstcn", "--epochs", "1", "--out", str(tmp_path / "x"))
     assert none.returncode == 4 and "none of the 3 sessions has label set 'gestures'" in none.stderr
     assert not (tmp_path / "x").exists()  # refused: no empty run folder left behind
     (tmp_path / "mine").mkdir()
-    again = midas("train", "gestures", str(tmp_path / "data"), "--epochs", "1", "--out", str(tmp_path / "mine"))
+    again = midas("train", "gestures", str(tmp_path / "data"), "--model", "mstcn", "--epochs", "1", "--out", str(tmp_path / "mine"))
     assert again.returncode == 4 and (tmp_path / "mine").is_dir()  # a folder the user made is theirs: kept

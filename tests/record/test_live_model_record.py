@@ -37,7 +37,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
           "--out", str(root / "sim"), check=True)
     sessions = sorted(p for p in (root / "sim").iterdir() if (p / "manifest.json").exists())
     midas("align", *map(str, sessions), check=True, timeout=300)
-    midas("train", "gestures", str(root / "sim"), "--causal", "--delay", "0.2", "--modalities", "emht", "--epochs", "3",
+    midas("train", "gestures", str(root / "sim"), "--model", "mstcn", "--causal", "--delay", "0.2", "--modalities", "emht", "--epochs", "3",
           "--out", str(root / "run"), check=True, timeout=600)
     return sessions[0], root / "run"
 

@@ -75,7 +75,7 @@ def test_a_climbing_session_id_is_refused_by_verify_export_and_train(pristine: P
     export = midas("export", str(session), "--format", "mcap", "--out", "a/b/out", cwd=work)
     assert export.returncode == 4
     _one_error_line(export, "session_id")
-    train = midas("train", "gestures", str(session), "--epochs", "1", "--out", str(work / "run"))
+    train = midas("train", "gestures", str(session), "--model", "mstcn", "--epochs", "1", "--out", str(work / "run"))
     assert train.returncode == 4
     _one_error_line(train, "session_id")
     # nothing anywhere but the --out folder train makes first (empty): no X.mcap, X.csv, X.png
