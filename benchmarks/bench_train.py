@@ -33,7 +33,7 @@ frames at 30 Hz each), simulated and aligned as above, then ``midas train gestur
 mtm,psm --split louo --fold all --no-baseline --jobs 2`` through the CLI, everything else at its defaults
 (features, model rate, recipe; ``--epochs N`` overrides the recipe, to see what fewer epochs would save):
 measured, not extrapolated. The wall time, each fold's own time (the run's done markers) and the load are
-recorded in ``results/train_louo_all.json`` (``--epochs``: ``train_louo_all-e<N>.json``); the accuracy on
+recorded in ``results/train_louo_all[-MODEL].json`` (``--epochs``: ``-e<N>``; MODEL when it is not MS-TCN++); the accuracy on
 simulated data is kept but means nothing for the real task.
 """
 
@@ -223,7 +223,7 @@ def run_louo_all(epochs: int | None, quick: bool) -> None:
         args = ["train", "gestures", str(sessions), "--modalities", ",".join(LOUO_MODALITIES), "--split", "louo",
                 "--fold", "all", "--no-baseline", "--jobs", "2", "--out", str(out), "--json"]
         args += ["--epochs", str(epochs)] if epochs is not None else []
-        print(f"train: {' '.join(args[:2])} --split louo --fold all (mstcn, defaults"
+        print(f"train: {' '.join(args[:2])} --split louo --fold all (the default model and recipe"
               f"{f', {epochs} epochs' if epochs is not None else ''}) ...", file=sys.stderr)
         load, t0 = load_average(), time.monotonic()
         _cli(*args)
@@ -232,13 +232,16 @@ def run_louo_all(epochs: int | None, quick: bool) -> None:
         cv = json.loads((out / "cv.json").read_text(encoding="utf-8"))
         run = {"wall_s": round(wall, 1), "load_average_before_after": [load, load_average()],
                "command": "midas " + " ".join(a if not a.startswith(tmp) else "…" for a in args),
-               "fold_seconds": fold_seconds(out, "mstcn"), "folds": len(cv.get("folds", [])) or None,
-               "epochs": first["train_config"]["epochs"], "recipe": first["recipe"],
+               "model": first["model"], "fold_seconds": fold_seconds(out, first["model"]),
+               "folds": len(cv.get("folds", [])) or None,
+               "epochs": first["train_config"]["epochs"] or "+".join(str(m["epochs"]) for m in first["recipe"]["members"]),
+               "recipe": first["recipe"],
                "rate_hz": first["trials"][0]["rate_hz"], "inputs": {m: len(v) for m, v in first["feature_names"].items()},
                "frames_at_model_rate": int(sum(t["frames"] for t in first["trials"])),
                "trials": len(first["trials"]), "simulated_accuracy": cv.get("pooled", {}).get("accuracy"),
                "git_commit": first.get("code", {}).get("git_commit")}
-    name = "train_louo_all" + (f"-e{epochs}" if epochs is not None else "")
+    # one file per model and epochs (MS-TCN++'s runs, from before the ensemble was the default, keep their names)
+    name = "train_louo_all" + (f"-{run['model']}" if run["model"] != "mstcn" else "") + (f"-e{epochs}" if epochs else "")
     write_result(name, {"machine": machine_info(), "quick": quick, "data": data, "run": run})
 
 
