@@ -91,3 +91,11 @@ def write_two_users(root: Path, n_frames: int) -> Path:
     for i, (user, trial) in enumerate((u, t) for u in "BC" for t in (1, 2)):
         write_gesture_session(root, user, trial, n_frames=n_frames, seed=i)
     return root
+
+
+def write_louo_dataset(root: Path) -> Path:
+    """Users B, C, D with trials 1 and 2 each, of uneven lengths (120..220 frames): the smallest dataset with
+    three LOUO folds; returns ``root``."""
+    for i, (user, trial) in enumerate((u, t) for u in "BCD" for t in (1, 2)):
+        write_gesture_session(root, user, trial, n_frames=120 + 20 * i, seed=i)
+    return root

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from helpers.cli import midas
-from helpers.gesture_sessions import write_gesture_session
+from helpers.gesture_sessions import write_louo_dataset
 from midas_cli.errors import ConfigError
 from midas_cli.models import cv, fold_batch
 from midas_cli.models.augment import input_shift
@@ -117,10 +117,7 @@ def test_batched_folds_of_an_ensemble_end_where_separate_fits_end():
 
 @pytest.fixture(scope="module")
 def jigsaws(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("ens") / "data"
-    for i, (user, trial) in enumerate((u, t) for u in "BCD" for t in (1, 2)):
-        write_gesture_session(root, user, trial, n_frames=120 + 20 * i, seed=i)
-    return root
+    return write_louo_dataset(tmp_path_factory.mktemp("ens") / "data")
 
 
 def test_cli_ensemble_run_records_its_members_and_reloads_from_its_checkpoint(jigsaws, tmp_path):

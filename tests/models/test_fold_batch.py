@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from helpers.cli import midas
-from helpers.gesture_sessions import write_gesture_session
+from helpers.gesture_sessions import write_louo_dataset
 from midas_cli.commands.train import FOLD_BATCH_MODES
 from midas_cli.errors import ConfigError
 from midas_cli.models import fold_batch
@@ -129,10 +129,7 @@ def test_a_bad_fold_batch_mode_is_one_line_and_exit_2(jigsaws, tmp_path):
 
 @pytest.fixture(scope="module")
 def jigsaws(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("fb") / "data"
-    for i, (user, trial) in enumerate((u, t) for u in "BCD" for t in (1, 2)):
-        write_gesture_session(root, user, trial, n_frames=120 + 20 * i, seed=i)
-    return root
+    return write_louo_dataset(tmp_path_factory.mktemp("fb") / "data")
 
 
 def test_fold_all_batched_writes_the_fold_folders_and_cv_json(jigsaws, tmp_path):
