@@ -18,12 +18,15 @@ ensemble runs live (models/streaming.py averages its members' steps).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import torch
 from torch import nn
 
 from midas_cli.errors import ConfigError
-from midas_cli.models.registry import MODELS, model_entry
+
+if TYPE_CHECKING:
+    from midas_cli.models.train import ProgressFn, TrainConfig
 
 MEMBERS = ("mstcn", "transformer", "mstcn", "transformer")
 TINY = 1e-12  # log of an averaged probability: never log(0)
@@ -42,10 +45,8 @@ class EnsembleConfig:
         self.members = tuple(self.members)  # a list when read back from run.json
         if not self.members:
             raise ConfigError("an ensemble needs at least one member")
-        bad = [m for m in self.members if m not in MODELS or m == "ensemble"]
-        if bad:
-            raise ConfigError(f"ensemble member {bad[0]!r} is not a single model (known: "
-                              f"{', '.join(m for m in MODELS if m != 'ensemble')})")
+        if "ensemble" in self.members:
+            raise ConfigError("ensemble member 'ensemble' is not a single model")
         stray = set(self.member_options) - set(self.members)
         if stray:
             raise ConfigError(f"ensemble member_options for {', '.join(sorted(stray))}: not a member")
@@ -53,14 +54,18 @@ class EnsembleConfig:
 
 class Ensemble(nn.Module):
     """``forward`` gives log of the members' mean frame probabilities (B, C, T); it has no loss of its
-    own: its members are trained one by one."""
+    own: its members are trained one by one. ``entry`` is the registry's ``model_entry`` (a member is
+    built as ``--model`` would build it; passed in, as models/registry.py imports this module)."""
 
-    def __init__(self, cfg: EnsembleConfig) -> None:
+    def __init__(self, cfg: EnsembleConfig, entry: Callable[[str], Any]) -> None:
         super().__init__()
         self.cfg = cfg
         nets = []
         for name in cfg.members:
-            cls, member_cfg = model_entry(name).build(cfg.modality_dims, cfg.n_classes)
+            try:
+                cls, member_cfg = entry(name).build(cfg.modality_dims, cfg.n_classes)
+            except ConfigError as exc:
+                raise ConfigError(f"ensemble member {name!r} is not a single model: {exc}") from None
             fields = asdict(member_cfg)
             options = {**cfg.member_options.get(name, {}),
                        **{k: getattr(cfg, k) for k in ("causal", "delay") if k in fields}}
@@ -83,3 +88,31 @@ class Ensemble(nn.Module):
 
     def loss(self, out: torch.Tensor, y: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         raise TypeError("an ensemble is trained member by member (models/train.py fit), not as one network")
+
+
+def member_configs(config: "TrainConfig", members: Sequence[str]) -> list["TrainConfig"]:
+    """Each ensemble member's training config: the run's, with the member's model, the member's recipe
+    wherever the run leaves a field to the recipe (an ensemble's recipe leaves epochs, batch size, lr and
+    selection to its members), and seed + the member's index (two members of one family differ)."""
+    return [replace(config, model=name, seed=config.seed + i, model_options={}).resolved()
+            for i, name in enumerate(members)]
+
+
+def each_member(config: "TrainConfig", members: Sequence[str],
+                progress: "ProgressFn | None") -> Iterator[tuple[int, "TrainConfig", "ProgressFn"]]:
+    """(index, ``member_configs``' config, its progress callback) per ensemble member: one progress count
+    over all the members' epochs."""
+    configs = member_configs(config, members)
+    total, done = sum(c.epochs for c in configs), 0
+    for i, member_config in enumerate(configs):
+        def member_progress(epoch: int, _: int, record: dict, offset: int = done) -> None:
+            if progress:
+                progress(offset + epoch, total, record)
+
+        yield i, member_config, member_progress
+        done += member_config.epochs
+
+
+def member_records(i: int, member_config: "TrainConfig", records: list[dict]) -> list[dict]:
+    """A member's history records, each with the member's index and model."""
+    return [{"member": i, "model": member_config.model, **record} for record in records]

@@ -34,10 +34,10 @@ from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
 from midas_cli.models.augment import ColumnShift
-from midas_cli.models.ensemble import Ensemble
+from midas_cli.models.ensemble import Ensemble, each_member, member_records
 from midas_cli.models.sequences import Sequences, epoch_inputs, padded_batches
-from midas_cli.models.train import (ProgressFn, TrainConfig, each_member, finish_run, frame_accuracy, member_records,
-                                    prepare_fold, seeded_model, torch_device)
+from midas_cli.models.train import (ProgressFn, TrainConfig, finish_run, frame_accuracy, prepare_fold, seeded_model,
+                                    torch_device)
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
                 augments: Sequence[ColumnShift | None] | None = None) -> list[list[dict]]:
     """``fit`` for K models of one architecture at once (see the module text); the models get their
     trained (or best-validation) weights; ``augments``: each fold's (``fit``'s ``augment``). Returns each
-    fold's history. Ensembles: each member's K copies stacked in turn (train.py ``each_member``)."""
+    fold's history. Ensembles: each member's K copies stacked in turn (ensemble.py ``each_member``)."""
     config = config.resolved()
     if isinstance(models[0], Ensemble):
         histories: list[list[dict]] = [[] for _ in models]

@@ -7,8 +7,9 @@ until none is left. ``auto`` takes the minimum from the training split's own lab
 of the labelled gesture segments' lengths (in frames at the model rate), so no test data shape it and
 it follows the dataset (JIGSAWS gestures at 10 Hz: 2 % are shorter than ~1.2 s). Chosen on the JIGSAWS
 development tasks (README, "Defaults and why"): the 5th percentile (~1.5 s) until the shifted-input
-models, whose predictions break up less, lost real short gestures to it (BENCHMARKS.md). It looks at the whole sequence, so a causal (live) model's runs keep
-their raw predictions (``auto`` means ``none`` there).
+models, whose predictions break up less, lost real short gestures to it (BENCHMARKS.md). It looks at
+the whole sequence, so a causal (live) model's runs keep their raw predictions (``auto`` means ``none``
+there).
 """
 
 from __future__ import annotations

@@ -69,9 +69,11 @@ def _transformer(refined: bool) -> Builder:
 
 
 def _ensemble(dims: dict[str, int], n_classes: int) -> tuple[Callable[[Any], Any], Any]:
+    from functools import partial
+
     from midas_cli.models.ensemble import Ensemble, EnsembleConfig
 
-    return Ensemble, EnsembleConfig(modality_dims=dict(dims), n_classes=n_classes)
+    return partial(Ensemble, entry=model_entry), EnsembleConfig(modality_dims=dict(dims), n_classes=n_classes)
 
 
 def _baseline(hidden: int) -> Builder:

@@ -33,7 +33,7 @@ from midas_cli.models import metrics as M
 from midas_cli.models import postprocess
 from midas_cli.models.augment import ColumnShift, check_sets, input_shift
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
-from midas_cli.models.ensemble import Ensemble
+from midas_cli.models.ensemble import Ensemble, each_member, member_configs, member_records
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
 from midas_cli.models.run_files import run_folder, write_run
@@ -287,14 +287,6 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     return history
 
 
-def member_configs(config: TrainConfig, members: Sequence[str]) -> list[TrainConfig]:
-    """Each ensemble member's training config: the run's, with the member's model, the member's recipe
-    wherever the run leaves a field to the recipe (an ensemble's recipe leaves epochs, batch size, lr and
-    selection to its members), and seed + the member's index (two members of one family differ)."""
-    return [replace(config, model=name, seed=config.seed + i, model_options={}).resolved()
-            for i, name in enumerate(members)]
-
-
 def fit_members(model: Ensemble, train: Sequences, val: Sequences, config: TrainConfig, device: torch.device,
                 progress: ProgressFn | None = None, augment: ColumnShift | None = None) -> list[dict]:
     """``fit`` for each member of ``model`` in turn (``each_member``)."""
@@ -303,25 +295,6 @@ def fit_members(model: Ensemble, train: Sequences, val: Sequences, config: Train
         history += member_records(i, member_config, fit(model.members[i], train, val, member_config, device,
                                                         member_progress, augment=augment))
     return history
-
-
-def each_member(config: TrainConfig, members: Sequence[str], progress: ProgressFn | None):
-    """(index, ``member_configs``' config, its progress callback) per ensemble member: one progress count
-    over all the members' epochs."""
-    configs = member_configs(config, members)
-    total, done = sum(c.epochs for c in configs), 0
-    for i, member_config in enumerate(configs):
-        def member_progress(epoch: int, _: int, record: dict, offset: int = done) -> None:
-            if progress:
-                progress(offset + epoch, total, record)
-
-        yield i, member_config, member_progress
-        done += member_config.epochs
-
-
-def member_records(i: int, member_config: TrainConfig, records: list[dict]) -> list[dict]:
-    """A member's history records, each with the member's index and model."""
-    return [{"member": i, "model": member_config.model, **record} for record in records]
 
 
 def learning_curve_point(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> dict:

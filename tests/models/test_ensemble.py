@@ -19,7 +19,8 @@ from midas_cli.errors import ConfigError
 from midas_cli.models import cv, fold_batch
 from midas_cli.models.augment import input_shift
 from midas_cli.models.sequences import Sequences
-from midas_cli.models.train import TrainConfig, build_model, fit, member_configs
+from midas_cli.models.ensemble import member_configs
+from midas_cli.models.train import TrainConfig, build_model, fit
 
 DIMS, CLASSES = {"emht": 5}, 3
 EMPTY = Sequences([], [], [])
@@ -88,6 +89,7 @@ def test_the_ensemble_predicts_the_log_of_its_members_mean_probabilities():
 
 
 @pytest.mark.parametrize("options,match", [({"members": ["mstcn", "ensemble"]}, "not a single model"),
+                                           ({"members": ["lstm"]}, "'lstm' is not a single model"),
                                            ({"members": []}, "at least one member"),
                                            ({"member_options": {"lstm": {}}}, "not a member"),
                                            ({"member_options": {"mstcn": {"layers": 2}}}, "layers")])
