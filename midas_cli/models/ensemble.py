@@ -11,8 +11,9 @@ size, learning rate, which epoch's weights are kept) unless the run overrides a 
 (``--epochs`` ...), and its own seed (the run's seed + its index, so two members of one family differ);
 the ensemble's inputs, normaliser and shift augmentation are the run's, shared by all (models/train.py
 ``fit``, models/fold_batch.py ``fit_stacked``). A checkpoint holds every member's weights; the network
-is rebuilt from ``EnsembleConfig`` alone. ``causal`` / ``delay`` go to every member, so a causal
-ensemble runs live (models/streaming.py averages its members' steps).
+is rebuilt from ``EnsembleConfig`` alone (each member through the registry, as ``--model`` builds it).
+``causal`` / ``delay`` go to every member, so a causal ensemble runs live (models/streaming.py averages
+its members' steps).
 """
 
 from __future__ import annotations
