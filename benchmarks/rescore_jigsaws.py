@@ -44,8 +44,8 @@ KEYS = ("accuracy", "edit", "f1@10", "f1@25", "f1@50")
 
 def fold_data(folds: list[Path], cache: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray],
                                                                 float, list[str]]:
-    """One fold of one or more runs: the raw test predictions (class indices per trial; several runs: from
-    their mean probabilities), truths, the training labels and the model rate."""
+    """One fold of one or more runs: the test frame probabilities (C, T) per trial (several runs: their
+    mean), truths, the training labels and the model rate."""
     probs, first = [], None
     for fold in folds:
         saved = load_checkpoint(fold / "checkpoint.pt")
@@ -63,8 +63,8 @@ def fold_data(folds: list[Path], cache: dict[str, Any]) -> tuple[list[np.ndarray
     saved, dataset, split = first  # type: ignore[misc]
     test = sequences(dataset, split.units["test"], None, list(dataset.config.modalities))
     train = [dataset.trials[dataset.trial_index(name)].labels[a:b] for name, a, b in split.units["train"]]
-    preds = [np.mean([p[i] for p in probs], axis=0).argmax(axis=0) for i in range(len(test.y))]
-    return preds, test.y, train, dataset.trials[0].rate_hz, list(saved["classes"])
+    mean = [np.mean([p[i] for p in probs], axis=0) for i in range(len(test.y))]
+    return mean, test.y, train, dataset.trials[0].rate_hz, list(saved["classes"])
 
 
 def test_probabilities(saved: dict, dataset: Any, split: Split) -> list[np.ndarray]:
@@ -89,6 +89,21 @@ def min_frames(setting: str, train: list[np.ndarray], rate: float) -> int:
     return int(np.floor(np.percentile(lengths, float(setting[1:])))) if lengths else 0
 
 
+def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rate: float, n_classes: int,
+             minima: list[int]) -> list[np.ndarray]:
+    """One fold's predictions under ``setting``: a ``--min-segment`` setting (the greedy merge), ``v-S`` (the
+    exact minimum-length decoding at setting S) or ``gW-S`` (the same with the training order of gestures,
+    weight W)."""
+    decoder, _, minimum_setting = setting.rpartition("-") if setting[:1] in "vg" else ("", "", setting)
+    minimum = min_frames(minimum_setting, train, rate)
+    minima.append(minimum)
+    if not decoder:
+        return [postprocess.merge_short_segments(p.argmax(axis=0), minimum) for p in probs]
+    weight = 0.0 if decoder == "v" else float(decoder[1:])
+    trans = weight * postprocess.transition_log_probs(train, n_classes) if weight else None
+    return [postprocess.decode(np.log(np.maximum(p, 1e-12)), minimum, trans) for p in probs]
+
+
 def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> list[dict[str, Any]]:
     """One row per setting: pooled and per-video figures over the folds every run finished."""
     cache: dict[str, Any] = {"sessions": sessions}
@@ -98,10 +113,8 @@ def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> 
     rows = []
     for setting in settings:
         preds, truths, minima = [], [], []
-        for fold_preds, fold_truths, train, rate, _ in folds:
-            minimum = min_frames(setting, train, rate)
-            minima.append(minimum)
-            preds += [postprocess.merge_short_segments(p, minimum) for p in fold_preds]
+        for fold_probs, fold_truths, train, rate, classes in folds:
+            preds += clean_up(setting, fold_probs, train, rate, len(classes), minima)
             truths += fold_truths
         classes = folds[0][4]
         pooled = M.evaluate(preds, truths, classes)["summary"]

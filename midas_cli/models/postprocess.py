@@ -72,3 +72,73 @@ def _runs(y: np.ndarray) -> list[tuple[int, int]]:
         return []
     starts = np.r_[0, np.flatnonzero(np.diff(y)) + 1]
     return list(zip(y[starts].tolist(), np.diff(np.r_[starts, len(y)]).tolist()))
+
+
+def transition_log_probs(train_labels: Sequence[np.ndarray], n_classes: int, smoothing: float = 1.0) -> np.ndarray:
+    """(C, C) log P(next gesture | gesture) from the order of the labelled segments in ``train_labels``
+    (unlabelled frames are skipped; a class never followed by another gets a uniform row), add-``smoothing``
+    counts; the diagonal is -inf (a segment never follows itself)."""
+    counts = np.zeros((n_classes, n_classes))
+    for y in train_labels:
+        order = [cls for cls, _ in _runs(y) if cls >= 0]
+        for a, b in zip(order, order[1:]):
+            if a != b:
+                counts[a, b] += 1
+    counts += smoothing
+    np.fill_diagonal(counts, 0.0)
+    unseen = counts.sum(axis=1) == 0
+    counts[unseen] = 1.0
+    counts[unseen, unseen.nonzero()[0]] = 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(counts / counts.sum(axis=1, keepdims=True))
+
+
+def decode(log_probs: np.ndarray, minimum: int, log_trans: np.ndarray | None = None) -> np.ndarray:
+    """The labelling of the (C, T) frame ``log_probs`` with the highest total log probability (plus the
+    ``log_trans`` score of each change of class, when given) among those whose segments are all at least
+    ``minimum`` frames long: the exact version of ``merge_short_segments``, which decides from the
+    segment lengths alone. Viterbi over (class, frames so far capped at ``minimum``). A sequence shorter
+    than ``minimum`` gets its single most probable class."""
+    lp = np.asarray(log_probs, dtype=np.float64)
+    n_classes, length = lp.shape
+    d = max(1, int(minimum))
+    if length == 0:
+        return np.zeros(0, dtype=np.int64)
+    if length < d:
+        return np.full(length, int(lp.sum(axis=1).argmax()), dtype=np.int64)
+    switch = np.zeros((n_classes, n_classes)) if log_trans is None else np.asarray(log_trans, dtype=np.float64)
+    switch = switch.copy()
+    np.fill_diagonal(switch, -np.inf)
+    score = np.full((n_classes, d), -np.inf)
+    score[:, 0] = lp[:, 0]
+    came_from = np.zeros((length, n_classes), dtype=np.int64)  # the class before a new segment (-1: stayed)
+    stayed = np.zeros((length, n_classes), dtype=bool)  # the capped state was reached from itself
+    for t in range(1, length):
+        new = np.full_like(score, -np.inf)
+        candidates = score[:, d - 1][:, None] + switch  # (from, to)
+        best = candidates.argmax(axis=0)
+        entering = candidates[best, np.arange(n_classes)]
+        if d == 1:
+            stay = score[:, 0]
+            stayed[t] = stay >= entering
+            new[:, 0] = np.where(stayed[t], stay, entering)
+        else:
+            new[:, 1:] = score[:, :-1]
+            stayed[t] = score[:, d - 1] > new[:, d - 1]
+            new[:, d - 1] = np.maximum(new[:, d - 1], score[:, d - 1])
+            new[:, 0] = entering
+        came_from[t] = best
+        score = new + lp[:, t][:, None]
+    cls, k = int(score[:, d - 1].argmax()), d - 1
+    out = np.empty(length, dtype=np.int64)
+    for t in range(length - 1, -1, -1):
+        out[t] = cls
+        if t == 0:
+            break
+        if k == d - 1 and stayed[t, cls]:
+            continue
+        if k == 0:
+            cls, k = int(came_from[t, cls]), d - 1
+        else:
+            k -= 1
+    return out

@@ -3,6 +3,7 @@ neighbour, the minimum taken from the training split's gesture lengths, raw metr
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -39,6 +40,49 @@ def test_the_minimum_comes_from_the_training_labels_seconds_or_nothing():
     for bad in ("-1", "0", "fast", "nan"):
         with pytest.raises(ConfigError, match="--min-segment"):
             postprocess.check(bad)
+
+
+def _score(log_probs: np.ndarray, labels, log_trans=None) -> float:
+    total = float(sum(log_probs[c, t] for t, c in enumerate(labels)))
+    return total + (0.0 if log_trans is None else float(sum(log_trans[a, b] for a, b in zip(labels, labels[1:]) if a != b)))
+
+
+def test_decode_finds_the_best_labelling_whose_segments_are_all_long_enough():
+    rng = np.random.default_rng(3)
+    for _ in range(150):  # against every labelling of small problems
+        n_classes, length, minimum = int(rng.integers(2, 4)), int(rng.integers(2, 8)), int(rng.integers(1, 4))
+        log_probs = np.log(rng.dirichlet(np.ones(n_classes), size=length).T)
+        log_trans = np.log(rng.dirichlet(np.ones(n_classes), size=n_classes)) if rng.random() < 0.5 else None
+        allowed = [y for y in itertools.product(range(n_classes), repeat=length)
+                   if all(n >= minimum for _, n in postprocess._runs(np.array(y)))] if length >= minimum else \
+            [(c,) * length for c in range(n_classes)]
+        best = max(_score(log_probs, y, log_trans) for y in allowed)
+        got = postprocess.decode(log_probs, minimum, log_trans)
+        assert tuple(got) in allowed and _score(log_probs, got, log_trans) == pytest.approx(best)
+
+
+def test_decode_uses_the_probabilities_where_the_greedy_merge_uses_lengths():
+    # a 2-frame blip of class 1 between a long 0 and a long 2: the merge gives it to the longer neighbour
+    # (0); the frames themselves say 2 is nearly as likely as 1 and 0 unlikely.
+    probs = np.full((3, 12), 0.01)
+    probs[0, :6], probs[1, 6:8], probs[2, 6:8], probs[2, 8:] = 0.98, 0.55, 0.44, 0.98
+    pred = probs.argmax(axis=0)
+    assert postprocess.merge_short_segments(pred, 3).tolist() == [0] * 8 + [2] * 4
+    assert postprocess.decode(np.log(probs), 3).tolist() == [0] * 6 + [2] * 6
+    assert postprocess.decode(np.log(probs), 1).tolist() == pred.tolist()  # no minimum, no order: the argmax
+
+
+def test_the_order_of_gestures_comes_from_training_and_can_forbid_a_change():
+    train = [np.array([0, 0, 1, 1, -1, -1, 2, 2]), np.array([0, 1, 1, 2])]  # 0 -> 1 -> 2 (unlabelled skipped)
+    counts = np.exp(postprocess.transition_log_probs(train, 3, smoothing=0.0))
+    assert counts.tolist() == [[0, 1, 0], [0, 0, 1], [0.5, 0.5, 0]]  # 2 is never followed: uniform
+    probs = np.full((3, 6), 0.1)
+    probs[0, :3], probs[2, 3:] = 0.8, 0.8  # 0 then 2, which training never saw: 0 -> 1 -> 2 instead
+    never = postprocess.transition_log_probs(train, 3, smoothing=0.0)
+    assert postprocess.decode(np.log(probs), 1).tolist() == [0, 0, 0, 2, 2, 2]
+    assert postprocess.decode(np.log(probs), 1, never).tolist() in ([0, 0, 0, 1, 2, 2], [0, 0, 1, 2, 2, 2])
+    assert postprocess.decode(np.log(probs)[:, :0], 3).tolist() == []
+    assert postprocess.decode(np.log(probs)[:, :2], 3).tolist() == [0, 0]  # shorter than the minimum: one class
 
 
 @pytest.fixture(scope="module")
