@@ -55,7 +55,7 @@ DELAY_OPT = typer.Option(0.0, "--delay", rich_help_panel=TRAINING_PANEL, min=0.0
                          "frames <= t.")
 MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING_PANEL, help="Merge predicted "
                                 "segments shorter than this into their longer neighbour: seconds, none, or auto "
-                                "(default): the 5th percentile of the training split's gesture lengths (none for "
+                                "(default): the 2nd percentile of the training split's gesture lengths (none for "
                                 "--causal). The metrics without it are kept as raw.")
 CURVE_EVERY_OPT = typer.Option(0, "--curve-every", rich_help_panel=TRAINING_PANEL, min=0, help="Score the test split "
                                "every N epochs (and after the last) into run.json's history: a learning curve for "

@@ -35,7 +35,7 @@ import numpy as np
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models.data import DatasetConfig, build_dataset
-from midas_cli.models.registry import LEGACY_TRAIN_CONFIG
+from midas_cli.models.registry import LEGACY_TRAIN_CONFIG, MODELS
 from midas_cli.models.splits import GROUP_SPLITS, fold_groups
 from midas_cli.session.outputs import out_folder, out_target, write_text
 
@@ -51,8 +51,6 @@ PROTOCOLS = {"louo": "leave one user out: fold k tests on every trial of subject
              "loso": "leave one super-trial out: fold k tests on trial number k of every user (JIGSAWS: 1..5)",
              "loto": "leave one trial out: fold k tests on session k (sorted by name)"}
 BASELINE = "baseline"
-MODEL_NAMES = {"mstcn": "MS-TCN++", "transformer": "MTRSAP", "baseline": "baseline (logistic regression)",
-               "baseline-mlp": "baseline (MLP)", "ensemble": "ensemble (2 MS-TCN++ + 2 MTRSAP)"}
 FOLD_DIR = re.compile(r"^fold-(\d+)$")
 
 RunFn = Callable[[str, int, int], None]
@@ -271,8 +269,13 @@ def cell(report: dict, key: str, which: str = "mean") -> str:
     return f"{report['mean'][key] * scale:.1f}" + (f" ± {sd * scale:.1f}" if sd is not None else "")
 
 
+def model_title(name: str) -> str:
+    """The registry's title of model ``name`` (a name it does not know, from an old report: as it is)."""
+    return MODELS[name].title if name in MODELS else name
+
+
 def markdown(report: dict) -> str:
-    name = MODEL_NAMES.get(report["model"], report["model"])
+    name = model_title(report["model"])
     lines = [f"# {report['protocol'].upper()} cross-validation: {name}", "",
              f"Protocol: {report['protocol_text']}; {len(report['folds'])} of {report['n_folds']} folds.  ",
              f"Validation: {report['validation']}; {report['epochs']} epochs; seed {report['seed']}.  ",
@@ -287,7 +290,7 @@ def markdown(report: dict) -> str:
     for part, title in ((report, name), (report.get("baseline"), None)):
         if not part:
             continue
-        title = title or MODEL_NAMES.get(part["model"], part["model"])
+        title = title or model_title(part["model"])
         lines.append(f"| {title} | mean ± sd | | " + " | ".join(cell(part, k) for k in TABLE_KEYS) + " |")
         lines.append(f"| {title} | pooled | | " + " | ".join(cell(part, k, "pooled") for k in TABLE_KEYS) + " |")
         lines.append(f"| {title} | per video | | " + " | ".join(cell(part, k, "per_video") for k in TABLE_KEYS) + " |")

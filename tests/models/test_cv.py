@@ -85,10 +85,10 @@ def test_cli_louo_fold_all_writes_cv_json_md_and_fold_folders(jigsaws, tmp_path)
     for k in range(3):
         assert (out / f"fold-{k}" / "metrics.json").is_file() and (out / "baseline" / f"fold-{k}" / "run.json").is_file()
     table = (out / "cv.md").read_text()
-    assert table.count("| baseline (MLP) | ") == 6 and "| baseline (MLP) | mean ± sd |" in table
-    assert "| baseline (MLP) | per video |" in table and report["per_video"]["videos"] == 6
-    assert "| baseline (MLP) | pooled |" in table and "| baseline (MLP) | 2 | D |" in table
-    assert "| baseline (logistic regression) | mean ± sd |" in table and "none (fixed epochs)" in table
+    assert table.count("| Baseline (MLP) | ") == 6 and "| Baseline (MLP) | mean ± sd |" in table
+    assert "| Baseline (MLP) | per video |" in table and report["per_video"]["videos"] == 6
+    assert "| Baseline (MLP) | pooled |" in table and "| Baseline (MLP) | 2 | D |" in table
+    assert "| Baseline (LR) | mean ± sd |" in table and "none (fixed epochs)" in table
     # folds run elsewhere: cv-summary aggregates what exists and names what is missing
     partial = tmp_path / "partial"
     shutil.copytree(out / "fold-0", partial / "fold-0")
