@@ -92,16 +92,22 @@ def min_frames(setting: str, train: list[np.ndarray], rate: float) -> int:
 def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rate: float, n_classes: int,
              minima: list[int]) -> list[np.ndarray]:
     """One fold's predictions under ``setting``: a ``--min-segment`` setting (the greedy merge), ``v-S`` (the
-    exact minimum-length decoding at setting S) or ``gW-S`` (the same with the training order of gestures,
-    weight W)."""
-    decoder, _, minimum_setting = setting.rpartition("-") if setting[:1] in "vg" else ("", "", setting)
+    exact minimum-length decoding at setting S), ``gW-S`` (the same with the training order of gestures,
+    weight W) or ``gW+S`` (decoded with that order and no minimum, then merged at S); ``sP-S``, ``sP+S``: any
+    order, each change of gesture costs P (nats)."""
+    then_merge = setting[:1] in "vgs" and "+" in setting
+    decoder, _, minimum_setting = setting.rpartition("+" if then_merge else "-") if setting[:1] in "vgs" \
+        else ("", "", setting)
     minimum = min_frames(minimum_setting, train, rate)
     minima.append(minimum)
     if not decoder:
         return [postprocess.merge_short_segments(p.argmax(axis=0), minimum) for p in probs]
     weight = 0.0 if decoder == "v" else float(decoder[1:])
-    trans = weight * postprocess.transition_log_probs(train, n_classes) if weight else None
-    return [postprocess.decode(np.log(np.maximum(p, 1e-12)), minimum, trans) for p in probs]
+    order = postprocess.transition_log_probs(train, n_classes) if decoder[0] == "g" else \
+        np.full((n_classes, n_classes), -1.0)
+    trans = weight * order if weight else None
+    decoded = [postprocess.decode(np.log(np.maximum(p, 1e-12)), 0 if then_merge else minimum, trans) for p in probs]
+    return [postprocess.merge_short_segments(d, minimum) for d in decoded] if then_merge else decoded
 
 
 def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> list[dict[str, Any]]:

@@ -35,9 +35,9 @@ from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
 from midas_cli.models.augment import ColumnShift
 from midas_cli.models.ensemble import Ensemble, each_member, member_records
+from midas_cli.models.predict import frame_accuracy
 from midas_cli.models.sequences import Sequences, epoch_inputs, padded_batches
-from midas_cli.models.train import (ProgressFn, TrainConfig, finish_run, frame_accuracy, prepare_fold, seeded_model,
-                                    torch_device)
+from midas_cli.models.train import ProgressFn, TrainConfig, finish_run, prepare_fold, seeded_model, torch_device
 
 log = logging.getLogger(__name__)
 

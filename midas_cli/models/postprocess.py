@@ -22,6 +22,7 @@ from midas_cli.errors import ConfigError
 
 AUTO, NONE = "auto", "none"
 PERCENTILE = 2.0
+PENALTY_PER_HZ = 1.0  # --switch-penalty auto: nats per change of gesture, per Hz of the model rate (10 at 10 Hz)
 
 
 def check(value: str) -> str:
@@ -35,6 +36,36 @@ def check(value: str) -> str:
     if not 0 < seconds < 3600:
         raise ConfigError(f"--min-segment must be auto, none or seconds in (0, 3600), got {value!r}")
     return value
+
+
+def check_penalty(value: str) -> str:
+    """``value`` as given (auto, none, or nats >= 0 as text); ConfigError otherwise."""
+    if value in (AUTO, NONE):
+        return value
+    try:
+        nats = float(value)
+    except ValueError:
+        nats = -1.0
+    if not 0 <= nats < 1e6:
+        raise ConfigError(f"--switch-penalty must be auto, none or nats in [0, 1e6), got {value!r}")
+    return value
+
+
+def penalty_nats(setting: str, rate_hz: float, causal: bool) -> float:
+    """The cost of each change of gesture that ``setting`` gives, in nats (0: the greedy merge alone)."""
+    if setting == NONE or (setting == AUTO and causal):
+        return 0.0
+    return PENALTY_PER_HZ * rate_hz if setting == AUTO else float(setting)
+
+
+def clean_up(log_probs: Sequence[np.ndarray], minimum: int, penalty: float) -> list[np.ndarray]:
+    """Each sequence's (C, T) frame log-probabilities made a labelling: with a ``penalty`` > 0, the most
+    probable one whose segments are all ``minimum`` frames or longer, each change of gesture costing
+    ``penalty`` nats (``decode``); without, the frames' most probable classes, short segments merged
+    (``merge_short_segments``)."""
+    if penalty <= 0:
+        return [merge_short_segments(lp.argmax(axis=0), minimum) for lp in log_probs]
+    return [decode(lp, minimum, np.full((len(lp), len(lp)), -penalty)) for lp in log_probs]
 
 
 def min_frames(setting: str, train_labels: Sequence[np.ndarray], rate_hz: float, causal: bool) -> int:

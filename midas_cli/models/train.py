@@ -34,6 +34,7 @@ from midas_cli.models import postprocess
 from midas_cli.models.augment import ColumnShift, check_sets, input_shift
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
 from midas_cli.models.ensemble import Ensemble, each_member, member_configs, member_records
+from midas_cli.models.predict import frame_accuracy, predict, predict_log_probs
 from midas_cli.models.provenance import code_version
 from midas_cli.models.registry import MODELS, model_entry
 from midas_cli.models.run_files import run_folder, write_run
@@ -65,6 +66,7 @@ class TrainConfig:
     model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
     causal: bool = False  # sequence models see frames <= t only (per-frame baselines always do)
     min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
+    switch_penalty: str = "none"  # nats each change of gesture costs in the offline clean-up (postprocess.decode)
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
     delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
     augment_shift: float | None = None  # training inputs' columns shifted by N(0, (this x their sd)^2) (models/augment.py)
@@ -73,6 +75,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
         postprocess.check(self.min_segment)
+        postprocess.check_penalty(self.switch_penalty)
         if self.curve_every < 0:
             raise ConfigError(f"--curve-every must be >= 0 epochs, got {self.curve_every}")
         if self.curve_every and self.model == "ensemble":
@@ -174,11 +177,14 @@ def delay_frames(delay_s: float, rate_hz: float) -> int:
 def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, config: TrainConfig,
                model: torch.nn.Module, model_cfg: dict, history: list[dict], device: torch.device) -> RunResult:
     """Evaluate the trained ``model`` on the test (and validation) units and write the run folder."""
-    minimum = postprocess.min_frames(config.min_segment, fold.parts["train"].y, dataset.trials[0].rate_hz, config.causal)
-    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum)}
+    rate = dataset.trials[0].rate_hz
+    minimum = postprocess.min_frames(config.min_segment, fold.parts["train"].y, rate, config.causal)
+    penalty = postprocess.penalty_nats(config.switch_penalty, rate, config.causal)
+    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum, penalty)}
     if fold.parts["val"].units:
-        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum)
-    run = {**_run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history), "min_segment_frames": minimum}
+        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum, penalty)
+    run = {**_run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history), "min_segment_frames": minimum,
+           "switch_penalty_nats": penalty}
     write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
     return RunResult(out_dir, result, history)
 
@@ -207,7 +213,8 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
                            *saved_structure(saved))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
-    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)))}
+    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)),
+                                float(saved.get("switch_penalty_nats", 0.0)))}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
     write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
@@ -318,18 +325,6 @@ def shuffled_instance_labels(labels: list[np.ndarray], seed: int) -> list[np.nda
     return out
 
 
-def predict(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> list[np.ndarray]:
-    """Class index per frame (T_i,) for every unit, in eval mode."""
-    model.eval()
-    out = []
-    with torch.no_grad():
-        for x in seqs.x:
-            inputs = torch.from_numpy(x.T[None]).to(device)  # (T, D) -> (1, D, T)
-            mask = torch.ones(1, x.shape[0], dtype=torch.bool, device=device)
-            out.append(model.frame_logits(model(inputs, mask))[0].argmax(dim=0).cpu().numpy())
-    return out
-
-
 def load_checkpoint(path: Path) -> dict:
     saved = load_weights_only(path, "checkpoint")
     if not isinstance(saved, dict) or saved.get("format") != CHECKPOINT_FORMAT:
@@ -337,22 +332,16 @@ def load_checkpoint(path: Path) -> dict:
     return saved
 
 
-def frame_accuracy(model: torch.nn.Module, seqs: Sequences, device: torch.device) -> float:
-    preds = predict(model, seqs, device)
-    truth = np.concatenate(seqs.y)
-    keep = truth >= 0
-    return float((np.concatenate(preds)[keep] == truth[keep]).mean()) if keep.any() else 0.0
-
-
 def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], device: torch.device,
-              min_segment_frames: int = 0) -> dict:
+              min_segment_frames: int = 0, penalty: float = 0.0) -> dict:
     """Metrics of the predictions after the clean-up (``raw``: before it, where there was one)."""
-    raw = predict(model, seqs, device)
-    if not min_segment_frames:
+    log_probs = predict_log_probs(model, seqs, device)
+    raw = [lp.argmax(axis=0) for lp in log_probs]
+    if not min_segment_frames and not penalty:
         return {**M.evaluate(raw, seqs.y, classes), "predictions": raw}
-    preds = [postprocess.merge_short_segments(p, min_segment_frames) for p in raw]
+    preds = postprocess.clean_up(log_probs, min_segment_frames, penalty)
     return {**M.evaluate(preds, seqs.y, classes), "min_segment_frames": min_segment_frames,
-            "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
+            "switch_penalty_nats": penalty, "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
 
 
 def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | None, config: TrainConfig,
