@@ -57,11 +57,11 @@ MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING
                                 "segments shorter than this into their longer neighbour: seconds, none, or auto "
                                 "(default): the 2nd percentile of the training split's gesture lengths (none for "
                                 "--causal). The metrics without it are kept as raw.")
-SWITCH_PENALTY_OPT = typer.Option("auto", "--switch-penalty", rich_help_panel=TRAINING_PANEL, help="The clean-up as "
-                                   "a decoding: the labelling the frames' probabilities make most likely whose "
-                                   "segments are all --min-segment long, each change of gesture costing this many "
-                                   "nats: a number, none (0: the merge alone) or auto (default): 1 nat per Hz of the "
-                                   "model rate, 10 at 10 Hz (none for --causal).")
+GRAMMAR_OPT = typer.Option("auto", "--grammar", rich_help_panel=TRAINING_PANEL, help="The clean-up as a decoding: "
+                           "the labelling most likely from the frames' probabilities and the order of gestures in the "
+                           "training labels (a change from a to b scores W x log P(b after a)), with segments all "
+                           "--min-segment long. W: a number, none (the merge alone) or auto (default): 1 per Hz of "
+                           "the model rate, 10 at 10 Hz (none for --causal).")
 CURVE_EVERY_OPT = typer.Option(0, "--curve-every", rich_help_panel=TRAINING_PANEL, min=0, help="Score the test split "
                                "every N epochs (and after the last) into run.json's history: a learning curve for "
                                "choosing --epochs on development data (never used to train or to pick weights).")
@@ -99,7 +99,7 @@ class Training:
     seed: int
     causal: bool
     min_segment: str
-    switch_penalty: str = "auto"
+    grammar: str = "auto"
     curve_every: int = 0
     delay: float = 0.0
     augment_shift: Optional[float] = None
@@ -110,7 +110,7 @@ class Training:
         from midas_cli.models.train import TrainConfig
 
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
-                           causal=self.causal, min_segment=self.min_segment, switch_penalty=self.switch_penalty,
+                           causal=self.causal, min_segment=self.min_segment, grammar=self.grammar,
                            curve_every=self.curve_every,
                            delay_s=self.delay, augment_shift=self.augment_shift,
                            augment_features=self.augment_features, **fields)
@@ -120,7 +120,7 @@ class Training:
 training_options = option_group("training", Training, keyword_options(
     ("split", SPLIT_OPT, str), ("val", VAL_OPT, str), ("baseline", BASELINE_OPT, bool),
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
-    ("min_segment", MIN_SEGMENT_OPT, str), ("switch_penalty", SWITCH_PENALTY_OPT, str),
+    ("min_segment", MIN_SEGMENT_OPT, str), ("grammar", GRAMMAR_OPT, str),
     ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float),
     ("augment_shift", AUGMENT_SHIFT_OPT, Optional[float]), ("augment_features", AUGMENT_FEATURES_OPT, Optional[str])))
 

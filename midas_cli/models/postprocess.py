@@ -22,7 +22,7 @@ from midas_cli.errors import ConfigError
 
 AUTO, NONE = "auto", "none"
 PERCENTILE = 2.0
-PENALTY_PER_HZ = 1.0  # --switch-penalty auto: nats per change of gesture, per Hz of the model rate (10 at 10 Hz)
+WEIGHT_PER_HZ = 1.0  # --grammar auto: the order's weight per Hz of the model rate (10 at 10 Hz)
 
 
 def check(value: str) -> str:
@@ -38,34 +38,43 @@ def check(value: str) -> str:
     return value
 
 
-def check_penalty(value: str) -> str:
-    """``value`` as given (auto, none, or nats >= 0 as text); ConfigError otherwise."""
+def check_weight(value: str) -> str:
+    """``value`` as given (auto, none, or a weight >= 0 as text); ConfigError otherwise."""
     if value in (AUTO, NONE):
         return value
     try:
-        nats = float(value)
+        weight = float(value)
     except ValueError:
-        nats = -1.0
-    if not 0 <= nats < 1e6:
-        raise ConfigError(f"--switch-penalty must be auto, none or nats in [0, 1e6), got {value!r}")
+        weight = -1.0
+    if not 0 <= weight < 1e6:
+        raise ConfigError(f"--grammar must be auto, none or a weight in [0, 1e6), got {value!r}")
     return value
 
 
-def penalty_nats(setting: str, rate_hz: float, causal: bool) -> float:
-    """The cost of each change of gesture that ``setting`` gives, in nats (0: the greedy merge alone)."""
+def grammar_weight(setting: str, rate_hz: float, causal: bool) -> float:
+    """The weight of the gesture order that ``setting`` gives (0: the greedy merge alone)."""
     if setting == NONE or (setting == AUTO and causal):
         return 0.0
-    return PENALTY_PER_HZ * rate_hz if setting == AUTO else float(setting)
+    return WEIGHT_PER_HZ * rate_hz if setting == AUTO else float(setting)
 
 
-def clean_up(log_probs: Sequence[np.ndarray], minimum: int, penalty: float) -> list[np.ndarray]:
-    """Each sequence's (C, T) frame log-probabilities made a labelling: with a ``penalty`` > 0, the most
-    probable one whose segments are all ``minimum`` frames or longer, each change of gesture costing
-    ``penalty`` nats (``decode``); without, the frames' most probable classes, short segments merged
-    (``merge_short_segments``)."""
-    if penalty <= 0:
+def clean_up(log_probs: Sequence[np.ndarray], minimum: int, switch: np.ndarray | None) -> list[np.ndarray]:
+    """Each sequence's (C, T) frame log-probabilities made a labelling: with ``switch`` (C, C), the score of
+    each change of gesture, the best one whose segments are all ``minimum`` frames or longer (``decode``);
+    without, the frames' most probable classes, short segments merged (``merge_short_segments``)."""
+    if switch is None:
         return [merge_short_segments(lp.argmax(axis=0), minimum) for lp in log_probs]
-    return [decode(lp, minimum, np.full((len(lp), len(lp)), -penalty)) for lp in log_probs]
+    return [decode(lp, minimum, switch) for lp in log_probs]
+
+
+def switch_scores(train_labels: Sequence[np.ndarray], n_classes: int, weight: float) -> np.ndarray | None:
+    """``weight`` x log P(next gesture | gesture) from the training labels (``transition_log_probs``; the
+    diagonal, never used, 0), or None for weight 0."""
+    if weight <= 0:
+        return None
+    scores = weight * transition_log_probs(train_labels, n_classes)
+    np.fill_diagonal(scores, 0.0)
+    return scores
 
 
 def min_frames(setting: str, train_labels: Sequence[np.ndarray], rate_hz: float, causal: bool) -> int:

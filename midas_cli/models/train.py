@@ -66,7 +66,7 @@ class TrainConfig:
     model_options: dict = field(default_factory=dict)  # overrides of the model's config dataclass
     causal: bool = False  # sequence models see frames <= t only (per-frame baselines always do)
     min_segment: str = "none"  # predicted segments shorter than this merged away (models/postprocess.py)
-    switch_penalty: str = "none"  # nats each change of gesture costs in the offline clean-up (postprocess.decode)
+    grammar: str = "none"  # weight of the training gesture order in the offline clean-up (postprocess.decode)
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
     delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
     augment_shift: float | None = None  # training inputs' columns shifted by N(0, (this x their sd)^2) (models/augment.py)
@@ -75,7 +75,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         model_entry(self.model)  # ConfigError for an unknown model
         postprocess.check(self.min_segment)
-        postprocess.check_penalty(self.switch_penalty)
+        postprocess.check_weight(self.grammar)
         if self.curve_every < 0:
             raise ConfigError(f"--curve-every must be >= 0 epochs, got {self.curve_every}")
         if self.curve_every and self.model == "ensemble":
@@ -179,12 +179,13 @@ def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, confi
     """Evaluate the trained ``model`` on the test (and validation) units and write the run folder."""
     rate = dataset.trials[0].rate_hz
     minimum = postprocess.min_frames(config.min_segment, fold.parts["train"].y, rate, config.causal)
-    penalty = postprocess.penalty_nats(config.switch_penalty, rate, config.causal)
-    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum, penalty)}
+    weight = postprocess.grammar_weight(config.grammar, rate, config.causal)
+    switch = postprocess.switch_scores(fold.parts["train"].y, len(dataset.classes), weight)
+    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum, switch)}
     if fold.parts["val"].units:
-        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum, penalty)
+        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum, switch)
     run = {**_run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history), "min_segment_frames": minimum,
-           "switch_penalty_nats": penalty}
+           "grammar_weight": weight, "switch_scores": None if switch is None else switch.tolist()}
     write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
     return RunResult(out_dir, result, history)
 
@@ -213,8 +214,8 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
                            *saved_structure(saved))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
-    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)),
-                                float(saved.get("switch_penalty_nats", 0.0)))}
+    switch = None if saved.get("switch_scores") is None else np.asarray(saved["switch_scores"], dtype=np.float64)
+    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)), switch)}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
     write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
@@ -333,15 +334,15 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], device: torch.device,
-              min_segment_frames: int = 0, penalty: float = 0.0) -> dict:
+              min_segment_frames: int = 0, switch: np.ndarray | None = None) -> dict:
     """Metrics of the predictions after the clean-up (``raw``: before it, where there was one)."""
     log_probs = predict_log_probs(model, seqs, device)
     raw = [lp.argmax(axis=0) for lp in log_probs]
-    if not min_segment_frames and not penalty:
+    if not min_segment_frames and switch is None:
         return {**M.evaluate(raw, seqs.y, classes), "predictions": raw}
-    preds = postprocess.clean_up(log_probs, min_segment_frames, penalty)
+    preds = postprocess.clean_up(log_probs, min_segment_frames, switch)
     return {**M.evaluate(preds, seqs.y, classes), "min_segment_frames": min_segment_frames,
-            "switch_penalty_nats": penalty, "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
+            "grammar": switch is not None, "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
 
 
 def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | None, config: TrainConfig,

@@ -85,19 +85,23 @@ def test_the_order_of_gestures_comes_from_training_and_can_forbid_a_change():
     assert postprocess.decode(np.log(probs)[:, :2], 3).tolist() == [0, 0]  # shorter than the minimum: one class
 
 
-def test_each_change_of_gesture_costs_the_penalty():
+def test_the_grammar_weight_sets_what_a_change_of_gesture_costs():
     rng = np.random.default_rng(4)
     log_probs = [np.log(rng.dirichlet(np.ones(4), size=200).T)]  # noise: a change nearly every frame
-    counts = [len(postprocess._runs(postprocess.clean_up(log_probs, 0, penalty)[0])) for penalty in (0, 0.5, 2, 8, 1e4)]
+    train = [np.array([0, 1, 2, 3, 0, 2, 1, 3])]
+    counts = [len(postprocess._runs(postprocess.clean_up(log_probs, 0, postprocess.switch_scores(train, 4, w))[0]))
+              for w in (0.1, 0.5, 2, 8, 1e4)]
     assert counts[0] > counts[1] > counts[2] > counts[3] > counts[4] == 1
-    assert postprocess.clean_up(log_probs, 3, 0)[0].tolist() == \
-        postprocess.merge_short_segments(log_probs[0].argmax(axis=0), 3).tolist()  # no penalty: the merge
-    assert postprocess.penalty_nats("auto", 10.0, causal=False) == pytest.approx(10 * postprocess.PENALTY_PER_HZ)
-    assert postprocess.penalty_nats("auto", 10.0, causal=True) == 0  # a live model cannot look ahead
-    assert postprocess.penalty_nats("2.5", 30.0, causal=False) == 2.5 and postprocess.penalty_nats("none", 30.0, False) == 0
+    assert postprocess.switch_scores(train, 4, 0.0) is None  # weight 0: no decoding, the merge
+    assert postprocess.clean_up(log_probs, 3, None)[0].tolist() == \
+        postprocess.merge_short_segments(log_probs[0].argmax(axis=0), 3).tolist()
+    assert postprocess.grammar_weight("auto", 10.0, causal=False) == pytest.approx(10 * postprocess.WEIGHT_PER_HZ)
+    assert postprocess.grammar_weight("auto", 10.0, causal=True) == 0  # a live model cannot look ahead
+    assert postprocess.grammar_weight("2.5", 30.0, causal=False) == 2.5
+    assert postprocess.grammar_weight("none", 30.0, causal=False) == 0
     for bad in ("-1", "cheap", "nan", "inf"):
-        with pytest.raises(ConfigError, match="--switch-penalty"):
-            postprocess.check_penalty(bad)
+        with pytest.raises(ConfigError, match="--grammar"):
+            postprocess.check_weight(bad)
 
 
 @pytest.fixture(scope="module")
@@ -122,23 +126,25 @@ def test_train_cleans_up_by_default_keeps_raw_and_re_evaluates_the_same(data, tm
     record = json.loads((tmp_path / "run" / "run.json").read_text(encoding="utf-8"))
     assert record["train_config"]["min_segment"] == "auto" and record["min_segment_frames"] == minimum
     rate = record["trials"][0]["rate_hz"]
-    assert record["switch_penalty_nats"] == test["switch_penalty_nats"] == pytest.approx(postprocess.PENALTY_PER_HZ * rate)
+    assert record["grammar_weight"] == pytest.approx(postprocess.WEIGHT_PER_HZ * rate) and test["grammar"]
+    n_classes = len(record["classes"])
+    assert np.asarray(record["switch_scores"]).shape == (n_classes, n_classes)
     for trial in (tmp_path / "run" / "predictions").glob("*.csv"):  # LOUO: each test trial is one sequence
         assert _shortest_run(trial) >= minimum
     again = midas("train", "gestures", str(data), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
                   "--out", str(tmp_path / "eval"), "--json", check=True)
     assert json.loads(again.stdout)["test"] == json.loads(run.stdout)["test"]
 
-    plain = midas(*args, "--min-segment", "none", "--switch-penalty", "none", "--out", str(tmp_path / "plain"), check=True)
+    plain = midas(*args, "--min-segment", "none", "--grammar", "none", "--out", str(tmp_path / "plain"), check=True)
     assert "raw" not in json.loads((tmp_path / "plain" / "metrics.json").read_text(encoding="utf-8"))["test"]
     assert json.loads(plain.stdout)["test"]["accuracy"] == pytest.approx(test["raw"]["accuracy"])
 
-    midas(*args, "--switch-penalty", "none", "--out", str(tmp_path / "merged"), check=True)
+    midas(*args, "--grammar", "none", "--out", str(tmp_path / "merged"), check=True)
     merged_test = json.loads((tmp_path / "merged" / "metrics.json").read_text(encoding="utf-8"))["test"]
-    assert merged_test["switch_penalty_nats"] == 0 and merged_test["raw"] == test["raw"]  # same network, other clean-up
+    assert not merged_test["grammar"] and merged_test["raw"] == test["raw"]  # same network, other clean-up
     assert all(_shortest_run(t) >= minimum for t in (tmp_path / "merged" / "predictions").glob("*.csv"))
 
     bad = midas(*args, "--min-segment", "-2", "--out", str(tmp_path / "bad"))
     assert bad.returncode == 2 and "--min-segment" in bad.stderr and not (tmp_path / "bad" / "run.json").exists()
-    bad = midas(*args, "--switch-penalty", "lots", "--out", str(tmp_path / "bad"))
-    assert bad.returncode == 2 and "--switch-penalty" in bad.stderr and not (tmp_path / "bad" / "run.json").exists()
+    bad = midas(*args, "--grammar", "lots", "--out", str(tmp_path / "bad"))
+    assert bad.returncode == 2 and "--grammar" in bad.stderr and not (tmp_path / "bad" / "run.json").exists()
