@@ -260,7 +260,7 @@ def curves_table(rows: list[dict[str, Any]]) -> list[str]:
 
 def rescored_table(rows: list[dict[str, Any]]) -> list[str]:
     """rescore_jigsaws.py's rows: one per (task, run, --min-segment setting)."""
-    out = ["| task | run | --min-segment | folds | min frames per fold | acc | edit | F1@10 | F1@25 | F1@50 | video acc "
+    out = ["| task | run | clean-up | folds | min frames per fold | acc | edit | F1@10 | F1@25 | F1@50 | video acc "
            "| video edit |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, v = r["pooled"], r["per_video"]
@@ -280,5 +280,9 @@ def rescored_section(report: dict[str, Any]) -> list[str]:
             "training again; each fold's minimum from its own training split, as `train gestures` computes it; `pN` = "
             "the N-th percentile of the training gestures' lengths, `auto` the default's: the 5th until 2026-11-27, "
             "the 2nd since, chosen here); `A + B`: the ensemble of those runs, their frame probabilities averaged "
-            "per fold (what `--model ensemble` does with its members). acc in %.", "",
+            "per fold (what `--model ensemble` does with its members). A bare setting is the greedy merge "
+            "(`--grammar none`); `gW-S` decodes with the training gesture order at weight W and minimum S "
+            "(`--grammar W --min-segment S`; `g10-auto` is the default at 10 Hz since 2026-11-27), `gW+S` decodes with "
+            "no minimum and merges at S after, `sP-S` decodes with any order equally likely, each change costing P "
+            "nats, `v-S` with no order at all. acc in %.", "",
             *rescored_table(report["rows"]), ""]

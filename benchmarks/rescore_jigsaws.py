@@ -9,10 +9,11 @@ network averaged (what ``--model ensemble`` predicts from its members), on folds
 must have split the same trials. Each fold's minimum segment comes from that fold's own training split
 exactly as ``train gestures`` computes it (``models.postprocess``); ``pN`` is the N-th percentile of the
 training gestures' lengths (``auto`` is the default's percentile). Scores: pooled over all test videos
-(the MS-TCN way) and averaged per video.
+(the MS-TCN way) and averaged per video. Rows accumulate in the results file (a row of the same task, runs
+and setting is replaced).
 
     .venv/bin/python benchmarks/rescore_jigsaws.py RUN_DIR[+RUN_DIR...]:SESSIONS_DIR:TASK ... \
-        [--settings none,auto,p1,p5,1.0,2.0]   # -> results/gestures_jigsaws_rescored.json and a table
+        [--settings none,auto,p1,p5,1.0,g10-auto,s5-auto]   # -> results/gestures_jigsaws_rescored.json
 """
 
 from __future__ import annotations
@@ -145,8 +146,12 @@ def main() -> None:
         rows += [{"task": task, **row} for row in rescore(runs, sessions, args.settings.split(","))]
         print(f"rescore: {task} {' + '.join(r.name for r in runs)} done", file=sys.stderr, flush=True)
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "gestures_jigsaws_rescored.json").write_text(
-        json.dumps({"machine": machine_info(), "rows": rows}, indent=2) + "\n", encoding="utf-8")
+    path = RESULTS / "gestures_jigsaws_rescored.json"
+    key = lambda row: (row["task"], row["run_dir"], row["setting"])  # noqa: E731
+    new = {key(row) for row in rows}
+    kept = [row for row in json.loads(path.read_text(encoding="utf-8"))["rows"] if key(row) not in new] \
+        if path.is_file() else []
+    path.write_text(json.dumps({"machine": machine_info(), "rows": kept + rows}, indent=2) + "\n", encoding="utf-8")
     print("\n".join(rescored_table(rows)))
 
 
