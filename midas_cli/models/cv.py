@@ -190,7 +190,7 @@ def collect(root: Path) -> dict:
     per_video = per_video_means(preds, truths)
     return {"protocol": split["kind"], "protocol_text": PROTOCOLS[split["kind"]],
             "validation": split.get("validation") or "next group (before issue 19)",
-            "model": first["model"], "epochs": _epochs(first), "seed": split["seed"],
+            "model": first["model"], "epochs": _epochs(first), "seed": split["seed"], "clean_up": _clean_up(first),
             "dataset_config": first["dataset_config"], "data_fingerprint": first["data_fingerprint"],
             "groups": groups, "n_folds": len(groups) or len(folds),
             "missing_folds": [k for k in range(len(groups)) if k not in runs],
@@ -206,6 +206,16 @@ def collect(root: Path) -> dict:
                                          "accuracy, edit and F1@k as papers that average per video report them",
                             "units": "accuracy, f1, precision, recall: fractions; edit, f1@k: 0-100",
                             **M.DEFINITIONS}}
+
+
+def _clean_up(run: dict) -> str:
+    """What the scored predictions went through after the network (``--min-segment``, ``--grammar``)."""
+    minimum, weight = run.get("min_segment_frames", 0), run.get("grammar_weight", 0.0)
+    if not minimum and not weight:
+        return "none (the network's own predictions)"
+    how = f"decoded with the training split's gesture order, weight {weight:g}" if weight else "short segments merged"
+    return f"{how}, segments at least --min-segment {run['train_config']['min_segment']} long (raw figures: each " \
+           "fold's metrics.json)"
 
 
 def _epochs(run: dict) -> int | str | None:
@@ -279,6 +289,7 @@ def markdown(report: dict) -> str:
     lines = [f"# {report['protocol'].upper()} cross-validation: {name}", "",
              f"Protocol: {report['protocol_text']}; {len(report['folds'])} of {report['n_folds']} folds.  ",
              f"Validation: {report['validation']}; {report['epochs']} epochs; seed {report['seed']}.  ",
+             f"Clean-up: {report.get('clean_up', 'not recorded')}.  ",
              "Acc in %, edit and F1@k 0-100; mean ± sd over folds (sample sd); pooled = all test frames and "
              "segments of all folds together (F1@k from TP/FP/FN summed over every test video, the MS-TCN way); "
              "per video = each test video scored alone, then averaged.", "",

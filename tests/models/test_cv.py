@@ -88,6 +88,7 @@ def test_cli_louo_fold_all_writes_cv_json_md_and_fold_folders(jigsaws, tmp_path)
     assert table.count("| Baseline (MLP) | ") == 6 and "| Baseline (MLP) | mean ± sd |" in table
     assert "| Baseline (MLP) | per video |" in table and report["per_video"]["videos"] == 6
     assert "| Baseline (MLP) | pooled |" in table and "| Baseline (MLP) | 2 | D |" in table
+    assert "Clean-up: decoded with the training split's gesture order, weight 30, segments at least --min-segment auto" in table
     assert "| Baseline (LR) | mean ± sd |" in table and "none (fixed epochs)" in table
     # folds run elsewhere: cv-summary aggregates what exists and names what is missing
     partial = tmp_path / "partial"
