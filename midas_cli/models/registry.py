@@ -105,8 +105,9 @@ def _baseline(hidden: int) -> Builder:
 # 75.9 without, Knot Tying 75.6 / 78.5 against 76.5 / 76.9). transformer-plain was not measured and keeps
 # 50 epochs, no shift. The per-frame baselines: lr 1e-2 (logistic regression), 1e-3 (MLP), 50 epochs. The
 # ensemble (the default model, models/ensemble.py) has no recipe of its own but the shift: each member trains with
-# its own (Knot Tying 80.0 / 86.1, Needle Passing 73.9 / 80.6 at the defaults, all folds, pooled with the clean-up;
-# MS-TCN++ alone 77.7 / 84.3 and 70.7 / 78.2). The order is the help's.
+# its own (Knot Tying 80.1 / 89.6, Needle Passing 74.7 / 83.2 at the defaults, all folds, pooled, with the
+# --grammar clean-up; 80.0 / 86.1 and 73.9 / 80.6 with the merge alone, MS-TCN++ alone 78.0 / 84.7 and 70.9 /
+# 80.1 with it). The order is the help's.
 ENTRIES = (
     ModelEntry("mstcn", "MS-TCN++", "MS-TCN++", Recipe(20, 1, 5e-4, "last", 1.0, "pos,ori"), _mstcn),
     ModelEntry("transformer", "MTRSAP", "MTRSAP-style with MS-TCN++ refinement stages",
