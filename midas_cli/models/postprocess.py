@@ -14,7 +14,7 @@ there).
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -26,28 +26,24 @@ WEIGHT_PER_HZ = 1.0  # --grammar auto: the order's weight per Hz of the model ra
 
 
 def check(value: str) -> str:
-    """``value`` as given (auto, none, or seconds > 0 as text); ConfigError otherwise."""
-    if value in (AUTO, NONE):
-        return value
-    try:
-        seconds = float(value)
-    except ValueError:
-        seconds = -1.0
-    if not 0 < seconds < 3600:
-        raise ConfigError(f"--min-segment must be auto, none or seconds in (0, 3600), got {value!r}")
-    return value
+    """``--min-segment`` ``value`` as given (auto, none, or seconds > 0 as text); ConfigError otherwise."""
+    return _checked(value, "--min-segment", "seconds in (0, 3600)", lambda x: 0 < x < 3600)
 
 
 def check_weight(value: str) -> str:
-    """``value`` as given (auto, none, or a weight >= 0 as text); ConfigError otherwise."""
+    """``--grammar`` ``value`` as given (auto, none, or a weight >= 0 as text); ConfigError otherwise."""
+    return _checked(value, "--grammar", "a weight in [0, 1e6)", lambda x: 0 <= x < 1e6)
+
+
+def _checked(value: str, option: str, expected: str, valid: Callable[[float], bool]) -> str:
     if value in (AUTO, NONE):
         return value
     try:
-        weight = float(value)
+        number = float(value)
     except ValueError:
-        weight = -1.0
-    if not 0 <= weight < 1e6:
-        raise ConfigError(f"--grammar must be auto, none or a weight in [0, 1e6), got {value!r}")
+        number = float("nan")
+    if not valid(number):
+        raise ConfigError(f"{option} must be auto, none or {expected}, got {value!r}")
     return value
 
 
