@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from midas_cli.errors import ConfigError
+from midas_cli.errors import ConfigError, SessionError
 
 AUTO, NONE = "auto", "none"
 PERCENTILE = 2.0
@@ -70,6 +70,19 @@ def switch_scores(train_labels: Sequence[np.ndarray], n_classes: int, weight: fl
         return None
     scores = weight * transition_log_probs(train_labels, n_classes)
     np.fill_diagonal(scores, 0.0)
+    return scores
+
+
+def saved_switch_scores(value: object, n_classes: int) -> np.ndarray | None:
+    """A run's recorded ``switch_scores`` (None: the merge), checked: a (C, C) table of finite numbers."""
+    if value is None:
+        return None
+    try:
+        scores = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        scores = np.zeros(0)
+    if scores.shape != (n_classes, n_classes) or not np.isfinite(scores).all():
+        raise SessionError(f"the run's switch_scores are not a {n_classes} x {n_classes} table of numbers")
     return scores
 
 
@@ -147,7 +160,7 @@ def decode(log_probs: np.ndarray, minimum: int, log_trans: np.ndarray | None = N
     np.fill_diagonal(switch, -np.inf)
     score = np.full((n_classes, d), -np.inf)
     score[:, 0] = lp[:, 0]
-    came_from = np.zeros((length, n_classes), dtype=np.int64)  # the class before a new segment (-1: stayed)
+    came_from = np.zeros((length, n_classes), dtype=np.int64)  # the class before a segment that starts at t
     stayed = np.zeros((length, n_classes), dtype=bool)  # the capped state was reached from itself
     for t in range(1, length):
         new = np.full_like(score, -np.inf)

@@ -214,7 +214,7 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
                            *saved_structure(saved))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
-    switch = None if saved.get("switch_scores") is None else np.asarray(saved["switch_scores"], dtype=np.float64)
+    switch = postprocess.saved_switch_scores(saved.get("switch_scores"), len(dataset.classes))
     result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)), switch)}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}

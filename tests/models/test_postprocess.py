@@ -13,7 +13,7 @@ import pytest
 
 from helpers.cli import midas
 from helpers.gesture_sessions import write_two_users
-from midas_cli.errors import ConfigError
+from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import postprocess
 
 
@@ -82,6 +82,12 @@ def test_the_order_of_gestures_comes_from_training_and_can_forbid_a_change():
     assert postprocess.decode(np.log(probs), 1).tolist() == [0, 0, 0, 2, 2, 2]
     assert postprocess.decode(np.log(probs), 1, never).tolist() in ([0, 0, 0, 1, 2, 2], [0, 0, 1, 2, 2, 2])
     assert postprocess.decode(np.log(probs)[:, :0], 3).tolist() == []
+    saved = postprocess.switch_scores(train, 3, 10.0)
+    assert np.array_equal(postprocess.saved_switch_scores(saved.tolist(), 3), saved)
+    assert postprocess.saved_switch_scores(None, 3) is None
+    for bad in ([[0.0, 1.0]], [["a"] * 3] * 3, [[float("nan")] * 3] * 3, "scores", 5):  # a damaged run.json
+        with pytest.raises(SessionError, match="switch_scores"):
+            postprocess.saved_switch_scores(bad, 3)
     assert postprocess.decode(np.log(probs)[:, :2], 3).tolist() == [0, 0]  # shorter than the minimum: one class
 
 
