@@ -53,10 +53,11 @@ DELAY_OPT = typer.Option(0.0, "--delay", rich_help_panel=TRAINING_PANEL, min=0.0
                          "frame this many seconds late, from the frames up to then (live, a gesture is shown that "
                          "much later and the model sees that much of what follows it). Default 0: frame t from "
                          "frames <= t.")
-MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING_PANEL, help="Merge predicted "
-                                "segments shorter than this into their longer neighbour: seconds, none, or auto "
+MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING_PANEL, help="The shortest "
+                                "predicted segment (offline clean-up; shorter ones are decoded away, see --grammar, "
+                                "or with --grammar none merged into their longer neighbour): seconds, none, or auto "
                                 "(default): the 2nd percentile of the training split's gesture lengths (none for "
-                                "--causal). The metrics without it are kept as raw.")
+                                "--causal). The metrics without the clean-up are kept as raw.")
 GRAMMAR_OPT = typer.Option("auto", "--grammar", rich_help_panel=TRAINING_PANEL, help="The clean-up as a decoding: "
                            "the labelling most likely from the frames' probabilities and the order of gestures in the "
                            "training labels (a change from a to b scores W x log P(b after a)), with segments all "
