@@ -1,15 +1,18 @@
-"""Offline clean-up of frame predictions: predicted segments shorter than real gestures are merged away.
+"""Offline clean-up of frame predictions: no predicted segment shorter than real gestures, and gestures in
+an order the task allows.
 
 Frame-wise sequence models over-segment: a few frames of another class inside a gesture cost little
 accuracy but break a segment in two, which the segmental scores (edit, F1@k) punish. ``--min-segment``
-merges every predicted segment shorter than a minimum length into its longer neighbour, shortest first,
-until none is left. ``auto`` takes the minimum from the training split's own labels: the 2nd percentile
-of the labelled gesture segments' lengths (in frames at the model rate), so no test data shape it and
-it follows the dataset (JIGSAWS gestures at 10 Hz: 2 % are shorter than ~1.2 s). Chosen on the JIGSAWS
-development tasks (README, "Defaults and why"): the 5th percentile (~1.5 s) until the shifted-input
-models, whose predictions break up less, lost real short gestures to it (BENCHMARKS.md). It looks at
-the whole sequence, so a causal (live) model's runs keep their raw predictions (``auto`` means ``none``
-there).
+sets the shortest segment: ``auto`` takes it from the training split's own labels, the 2nd percentile of
+the labelled gesture segments' lengths (in frames at the model rate), so no test data shape it and it
+follows the dataset (JIGSAWS gestures at 10 Hz: 2 % are shorter than ~1.2 s); the 5th percentile (~1.5 s)
+until the shifted-input models lost real short gestures to it. ``--grammar`` (``decode``, the default
+since 2026-11-27) takes, of all labellings with no shorter segment, the one the frames' log-probabilities
+make most likely, each change of gesture from a to b scoring W x log P(b after a) with P counted from the
+training split's gesture order; ``--grammar none`` merges every short segment into its longer neighbour
+instead (``merge_short_segments``). Both chosen on the JIGSAWS development tasks (README, "Defaults and
+why"; BENCHMARKS.md, "The offline clean-up"). Both look at the whole sequence, so a causal (live) model's
+runs keep their raw predictions (``auto`` means ``none`` there).
 """
 
 from __future__ import annotations
