@@ -104,9 +104,8 @@ def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rat
     if not decoder:
         return [postprocess.merge_short_segments(p.argmax(axis=0), minimum) for p in probs]
     weight = 0.0 if decoder == "v" else float(decoder[1:])
-    order = postprocess.transition_log_probs(train, n_classes) if decoder[0] == "g" else \
-        np.full((n_classes, n_classes), -1.0)
-    trans = weight * order if weight else None
+    trans = postprocess.switch_scores(train, n_classes, weight) if decoder[0] == "g" else \
+        (np.full((n_classes, n_classes), -weight) if weight else None)  # what train gestures --grammar W uses
     decoded = [postprocess.decode(np.log(np.maximum(p, 1e-12)), 0 if then_merge else minimum, trans) for p in probs]
     return [postprocess.merge_short_segments(d, minimum) for d in decoded] if then_merge else decoded
 
@@ -138,6 +137,9 @@ def main() -> None:
                         "trained on; several runs: their ensemble)")
     parser.add_argument("--settings", default="none,auto,p5,1.0,1.5,2.0")
     args = parser.parse_args()
+    for setting in args.settings.split(","):
+        if setting[:1] in "vgs" and not {"-", "+"} & set(setting):
+            parser.error(f"setting {setting!r}: a decoding needs its minimum, e.g. {setting}-auto")
     rows = []
     for spec in args.runs:
         run_dirs, sessions_dir, task = spec.split(":")
