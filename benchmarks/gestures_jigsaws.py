@@ -251,6 +251,21 @@ def figures(cv: dict[str, Any]) -> dict[str, Any]:
             "inputs": {k: cv["dataset_config"].get(k) for k in ("modalities", "features", "sides", "rate_hz")}}
 
 
+def training_settings(out: Path) -> dict[str, Any] | None:
+    """The run's training settings as ``train gestures`` resolved them (its first finished fold's
+    ``train_config`` without the fold and device): what the run trained with, defaults included, so that a
+    row is compared with runs that trained the same way even after a default changed (report_gestures
+    ``offline_partner``). None where no fold has finished."""
+    for run in sorted(out.glob("fold-*/run.json")):
+        try:
+            config = json.loads(run.read_text(encoding="utf-8"))["train_config"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if isinstance(config, dict):
+            return {k: v for k, v in config.items() if k not in ("fold", "device")}
+    return None
+
+
 def learning_curve(out: Path) -> dict[str, Any] | None:
     """A run trained with ``--curve-every``: at each scored epoch that every finished fold has, the
     pooled accuracy (correct / labelled test frames over all folds) and the mean edit over test videos,
@@ -311,7 +326,8 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
                    "train_args": args.train_args if row_model == model else "",
                    "timing": timing, "trained_in": model, "prepare": prep, **figures(part),
                    "fold_seconds": fold_seconds(out, row_model),
-                   "curve": learning_curve(out) if row_model == model else None}
+                   "curve": learning_curve(out) if row_model == model else None,
+                   "training": training_settings(out) if row_model == model else None}
             rows.append(row)
             wall = "unfinished" if timing["wall_s"] is None else f"{timing['wall_s']:g} s"
             print(f"{name} {row_model}{' (causal)' if args.causal else ''}: {wall}{shared}{' (reused)' if timing.get('reused') else ''}"

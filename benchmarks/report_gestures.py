@@ -68,8 +68,7 @@ def offline_partner(row: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str
 
     found = [r for r in rows if r["model"] == row["model"] and not r.get("causal") and r["task"] == row["task"]
              and (r.get("variant") == row.get("variant") or _same_inputs(r.get("inputs"), row.get("inputs")))
-             and _training_options(r.get("train_args", "")) == _training_options(row.get("train_args", ""))
-             and shares_epochs(r)]
+             and _trained_alike(r, row) and shares_epochs(r)]
     found.sort(key=lambda r: (r.get("variant") != row.get("variant"), not (row.get("curve") and r.get("curve")),
                               -len(curve_deltas(row["curve"], r["curve"])) if row.get("curve") and r.get("curve") else 0))
     return found[0] if found else None
@@ -128,6 +127,21 @@ def causal_table(rows: list[dict[str, Any]]) -> list[str]:
 # --train-args options left out when a causal run looks for its offline partner: the causal ones, the
 # learning curve's (it does not change the weights), and the inputs' (compared by _same_inputs)
 PARTNER_IGNORES = ("--delay", "--curve-every", "--modalities", "--features", "--model-rate", "--sides")
+
+
+def _trained_alike(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Two runs trained the same way but for the causal options, the epochs and the clean-up: by the
+    settings ``train gestures`` resolved (the rows' ``training``, defaults included) where both rows have
+    them, else by their ``--train-args`` (rows from before ``training``: a default that changed between
+    them goes unseen)."""
+    if a.get("training") and b.get("training"):
+        def kept(settings: dict[str, Any]) -> dict[str, Any]:
+            return {k: v for k, v in settings.items() if k not in RESOLVED_IGNORES}
+        return kept(a["training"]) == kept(b["training"])
+    return _training_options(a.get("train_args", "")) == _training_options(b.get("train_args", ""))
+
+
+RESOLVED_IGNORES = ("causal", "delay_s", "curve_every", "epochs", "min_segment", "grammar")
 
 
 def _training_options(train_args: str) -> list[str]:

@@ -173,3 +173,40 @@ def test_a_causal_run_with_other_training_options_is_compared_with_the_offline_r
     alone = gestures_jigsaws_table(_report([plain, causal]))  # no offline run trained alike: no difference shown
     assert any("| MS-TCN++ [shift-delay1s" in line and "vs offline" not in line for line in alone)
 
+
+
+def test_resolved_training_settings_find_the_partner_after_a_default_changed(tmp_path: Path) -> None:
+    """A causal run trained at a later default (``--delay 2`` alone, the shift now on by default) is compared
+    with the offline run that trained with the shift (said explicitly then), not with the one whose
+    ``--train-args`` read the same but trained before the default changed: rows carry the settings
+    ``train gestures`` resolved (``training``, from the first finished fold's run.json)."""
+    from gestures_jigsaws import training_settings
+    from report_gestures import causal_table
+
+    fold = tmp_path / "run" / "fold-0"
+    fold.mkdir(parents=True)
+    (fold / "run.json").write_text(json.dumps({"train_config": {"fold": 0, "device": "cpu", "epochs": 20,
+                                                                "augment_shift": 1.0, "causal": True,
+                                                                "delay_s": 2.0, "curve_every": 10}}))
+    resolved = training_settings(tmp_path / "run")
+    assert resolved == {"epochs": 20, "augment_shift": 1.0, "causal": True, "delay_s": 2.0, "curve_every": 10}
+    assert training_settings(tmp_path / "nothing") is None
+
+    def curve(points: dict[int, float]) -> dict[str, Any]:
+        return {"folds": 1, "epochs": list(points), "accuracy": list(points.values()), "edit": [70.0] * len(points),
+                "by_fold": {"B": {str(e): [round(a * 1000), 1000] for e, a in points.items()}}}
+
+    before = {**_row("mstcn", 0.74, 80.0), "variant": "curve10", "train_args": "--curve-every 10",
+              "curve": curve({10: 0.72, 20: 0.74}),
+              "training": {"epochs": 100, "augment_shift": 0.0, "causal": False, "delay_s": 0.0, "curve_every": 10}}
+    shifted = {**_row("mstcn", 0.78, 80.0), "variant": "shift", "train_args": "--augment-shift 1 --curve-every 10",
+               "curve": curve({10: 0.76, 20: 0.78}),
+               "training": {"epochs": 20, "augment_shift": 1.0, "causal": False, "delay_s": 0.0, "curve_every": 10}}
+    causal = {**_row("mstcn", 0.73, 60.0), "causal": True, "variant": "delay2s",
+              "train_args": "--delay 2 --curve-every 10", "curve": curve({10: 0.72, 20: 0.73}), "training": resolved}
+    assert any("(causal; acc -5.0 vs offline, raw, epoch 20)" in line
+               for line in gestures_jigsaws_table(_report([before, shifted, causal])))
+    assert "| MS-TCN++ [shift: `--augment-shift 1 --curve-every 10`] |" in causal_table([before, shifted, causal])[-2]
+    untold = {**causal, "training": None}  # a row without them: matched by its --train-args, as before
+    assert any("(causal; acc -1.0 vs offline, raw, epoch 20)" in line
+               for line in gestures_jigsaws_table(_report([before, shifted, untold])))
