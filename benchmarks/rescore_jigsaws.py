@@ -13,7 +13,7 @@ training gestures' lengths (``auto`` is the default's percentile). Scores: poole
 and setting is replaced).
 
     .venv/bin/python benchmarks/rescore_jigsaws.py RUN_DIR[+RUN_DIR...]:SESSIONS_DIR:TASK ... \
-        [--settings none,auto,p1,p5,1.0,g10-auto,s5-auto]   # -> results/gestures_jigsaws_rescored.json
+        [--settings none,auto,p1,p5,1.0,g10-auto,s5-auto,o5-g10-auto]   # -> results/gestures_jigsaws_rescored.json
 """
 
 from __future__ import annotations
@@ -95,7 +95,12 @@ def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rat
     """One fold's predictions under ``setting``: a ``--min-segment`` setting (the greedy merge), ``v-S`` (the
     exact minimum-length decoding at setting S), ``gW-S`` (the same with the training order of gestures,
     weight W) or ``gW+S`` (decoded with that order and no minimum, then merged at S); ``sP-S``, ``sP+S``: any
-    order, each change of gesture costs P (nats)."""
+    order, each change of gesture costs P (nats). ``oL-`` before a decoding (``o5-g10-auto``): decoded as a
+    live decoder lagging L frames would (``postprocess.decode_online``: frame t labelled at t + L)."""
+    lag = None
+    if setting[:1] == "o":
+        lag_text, _, setting = setting[1:].partition("-")
+        lag = int(lag_text)
     then_merge = setting[:1] in "vgs" and "+" in setting
     decoder, _, minimum_setting = setting.rpartition("+" if then_merge else "-") if setting[:1] in "vgs" \
         else ("", "", setting)
@@ -106,7 +111,8 @@ def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rat
     weight = 0.0 if decoder == "v" else float(decoder[1:])
     trans = postprocess.switch_scores(train, n_classes, weight) if decoder[0] == "g" else \
         (np.full((n_classes, n_classes), -weight) if weight else None)  # what train gestures --grammar W uses
-    decoded = [postprocess.decode(np.log(np.maximum(p, 1e-12)), 0 if then_merge else minimum, trans) for p in probs]
+    decoded = [postprocess.decode_online(np.log(np.maximum(p, 1e-12)), 0 if then_merge else minimum, trans, lag)
+               for p in probs]
     return [postprocess.merge_short_segments(d, minimum) for d in decoded] if then_merge else decoded
 
 
@@ -138,8 +144,13 @@ def main() -> None:
     parser.add_argument("--settings", default="none,auto,p5,1.0,1.5,2.0")
     args = parser.parse_args()
     for setting in args.settings.split(","):
-        if setting[:1] in "vgs" and not {"-", "+"} & set(setting):
-            parser.error(f"setting {setting!r}: a decoding needs its minimum, e.g. {setting}-auto")
+        decoding = setting
+        if setting[:1] == "o":
+            lag, _, decoding = setting[1:].partition("-")
+            if not lag.isdigit() or decoding[:1] not in ("v", "g", "s"):
+                parser.error(f"setting {setting!r}: oL- takes a lag in frames and a decoding, e.g. o5-g10-auto")
+        if decoding[:1] in ("v", "g", "s") and not {"-", "+"} & set(decoding):
+            parser.error(f"setting {setting!r}: a decoding needs its minimum, e.g. {decoding}-auto")
     rows = []
     for spec in args.runs:
         run_dirs, sessions_dir, task = spec.split(":")

@@ -12,7 +12,10 @@ make most likely, each change of gesture from a to b scoring W x log P(b after a
 training split's gesture order; ``--grammar none`` merges every short segment into its longer neighbour
 instead (``merge_short_segments``). Both chosen on the JIGSAWS development tasks (README, "Defaults and
 why"; BENCHMARKS.md, "The offline clean-up"). Both look at the whole sequence, so a causal (live) model's
-runs keep their raw predictions (``auto`` means ``none`` there).
+runs keep their raw predictions (``auto`` means ``none`` there). ``decode_online`` / ``OnlineDecoder`` is
+the same decoding run frame by frame as a live decoder lagging L frames would run it (each frame labelled
+L frames later from the best path so far): measured on causal runs by ``benchmarks/rescore_jigsaws.py``'s
+``oL-`` settings, not yet used by ``train gestures`` or the live worker.
 """
 
 from __future__ import annotations
@@ -151,6 +154,16 @@ def decode(log_probs: np.ndarray, minimum: int, log_trans: np.ndarray | None = N
     ``minimum`` frames long: the exact version of ``merge_short_segments``, which decides from the
     segment lengths alone. Viterbi over (class, frames so far capped at ``minimum``). A sequence shorter
     than ``minimum`` gets its single most probable class."""
+    return decode_online(log_probs, minimum, log_trans, lag=None)
+
+
+def decode_online(log_probs: np.ndarray, minimum: int, log_trans: np.ndarray | None = None,
+                  lag: int | None = 0) -> np.ndarray:
+    """``decode`` as a live decoder with ``lag`` frames would label the sequence: frame t's label is
+    decided at frame t + ``lag``, from the best labelling of the frames so far (its last segment may still
+    be shorter than ``minimum``); the last ``lag`` frames are decided when the sequence ends, as ``decode``
+    decides them. ``lag`` None (or >= T): ``decode`` itself. Each frame costs one Viterbi step and a
+    walk back of ``lag`` frames (:class:`OnlineDecoder`)."""
     lp = np.asarray(log_probs, dtype=np.float64)
     n_classes, length = lp.shape
     d = max(1, int(minimum))
@@ -158,39 +171,80 @@ def decode(log_probs: np.ndarray, minimum: int, log_trans: np.ndarray | None = N
         return np.zeros(0, dtype=np.int64)
     if length < d:
         return np.full(length, int(lp.sum(axis=1).argmax()), dtype=np.int64)
-    switch = np.zeros((n_classes, n_classes)) if log_trans is None else np.asarray(log_trans, dtype=np.float64)
-    switch = switch.copy()
-    np.fill_diagonal(switch, -np.inf)
-    score = np.full((n_classes, d), -np.inf)
-    score[:, 0] = lp[:, 0]
-    came_from = np.zeros((length, n_classes), dtype=np.int64)  # the class before a segment that starts at t
-    stayed = np.zeros((length, n_classes), dtype=bool)  # the capped state was reached from itself
-    for t in range(1, length):
-        new = np.full_like(score, -np.inf)
-        candidates = score[:, d - 1][:, None] + switch  # (from, to)
-        best = candidates.argmax(axis=0)
-        entering = candidates[best, np.arange(n_classes)]
-        if d == 1:
-            stay = score[:, 0]
-            stayed[t] = stay >= entering
-            new[:, 0] = np.where(stayed[t], stay, entering)
+    decoder = OnlineDecoder(n_classes, d, log_trans, length if lag is None else lag)
+    out = [label for t in range(length) for label in decoder.step(lp[:, t])]
+    return np.asarray(out + decoder.finish(), dtype=np.int64)
+
+
+class OnlineDecoder:
+    """``decode``'s Viterbi one frame at a time: ``step`` takes a frame's (C,) log-probabilities and
+    returns the label of the frame ``lag`` frames before it (none for the first ``lag`` frames), read off
+    the best path so far; ``finish`` returns the labels of the frames still undecided, from the best path
+    whose last segment is complete (any path where none is). The states are (class, frames so far capped
+    at ``minimum``); only the last ``lag`` frames' back-pointers are kept."""
+
+    def __init__(self, n_classes: int, minimum: int, log_trans: np.ndarray | None, lag: int) -> None:
+        if lag < 0:
+            raise ValueError(f"lag must be >= 0 frames, got {lag}")
+        self.d, self.lag, self.n_classes = max(1, int(minimum)), int(lag), n_classes
+        switch = np.zeros((n_classes, n_classes)) if log_trans is None else np.asarray(log_trans, dtype=np.float64)
+        self.switch = switch.copy()
+        np.fill_diagonal(self.switch, -np.inf)
+        self.score: np.ndarray | None = None
+        self.came_from: list[np.ndarray] = []  # the class before a segment that starts at that frame
+        self.stayed: list[np.ndarray] = []  # the capped state was reached from itself at that frame
+        self.frames = 0
+
+    def step(self, log_probs: np.ndarray) -> list[int]:
+        lp = np.asarray(log_probs, dtype=np.float64)
+        if self.score is None:
+            self.score = np.full((self.n_classes, self.d), -np.inf)
+            self.score[:, 0] = lp
+            self.came_from.append(np.zeros(self.n_classes, dtype=np.int64))
+            self.stayed.append(np.zeros(self.n_classes, dtype=bool))
         else:
-            new[:, 1:] = score[:, :-1]
-            stayed[t] = score[:, d - 1] > new[:, d - 1]
-            new[:, d - 1] = np.maximum(new[:, d - 1], score[:, d - 1])
-            new[:, 0] = entering
-        came_from[t] = best
-        score = new + lp[:, t][:, None]
-    cls, k = int(score[:, d - 1].argmax()), d - 1
-    out = np.empty(length, dtype=np.int64)
-    for t in range(length - 1, -1, -1):
-        out[t] = cls
-        if t == 0:
-            break
-        if k == d - 1 and stayed[t, cls]:
-            continue
-        if k == 0:
-            cls, k = int(came_from[t, cls]), d - 1
+            score, d, n = self.score, self.d, self.n_classes
+            new = np.full_like(score, -np.inf)
+            candidates = score[:, d - 1][:, None] + self.switch  # (from, to)
+            best = candidates.argmax(axis=0)
+            entering = candidates[best, np.arange(n)]
+            if d == 1:
+                stayed = score[:, 0] >= entering
+                new[:, 0] = np.where(stayed, score[:, 0], entering)
+            else:
+                new[:, 1:] = score[:, :-1]
+                stayed = score[:, d - 1] > new[:, d - 1]
+                new[:, d - 1] = np.maximum(new[:, d - 1], score[:, d - 1])
+                new[:, 0] = entering
+            self.came_from.append(best)
+            self.stayed.append(stayed)
+            self.score = new + lp[:, None]
+        self.frames += 1
+        keep = max(1, self.lag)
+        if len(self.came_from) >= 2 * keep + 64:  # trimmed now and then: a list's front is dear to delete
+            del self.came_from[:-keep], self.stayed[:-keep]
+        if self.frames <= self.lag:
+            return []
+        cls, k = np.unravel_index(int(self.score.argmax()), self.score.shape)
+        return [self._path(int(cls), int(k), self.lag)[0]]
+
+    def finish(self) -> list[int]:
+        """The labels of the last ``min(lag, frames)`` frames, oldest first."""
+        if self.score is None:
+            return []
+        complete = self.score[:, self.d - 1]
+        if np.isfinite(complete).any():
+            cls, k = int(complete.argmax()), self.d - 1
         else:
-            k -= 1
-    return out
+            cls, k = (int(i) for i in np.unravel_index(int(self.score.argmax()), self.score.shape))
+        return self._path(cls, k, min(self.lag, self.frames) - 1) if self.lag else []
+
+    def _path(self, cls: int, k: int, back: int) -> list[int]:
+        """The labels of the ``back`` + 1 last frames on the path that ends in state (``cls``, ``k``)."""
+        out = [cls]
+        for i in range(back):  # from the newest kept frame back
+            came, stayed = self.came_from[-1 - i], self.stayed[-1 - i]
+            if not (k == self.d - 1 and stayed[cls]):
+                cls, k = (int(came[cls]), self.d - 1) if k == 0 else (cls, k - 1)
+            out.append(cls)
+        return out[::-1]

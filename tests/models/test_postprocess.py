@@ -61,6 +61,44 @@ def test_decode_finds_the_best_labelling_whose_segments_are_all_long_enough():
         assert tuple(got) in allowed and _score(log_probs, got, log_trans) == pytest.approx(best)
 
 
+def test_online_decoding_labels_each_frame_from_the_best_path_lag_frames_later():
+    """Frame t's label is the one the best labelling of frames 0..t+lag gives it (every segment but the last
+    at least the minimum long), against every labelling of small problems; the frames of the last ``lag``
+    are decided at the end as ``decode`` decides them; a lag as long as the sequence is ``decode``."""
+    rng = np.random.default_rng(11)
+    for _ in range(120):
+        n_classes, length, minimum = int(rng.integers(2, 4)), int(rng.integers(3, 8)), int(rng.integers(1, 4))
+        lag = int(rng.integers(0, 4))
+        log_probs = np.log(rng.dirichlet(np.ones(n_classes), size=length).T)
+        log_trans = np.log(rng.dirichlet(np.ones(n_classes), size=n_classes)) if rng.random() < 0.5 else None
+        if length < minimum:
+            continue
+        got = postprocess.decode_online(log_probs, minimum, log_trans, lag)
+        final = postprocess.decode(log_probs, minimum, log_trans)
+        for t in range(length - lag):
+            seen = t + lag + 1  # frames 0..t+lag; every segment but the last at least the minimum long
+            partial = [y for y in itertools.product(range(n_classes), repeat=seen)
+                       if all(n >= minimum for _, n in postprocess._runs(np.array(y))[:-1])]
+            best = max(partial, key=lambda y: _score(log_probs[:, :seen], y, log_trans))  # noqa: B023
+            assert got[t] == best[t], (t, lag, minimum)
+        assert list(got[max(0, length - lag):]) == list(final[max(0, length - lag):])
+        assert list(postprocess.decode_online(log_probs, minimum, log_trans, length)) == list(final)
+
+
+def test_the_online_decoder_steps_one_frame_at_a_time_as_decode_online_labels():
+    rng = np.random.default_rng(5)
+    log_probs = np.log(rng.dirichlet(np.ones(4) * 0.3, size=200).T)
+    log_trans = postprocess.switch_scores([rng.integers(0, 4, 50)], 4, 5.0)
+    decoder = postprocess.OnlineDecoder(4, 6, log_trans, lag=7)
+    stepped = [decoder.step(log_probs[:, t]) for t in range(200)]
+    assert all(out == [] for out in stepped[:7]) and all(len(out) == 1 for out in stepped[7:])
+    labels = [x for out in stepped for x in out] + decoder.finish()
+    assert labels == list(postprocess.decode_online(log_probs, 6, log_trans, 7))
+    assert len(decoder.came_from) < 7 * 2 + 64  # only the last lag frames' back-pointers are needed
+    with pytest.raises(ValueError, match="lag"):
+        postprocess.OnlineDecoder(4, 6, None, lag=-1)
+
+
 def test_decode_uses_the_probabilities_where_the_greedy_merge_uses_lengths():
     # a 2-frame blip of class 1 between a long 0 and a long 2: the merge gives it to the longer neighbour
     # (0); the frames themselves say 2 is nearly as likely as 1 and 0 unlikely.
