@@ -298,5 +298,7 @@ def rescored_section(report: dict[str, Any]) -> list[str]:
             "(`--grammar none`); `gW-S` decodes with the training gesture order at weight W and minimum S "
             "(`--grammar W --min-segment S`; `g10-auto` is the default at 10 Hz since 2026-11-27), `gW+S` decodes with "
             "no minimum and merges at S after, `sP-S` decodes with any order equally likely, each change costing P "
-            "nats, `v-S` with no order at all. acc in %.", "",
+            "nats, `v-S` with no order at all; `oL-` before a decoding (`o5-g10-auto`): decoded as a live decoder "
+            "lagging L frames would (`postprocess.decode_online`: each frame labelled L frames later from the best "
+            "path so far), for causal runs, whose own clean-up is none. acc in %.", "",
             *rescored_table(report["rows"]), ""]
