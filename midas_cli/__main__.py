@@ -10,10 +10,13 @@ the interpreter's to handle.)
 import signal
 import sys
 
+from midas_cli import early_stop
+
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def _stopped(signum: int, _frame) -> None:
+    early_stop.received = signum  # first: read by a command that installs its own handling (early_stop)
     try:
         sys.stderr.write(f"midas: stopped by {signal.Signals(signum).name}\n")
     except (OSError, ValueError):  # the terminal is gone (a hang-up) or stderr is closed

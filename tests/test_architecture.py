@@ -27,7 +27,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "midas_cli"
 
 # Lowest first. A "unit" is the first component under midas_cli: a subpackage (session, devices, ...) or
 # a top-level module (errors, rig, ...); "" is the package itself (midas_cli/__init__.py: __version__).
-#   foundations  errors, clock, geometry: no midas imports beyond each other
+#   foundations  errors, clock, geometry, early_stop: no midas imports beyond each other
 #   jobs         batch runs of units (a session, a fold) here or as SLURM job arrays: options, run folders,
 #                markers, executors; it names each task's units module as a string (jobs/tasks.py) and
 #                imports it only when a unit runs, never through an import statement
@@ -46,7 +46,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / "midas_cli"
 #   commands     the typer CLI
 #   __main__     entry point
 LAYERS: list[set[str]] = [
-    {"", "errors", "clock", "geometry", "config", "processes"},
+    {"", "errors", "clock", "geometry", "config", "processes", "early_stop"},
     {"jobs"},
     {"session"},
     {"devices", "synthetic"},

@@ -14,6 +14,7 @@ import typer
 from rich.live import Live
 from rich.text import Text
 
+from midas_cli import early_stop
 from midas_cli.commands.common import STDERR_LOG, err, error_line, fail, positive
 from midas_cli.config import RIG_ENV, config_path, default_priority, default_rig, default_sessions
 from midas_cli.console import dashboard, is_interactive, recording_table, status_line
@@ -248,8 +249,12 @@ class _StopFlag:
         self._previous: dict = {}
 
     def install(self) -> None:
+        """Stop signals become stop requests from here on; one the entry point already answered (its
+        SystemExit lost on the way, ``midas_cli.early_stop``) ends the process now: 128 + its number."""
         for sig in STOP_SIGNALS:
             self._previous[sig] = signal.signal(sig, self._handle)
+        if early_stop.received is not None:
+            raise SystemExit(128 + early_stop.received)
 
     def restore(self) -> None:
         for sig, handler in self._previous.items():

@@ -72,6 +72,33 @@ def _children(pid: int) -> list[int]:
             for child in (task / "children").read_text().split()]
 
 
+def test_a_stop_signal_the_entry_point_answered_ends_record_even_where_its_exit_was_lost(monkeypatch) -> None:
+    """Seen once in CI: SIGTERM to the group while midas was still starting; the entry point's handler said
+    "midas: stopped by SIGTERM" but its SystemExit never ended the process, and the recording ran its whole
+    --duration as `complete`. The handler notes the signal first (``midas_cli.early_stop``), and `record`,
+    on installing its own handling, ends as the signal asked: 128 + its number, before anything exists."""
+    import importlib
+
+    from midas_cli import early_stop
+    from midas_cli.commands.record import _StopFlag
+
+    entry = importlib.import_module("midas_cli.__main__")
+    saved = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    monkeypatch.setattr(early_stop, "received", None)
+    try:
+        with pytest.raises(SystemExit) as answered:
+            entry._stopped(int(signal.SIGTERM), None)
+        assert answered.value.code == 128 + signal.SIGTERM and early_stop.received == signal.SIGTERM
+        with pytest.raises(SystemExit) as ended:  # its SystemExit lost: record still ends
+            _StopFlag().install()
+        assert ended.value.code == 128 + signal.SIGTERM
+        monkeypatch.setattr(early_stop, "received", None)
+        _StopFlag().install()  # no signal before: record goes on
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+
+
 def test_the_recorders_helper_processes_start_deaf_to_stop_signals() -> None:
     """The fork server and the resource tracker start with every stop signal blocked or ignored, and
     the caller's own mask is restored after (CPython's tracker start unblocked SIGINT and SIGTERM in
