@@ -90,6 +90,17 @@ def min_frames(setting: str, train: list[np.ndarray], rate: float) -> int:
     return int(np.floor(np.percentile(lengths, float(setting[1:])))) if lengths else 0
 
 
+def split_lag(setting: str) -> tuple[int | None, str]:
+    """``oL-DECODING`` -> (L, DECODING); any other setting -> (None, setting). ValueError where L is not a
+    whole number of frames or what follows is not a decoding (``v``, ``g``, ``s``)."""
+    if setting[:1] != "o":
+        return None, setting
+    lag, _, decoding = setting[1:].partition("-")
+    if not lag.isdigit() or decoding[:1] not in ("v", "g", "s"):
+        raise ValueError(f"setting {setting!r}: oL- takes a lag in frames and a decoding, e.g. o5-g10-auto")
+    return int(lag), decoding
+
+
 def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rate: float, n_classes: int,
              minima: list[int]) -> list[np.ndarray]:
     """One fold's predictions under ``setting``: a ``--min-segment`` setting (the greedy merge), ``v-S`` (the
@@ -97,10 +108,7 @@ def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rat
     weight W) or ``gW+S`` (decoded with that order and no minimum, then merged at S); ``sP-S``, ``sP+S``: any
     order, each change of gesture costs P (nats). ``oL-`` before a decoding (``o5-g10-auto``): decoded as a
     live decoder lagging L frames would (``postprocess.decode_online``: frame t labelled at t + L)."""
-    lag = None
-    if setting[:1] == "o":
-        lag_text, _, setting = setting[1:].partition("-")
-        lag = int(lag_text)
+    lag, setting = split_lag(setting)
     then_merge = setting[:1] in "vgs" and "+" in setting
     decoder, _, minimum_setting = setting.rpartition("+" if then_merge else "-") if setting[:1] in "vgs" \
         else ("", "", setting)
@@ -144,11 +152,10 @@ def main() -> None:
     parser.add_argument("--settings", default="none,auto,p5,1.0,1.5,2.0")
     args = parser.parse_args()
     for setting in args.settings.split(","):
-        decoding = setting
-        if setting[:1] == "o":
-            lag, _, decoding = setting[1:].partition("-")
-            if not lag.isdigit() or decoding[:1] not in ("v", "g", "s"):
-                parser.error(f"setting {setting!r}: oL- takes a lag in frames and a decoding, e.g. o5-g10-auto")
+        try:
+            _, decoding = split_lag(setting)
+        except ValueError as exc:
+            parser.error(str(exc))
         if decoding[:1] in ("v", "g", "s") and not {"-", "+"} & set(decoding):
             parser.error(f"setting {setting!r}: a decoding needs its minimum, e.g. {decoding}-auto")
     rows = []
