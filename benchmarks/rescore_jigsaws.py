@@ -85,7 +85,7 @@ def test_probabilities(saved: dict, dataset: Any, split: Split) -> list[np.ndarr
 def min_frames(setting: str, train: list[np.ndarray], rate: float) -> int:
     """``--min-segment`` ``setting``'s minimum, or ``pN``'s: the N-th percentile of the gesture lengths."""
     if not setting.startswith("p"):
-        return postprocess.min_frames(setting, train, rate, causal=False)
+        return postprocess.min_frames(setting, train, rate)
     lengths = [length for y in train for cls, length in postprocess._runs(y) if cls >= 0]
     return int(np.floor(np.percentile(lengths, float(setting[1:])))) if lengths else 0
 

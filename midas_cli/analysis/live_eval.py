@@ -4,8 +4,10 @@ record --live-model`) compare with the session's labels and with the same causal
 On the live stream's own frames (its ``t_host_ns``): frame accuracy (frames the reference labels),
 segmental edit score, and per reference segment whether and when it was detected: the delay from the
 segment's first frame to the first live frame inside it with its class (frame time; a segment never
-predicted in its span is "missed"). The recognition's own latency (``t_pred_ns - t_host_ns``) comes
-beside. The labels are per video frame (labels/<set>.csv: frame = seq of the video stream); a live frame
+predicted in its span is "missed"). Both classes a row carries are scored: ``class`` (the network's
+own) and, where the stream has it, ``decoded`` (the run's clean-up run live; offline reference: the same
+decoding of the offline outputs). Each one's latency comes beside (``t_pred_ns`` or ``t_decoded_ns`` -
+``t_host_ns``). The labels are per video frame (labels/<set>.csv: frame = seq of the video stream); a live frame
 takes the label of the latest video frame at or before it. The offline reference is
 ``live_gestures.offline_predictions`` on the recorded streams, with the run the manifest names and the
 nominal rates the live model was given (how old a sample may be and still count).
@@ -32,6 +34,7 @@ class Agreement:
     """The live classes against one reference ("labels" or "offline") on the live frames."""
 
     reference: str
+    prediction: str  # which live column: "class" (the network's own) or "decoded"
     frames: int  # live frames the reference labels
     accuracy: float | None
     edit: float | None
@@ -46,7 +49,7 @@ class LiveEvaluation:
     run_id: str
     frames: int  # rows of gestures_live
     skipped: int  # frames the recognition said it skipped
-    latency_ms: dict[str, float | None]  # t_pred - t_host: p50, p99, max
+    latency_ms: dict[str, dict[str, float | None]]  # per prediction column: its time - t_host: p50, p99, max
     agreements: tuple[Agreement, ...]
 
     def to_json(self) -> dict[str, Any]:
@@ -63,19 +66,25 @@ def evaluate_live(session_path: Path, run: Path | None = None, label_set: str = 
         raise SessionError(f"{session.path} has no {LIVE_STREAM} stream (record it with `midas record --live-model`)")
     live = session.read_stream(LIVE_STREAM)
     times = live["t_host_ns"].to_numpy(np.int64)
-    classes = live["class"].fillna("").astype(str).to_numpy(dtype=object)
     model = session.manifest["streams"][LIVE_STREAM].get("live_model") or {}
-    agreements = []
-    if label_set in list_label_sets(session.path):
-        agreements.append(agreement("labels", classes, labels_at(session, times, label_set), times))
-    agreements.append(agreement("offline", classes, _offline(session, run, model, times), times))
-    latency = (live["t_pred_ns"].to_numpy(np.int64) - times) / 1e6
+    columns = {"class": "t_pred_ns", "decoded": "t_decoded_ns"}
+    columns = {name: time for name, time in columns.items() if name in live.columns and time in live.columns}
+    truth = labels_at(session, times, label_set) if label_set in list_label_sets(session.path) else None
+    offline = _offline(session, run, model, times)
+    agreements, latency = [], {}
+    for name, time in columns.items():
+        predicted = live[name].fillna("").astype(str).to_numpy(dtype=object)
+        if truth is not None:
+            agreements.append(agreement("labels", name, predicted, truth, times))
+        agreements.append(agreement("offline", name, predicted, offline[name], times))
+        latency[name] = _percentiles((live[time].to_numpy(np.int64) - times) / 1e6, (50, 99))
     return LiveEvaluation(session.path.name, str(model.get("run_id", "")), len(live), int(model.get("frames_skipped") or 0),
-                          _percentiles(latency, (50, 99)), tuple(agreements))
+                          latency, tuple(agreements))
 
 
-def _offline(session: Session, run: Path | None, model: dict[str, Any], times: np.ndarray) -> np.ndarray:
-    """The offline causal model's classes at ``times`` (ConfigError when there is no run to use)."""
+def _offline(session: Session, run: Path | None, model: dict[str, Any], times: np.ndarray) -> dict[str, np.ndarray]:
+    """The offline causal model's classes at ``times``, its own (``class``) and decoded (``decoded``);
+    ConfigError when there is no run to use."""
     from midas_cli.analysis.live_gestures import offline_predictions
 
     named = run if run is not None else model.get("run")
@@ -85,7 +94,8 @@ def _offline(session: Session, run: Path | None, model: dict[str, Any], times: n
     if not (isinstance(rates, dict) and all(isinstance(r, (int, float, type(None))) for r in rates.values())):
         rates = None
     predictions = offline_predictions(session.path, Path(named), times, rates)
-    return np.asarray([p.label for p in predictions], dtype=object)
+    return {"class": np.asarray([p.label for p in predictions], dtype=object),
+            "decoded": np.asarray([p.decoded for p in predictions], dtype=object)}
 
 
 def labels_at(session: Session, times: np.ndarray, label_set: str) -> np.ndarray:
@@ -99,18 +109,19 @@ def labels_at(session: Session, times: np.ndarray, label_set: str) -> np.ndarray
     return np.asarray(["" if k < 0 else str(by_seq.get(int(frame_seq[k]), "") or "") for k in at], dtype=object)
 
 
-def agreement(reference: str, live: np.ndarray, truth: np.ndarray, times: np.ndarray) -> Agreement:
-    """``live`` against ``truth`` (class text per frame, '' = unlabelled) on frames at ``times`` (ns)."""
+def agreement(reference: str, prediction: str, live: np.ndarray, truth: np.ndarray, times: np.ndarray) -> Agreement:
+    """``live`` (the column ``prediction``) against ``truth`` (class text per frame, '' = unlabelled) on
+    frames at ``times`` (ns)."""
     names = sorted((set(live.tolist()) | set(truth.tolist())) - {""})
     index = {name: k for k, name in enumerate(names)}
     pred = np.asarray([index.get(c, IGNORE) for c in live])
     true = np.asarray([IGNORE if c == "" else index[c] for c in truth])
     labelled = true != IGNORE
     if not labelled.any():
-        return Agreement(reference, 0, None, None, 0, 0, _percentiles(np.zeros(0), (50, 90)))
+        return Agreement(reference, prediction, 0, None, None, 0, 0, _percentiles(np.zeros(0), (50, 90)))
     delays = detection_delays_ms(pred, true, times)
     found = np.asarray([d for d in delays if d is not None])
-    return Agreement(reference, int(labelled.sum()), round(float((pred[labelled] == true[labelled]).mean()), 4),
+    return Agreement(reference, prediction, int(labelled.sum()), round(float((pred[labelled] == true[labelled]).mean()), 4),
                      round(edit_score(pred[labelled], true[labelled]), 2), len(delays), len(found),
                      _percentiles(found, (50, 90)))
 

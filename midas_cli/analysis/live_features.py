@@ -16,7 +16,7 @@ outage) keeps the frame before's (the first frame: the training mean, 0 once nor
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
 
@@ -26,12 +26,37 @@ import torch
 from midas_cli.analysis.sync import associate
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.models.data import DatasetConfig, Normaliser, modality_features
-from midas_cli.models.train import build_model, load_checkpoint, saved_structure
+from midas_cli.models.postprocess import OnlineDecoder, saved_switch_scores
+from midas_cli.models.train import build_model, load_checkpoint, saved_decode_lag, saved_structure
 from midas_cli.session.derived import AlignedTable
 
 FEATURE_CLOCK_HZ = 30.0  # the video frame clock training's features (velocities) were computed on
 STALE_PERIODS, UNKNOWN_RATE_STALE_NS = 3.0, 1_000_000_000  # align's defaults (AlignOptions, stale_ns_for)
 LIVE_PATH = Path("live")  # names the source in feature errors (there is no session folder live)
+
+
+@dataclass(frozen=True)
+class Decoding:
+    """A causal run's clean-up as live runs it (``postprocess.OnlineDecoder``): segments at least ``minimum``
+    frames, each change of gesture scored by ``switch`` (C, C; None: no order), each frame decided ``lag``
+    frames after it. A run from before causal runs were decoded: minimum 0, no order, lag 0, which
+    decides every frame as its most probable class (the raw one)."""
+
+    minimum: int = 0
+    switch: np.ndarray | None = None
+    lag: int = 0
+
+    def decoder(self, n_classes: int) -> OnlineDecoder:
+        return OnlineDecoder(n_classes, self.minimum, self.switch, self.lag)
+
+    def offline(self, log_probs: np.ndarray) -> list[int]:
+        """The decoded labels of a whole (C, T) sequence, as live decides them frame by frame (one step a
+        frame, then ``finish``: ``postprocess.decode_online`` but for a sequence shorter than the minimum)."""
+        decoder = self.decoder(log_probs.shape[0])
+        return [label for t in range(log_probs.shape[1]) for label in decoder.step(log_probs[:, t])] + decoder.finish()
+
+    def manifest(self) -> dict:
+        return {"min_segment_frames": self.minimum, "gesture_order": self.switch is not None, "lag_frames": self.lag}
 
 
 @dataclass
@@ -47,6 +72,7 @@ class LiveRun:
     config: DatasetConfig
     normaliser: Normaliser | None
     columns: list[str]  # every needed aligned column, "<stream>.<column>", in table order
+    decoding: Decoding = field(default_factory=Decoding)  # the run's clean-up, as live runs it
 
     @property
     def streams(self) -> dict[str, tuple[str, ...]]:
@@ -56,6 +82,14 @@ class LiveRun:
             stream, column = name.split(".", 1)
             found.setdefault(stream, []).append(column)
         return {stream: tuple(cols) for stream, cols in found.items()}
+
+
+def saved_decoding(saved: dict, n_classes: int) -> Decoding:
+    """The ``Decoding`` a run recorded (SessionError for a damaged record)."""
+    minimum = saved.get("min_segment_frames", 0)
+    if isinstance(minimum, bool) or not isinstance(minimum, int) or minimum < 0:
+        raise SessionError(f"the run's min_segment_frames must be a whole number of frames >= 0, got {minimum!r}")
+    return Decoding(minimum, saved_switch_scores(saved.get("switch_scores"), n_classes), saved_decode_lag(saved) or 0)
 
 
 def load_run(run: Path) -> LiveRun:
@@ -95,7 +129,8 @@ def _live_run(path: Path, saved: dict) -> LiveRun:
                           f"builds for {config.features} ({names})")
     normaliser = Normaliser.from_json(saved["normaliser"]) if config.normalise == "train" else None
     return LiveRun(path.parent.name, hashlib.sha256(path.read_bytes()).hexdigest(), str(saved["model"]),
-                   model.eval(), classes, _model_rate(path, config, saved), config, normaliser, columns)
+                   model.eval(), classes, _model_rate(path, config, saved), config, normaliser, columns,
+                   saved_decoding(saved, len(classes)))
 
 
 def _refuse_offline_only(path: Path, config: DatasetConfig) -> None:

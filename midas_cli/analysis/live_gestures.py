@@ -18,17 +18,24 @@ A model trained with ``--delay`` (``delay`` frames) labels the frame it stepped 
 predictions come that much later; ``flush()`` at the end steps ``delay`` zero frames (as the offline forward
 pass appends them, models/mstcn.py ``look_ahead``) for the frames still waiting.
 
+Each prediction carries two classes: the network's own (``label``, the most probable class of that frame)
+and the run's clean-up run live (``decoded``: ``live_features.Decoding``, the best labelling so far with
+segments no shorter than the run's minimum and the training gesture order, each frame decided the run's
+``--decode-lag`` frames after it; the metrics of a causal run measure it). A prediction is handed out
+once both are known: ``decode_lag`` frames after its network output.
+
 ``offline_predictions(session, run, times)`` runs the same model over a recorded session the offline
-way (one forward pass of the whole sequence, on features built the same way): live and offline classes
-agree frame for frame (tests/analysis/test_live_gestures.py).
+way (one forward pass of the whole sequence, on features built the same way, then the run's decoding):
+live and offline classes, and decoded classes where no frame was skipped, agree frame for frame
+(tests/analysis/test_live_gestures.py).
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 import torch
@@ -46,6 +53,9 @@ class Prediction:
     class_index: int
     label: str  # class name, e.g. "G1"
     probability: float  # softmax of the last stage's logits at the predicted class
+    decoded: str = ""  # the decoded class (the run's clean-up run live; "" until decided)
+    decoded_probability: float = 0.0  # that softmax at the decoded class
+    t_pred_ns: int = 0  # when the network's output was known (the feed's clock; 0 without one)
 
 
 @dataclass(frozen=True)
@@ -89,8 +99,10 @@ class StreamBuffer:
 class LiveFeed:
     """Stream rows in, frame predictions out; see the module docstring."""
 
-    def __init__(self, live: LiveRun, nominal_rates_hz: Mapping[str, float | None] | None = None) -> None:
+    def __init__(self, live: LiveRun, nominal_rates_hz: Mapping[str, float | None] | None = None,
+                 clock: Callable[[], int] | None = None) -> None:
         self.live = live
+        self._now = clock or (lambda: 0)
         self.spec = LiveSpec(live.run_id, live.checkpoint_sha256, live.model_name, live.rate_hz, live.streams,
                              live.classes)
         rates = dict(nominal_rates_hz or {})
@@ -105,6 +117,8 @@ class LiveFeed:
         self._waiting: deque[int] = deque()  # clock indices stepped, not labelled yet (at most ``delay``)
         self._steps = 0  # frames stepped (zeros of flush() included)
         self._dim = 0  # the model's input size (flush steps zero vectors of it)
+        self._decoder = live.decoding.decoder(len(live.classes))
+        self._undecided: deque[tuple[Prediction, np.ndarray]] = deque()  # (prediction, its probabilities)
 
     def add(self, stream: str, t_host_ns: np.ndarray, values: np.ndarray) -> None:
         """Rows of one stream as recorded (t_host_ns (n,), values (n, len(spec.streams[stream])) in that
@@ -132,12 +146,13 @@ class LiveFeed:
         return out
 
     def flush(self) -> list[Prediction]:
-        """The end of the input (a delayed model): the frames still waiting for their label, labelled from
-        zero frames after the last one, as the offline forward pass does. Nothing to add after it."""
+        """The end of the input: the frames still waiting for their label (a delayed model), labelled from
+        zero frames after the last one, as the offline forward pass does, then every frame still waiting
+        for its decoded class, decided as the sequence ends. Nothing to add after it."""
         out = []
         while self._waiting:
             out.extend(self._labelled(self._stepper.step(np.zeros(self._dim))))
-        return out
+        return out + self._decided(self._decoder.finish())
 
     def drop_until(self, t_host_ns: int) -> int:
         """Skip frames older than ``t_host_ns`` (a slow model catching up); how many were skipped."""
@@ -171,7 +186,18 @@ class LiveFeed:
         if self._steps <= self.delay:
             return []
         k = self._waiting.popleft()
-        return [_prediction(k - (self._first or 0), self._clock.time(k), logits, self.spec.classes)]
+        prediction = _prediction(k - (self._first or 0), self._clock.time(k), logits, self.spec.classes, self._now())
+        log_probs = _log_softmax(logits)
+        self._undecided.append((prediction, np.exp(log_probs)))
+        return self._decided(self._decoder.step(log_probs))
+
+    def _decided(self, labels: list[int]) -> list[Prediction]:
+        """The oldest undecided predictions, one per decoded label (oldest first), made whole."""
+        out = []
+        for index in labels:
+            prediction, probs = self._undecided.popleft()
+            out.append(replace(prediction, decoded=self.spec.classes[index], decoded_probability=float(probs[index])))
+        return out
 
     def _forget(self) -> None:
         """Drop rows no frame to come needs: before the next frame's first row time, or before the first
@@ -187,18 +213,24 @@ class LiveFeed:
             buffer.forget_before(keep_from)
 
 
-def _prediction(seq: int, t_ns: int, logits: np.ndarray, classes: tuple[str, ...]) -> Prediction:
+def _log_softmax(logits: np.ndarray) -> np.ndarray:
+    shifted = np.asarray(logits, dtype=np.float64) - np.max(logits)
+    return shifted - np.log(np.exp(shifted).sum())
+
+
+def _prediction(seq: int, t_ns: int, logits: np.ndarray, classes: tuple[str, ...], t_pred_ns: int = 0) -> Prediction:
     e = np.exp(logits - logits.max())
     index = int(np.argmax(logits))
-    return Prediction(seq, int(t_ns), index, classes[index], float(e[index] / e.sum()))
+    return Prediction(seq, int(t_ns), index, classes[index], float(e[index] / e.sum()), t_pred_ns=int(t_pred_ns))
 
 
-def load_live_model(run: Path, nominal_rates_hz: Mapping[str, float | None] | None = None) -> LiveFeed:
+def load_live_model(run: Path, nominal_rates_hz: Mapping[str, float | None] | None = None,
+                    clock: Callable[[], int] | None = None) -> LiveFeed:
     """RUN = a training run folder (or its checkpoint.pt); ConfigError (exit 2, one line) when it cannot run
     live. ``nominal_rates_hz`` (stream -> its nominal rate, None = events) sets how old a sample may be
     and still count, as align's (3 periods; 1 s for a stream not given: the latest sample is held through
-    an outage shorter than that)."""
-    return LiveFeed(load_run(run), nominal_rates_hz)
+    an outage shorter than that). ``clock`` (host ns) stamps each prediction's ``t_pred_ns``."""
+    return LiveFeed(load_run(run), nominal_rates_hz, clock)
 
 
 def offline_predictions(session: Path, run: Path, times_ns: np.ndarray,
@@ -227,5 +259,8 @@ def offline_predictions(session: Path, run: Path, times_ns: np.ndarray,
     x = np.stack([inputs(int(t), r) for t, r in zip(times, rows)])  # (T, D) float32, frames in order
     with torch.no_grad():
         stages = live.model(torch.from_numpy(x.T[None].copy()), torch.ones(1, len(times), dtype=torch.bool))
-    logits = live.model.frame_logits(stages)[0].numpy().T  # (C, T) -> (T, C)
-    return [_prediction(k, int(t), logits[k].astype(np.float64), live.classes) for k, t in enumerate(times)]
+    logits = live.model.frame_logits(stages)[0].numpy().T.astype(np.float64)  # (C, T) -> (T, C)
+    probs = np.stack([np.exp(_log_softmax(row)) for row in logits])
+    decoded = live.decoding.offline(np.stack([_log_softmax(row) for row in logits]).T)
+    return [replace(_prediction(k, int(t), logits[k], live.classes), decoded=live.classes[d],
+                    decoded_probability=float(probs[k, d])) for k, (t, d) in enumerate(zip(times, decoded))]

@@ -110,9 +110,10 @@ def live(sessions: list[Path] = typer.Argument(..., help="Sessions recorded with
          as_json: bool = JSON_OPTION) -> None:
     """Gestures recognised while recording against the labels and the offline model.
 
-    On the frames of each session's gestures_live stream: accuracy, edit score and, per segment of
-    the reference, whether it was detected live and how long after its start (ms); the recognition's
-    own latency (prediction time - frame time) beside.
+    On the frames of each session's gestures_live stream, for the network's own class and the decoded
+    one (the run's clean-up run live, what the screen showed): accuracy, edit score and, per segment of
+    the reference, whether it was detected live and how long after its start (ms); each one's latency
+    (the time it was known - frame time) beside.
 
     Example: midas eval live sessions/suturing_S1_T9_20261126T150000Z
     """
@@ -122,13 +123,15 @@ def live(sessions: list[Path] = typer.Argument(..., help="Sessions recorded with
     if as_json:
         print_json([result.to_json() for result in results])
         return
-    table = Table("session", "reference", "frames", "accuracy", "edit", "detected", "delay p50/p90 ms",
+    table = Table("session", "live", "reference", "frames", "accuracy", "edit", "detected", "delay p50/p90 ms",
                   "latency p50/p99 ms", title="gestures recognised live", header_style="bold")
     for result in results:
         for a in result.agreements:
-            table.add_row(result.session, a.reference, str(a.frames), _num(a.accuracy, ".3f"), _num(a.edit, ".1f"),
-                          f"{a.detected}/{a.segments}", f"{_num(a.delay_ms['p50'], '.0f')}/{_num(a.delay_ms['p90'], '.0f')}",
-                          f"{_num(result.latency_ms['p50'], '.1f')}/{_num(result.latency_ms['p99'], '.1f')}")
+            latency = result.latency_ms[a.prediction]
+            table.add_row(result.session, a.prediction, a.reference, str(a.frames), _num(a.accuracy, ".3f"),
+                          _num(a.edit, ".1f"), f"{a.detected}/{a.segments}",
+                          f"{_num(a.delay_ms['p50'], '.0f')}/{_num(a.delay_ms['p90'], '.0f')}",
+                          f"{_num(latency['p50'], '.1f')}/{_num(latency['p99'], '.1f')}")
     out.print(table)
 
 

@@ -56,13 +56,16 @@ DELAY_OPT = typer.Option(0.0, "--delay", rich_help_panel=TRAINING_PANEL, min=0.0
 MIN_SEGMENT_OPT = typer.Option("auto", "--min-segment", rich_help_panel=TRAINING_PANEL, help="The shortest "
                                 "predicted segment (offline clean-up; shorter ones are decoded away, see --grammar, "
                                 "or with --grammar none merged into their longer neighbour): seconds, none, or auto "
-                                "(default): the 2nd percentile of the training split's gesture lengths (none for "
-                                "--causal). The metrics without the clean-up are kept as raw.")
+                                "(default): the 2nd percentile of the training split's gesture lengths. --causal: "
+                                "decoded as live (see --decode-lag). The metrics without the clean-up are kept as raw.")
 GRAMMAR_OPT = typer.Option("auto", "--grammar", rich_help_panel=TRAINING_PANEL, help="The clean-up as a decoding: "
                            "the labelling most likely from the frames' probabilities and the order of gestures in the "
                            "training labels (a change from a to b scores W x log P(b after a)), with segments all "
                            "--min-segment long. W: a number, none (the merge alone) or auto (default): 1 per Hz of "
-                           "the model rate, 10 at 10 Hz (none for --causal).")
+                           "the model rate, 10 at 10 Hz.")
+DECODE_LAG_OPT = typer.Option(0.0, "--decode-lag", rich_help_panel=TRAINING_PANEL, min=0.0, help="With --causal: "
+                              "the clean-up decides each frame this many seconds after it, from the best labelling "
+                              "so far, as `record --live-model` does (its decoded class); 0 (default): at once.")
 CURVE_EVERY_OPT = typer.Option(0, "--curve-every", rich_help_panel=TRAINING_PANEL, min=0, help="Score the test split "
                                "every N epochs (and after the last) into run.json's history: a learning curve for "
                                "choosing --epochs on development data (never used to train or to pick weights).")
@@ -103,6 +106,7 @@ class Training:
     grammar: str = "auto"
     curve_every: int = 0
     delay: float = 0.0
+    decode_lag: float = 0.0
     augment_shift: Optional[float] = None
     augment_features: Optional[str] = None
 
@@ -113,7 +117,7 @@ class Training:
         return TrainConfig(split=self.split, validation=self.val, epochs=self.epochs, seed=self.seed,
                            causal=self.causal, min_segment=self.min_segment, grammar=self.grammar,
                            curve_every=self.curve_every,
-                           delay_s=self.delay, augment_shift=self.augment_shift,
+                           delay_s=self.delay, decode_lag_s=self.decode_lag, augment_shift=self.augment_shift,
                            augment_features=self.augment_features, **fields)
 
 
@@ -123,6 +127,7 @@ training_options = option_group("training", Training, keyword_options(
     ("epochs", EPOCHS_OPT, Optional[int]), ("seed", SEED_OPT, int), ("causal", CAUSAL_OPT, bool),
     ("min_segment", MIN_SEGMENT_OPT, str), ("grammar", GRAMMAR_OPT, str),
     ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float),
+    ("decode_lag", DECODE_LAG_OPT, float),
     ("augment_shift", AUGMENT_SHIFT_OPT, Optional[float]), ("augment_features", AUGMENT_FEATURES_OPT, Optional[str])))
 
 

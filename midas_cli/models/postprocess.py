@@ -11,11 +11,11 @@ since 2026-11-27) takes, of all labellings with no shorter segment, the one the 
 make most likely, each change of gesture from a to b scoring W x log P(b after a) with P counted from the
 training split's gesture order; ``--grammar none`` merges every short segment into its longer neighbour
 instead (``merge_short_segments``). Both chosen on the JIGSAWS development tasks (README, "Defaults and
-why"; BENCHMARKS.md, "The offline clean-up"). Both look at the whole sequence, so a causal (live) model's
-runs keep their raw predictions (``auto`` means ``none`` there). ``decode_online`` / ``OnlineDecoder`` is
-the same decoding run frame by frame as a live decoder lagging L frames would run it (each frame labelled
-L frames later from the best path so far): measured on causal runs by ``benchmarks/rescore_jigsaws.py``'s
-``oL-`` settings, not yet used by ``train gestures`` or the live worker.
+why"; BENCHMARKS.md, "The offline clean-up"). Both look at the whole sequence. A causal (live) model's
+runs are decoded as a live decoder would decode them (``decode_online`` / ``OnlineDecoder``: the same
+decoding run frame by frame, each frame labelled ``--decode-lag`` frames later from the best path so far;
+with ``--grammar none``, the same with no gesture order): what `record --live-model` writes as the
+``decoded`` class, measured by the run's metrics (raw: the network's own classes).
 """
 
 from __future__ import annotations
@@ -53,17 +53,32 @@ def _checked(value: str, option: str, expected: str, valid: Callable[[float], bo
     return value
 
 
-def grammar_weight(setting: str, rate_hz: float, causal: bool) -> float:
-    """The weight of the gesture order that ``setting`` gives (0: the greedy merge alone)."""
-    if setting == NONE or (setting == AUTO and causal):
+def check_lag(seconds: float, causal: bool) -> float:
+    """``--decode-lag`` ``seconds`` as given; ConfigError for a negative one or one without ``causal``."""
+    if not 0.0 <= seconds < 3600:
+        raise ConfigError(f"--decode-lag must be seconds in [0, 3600), got {seconds!r}")
+    if seconds and not causal:
+        raise ConfigError("--decode-lag is for --causal models (a model that is not causal is decoded over the "
+                          "whole sequence)")
+    return seconds
+
+
+def grammar_weight(setting: str, rate_hz: float) -> float:
+    """The weight of the gesture order that ``setting`` gives (0: no order; the greedy merge offline)."""
+    if setting == NONE:
         return 0.0
     return WEIGHT_PER_HZ * rate_hz if setting == AUTO else float(setting)
 
 
-def clean_up(log_probs: Sequence[np.ndarray], minimum: int, switch: np.ndarray | None) -> list[np.ndarray]:
+def clean_up(log_probs: Sequence[np.ndarray], minimum: int, switch: np.ndarray | None,
+             lag: int | None = None) -> list[np.ndarray]:
     """Each sequence's (C, T) frame log-probabilities made a labelling: with ``switch`` (C, C), the score of
     each change of gesture, the best one whose segments are all ``minimum`` frames or longer (``decode``);
-    without, the frames' most probable classes, short segments merged (``merge_short_segments``)."""
+    without, the frames' most probable classes, short segments merged (``merge_short_segments``). ``lag``
+    (frames; a causal model's runs): each frame decided that many frames later, as live (``decode_online``,
+    no gesture order without ``switch``)."""
+    if lag is not None:
+        return [decode_online(lp, minimum, switch, lag) for lp in log_probs]
     if switch is None:
         return [merge_short_segments(lp.argmax(axis=0), minimum) for lp in log_probs]
     return [decode(lp, minimum, switch) for lp in log_probs]
@@ -92,9 +107,9 @@ def saved_switch_scores(value: object, n_classes: int) -> np.ndarray | None:
     return scores
 
 
-def min_frames(setting: str, train_labels: Sequence[np.ndarray], rate_hz: float, causal: bool) -> int:
+def min_frames(setting: str, train_labels: Sequence[np.ndarray], rate_hz: float) -> int:
     """The minimum segment length in frames that ``setting`` gives (0: no clean-up)."""
-    if setting == NONE or (setting == AUTO and causal):
+    if setting == NONE:
         return 0
     if setting != AUTO:
         return max(0, int(round(float(setting) * rate_hz)))

@@ -16,7 +16,8 @@ from midas_cli.errors import ConfigError
 # What a run.json written before these TrainConfig fields existed meant by leaving them out (runs are
 # compared with the settings asked for when cross-validation or an ablation resumes).
 LEGACY_TRAIN_CONFIG = {"causal": False, "min_segment": "none", "curve_every": 0, "delay_s": 0.0, "augment_shift": 0.0,
-                       "augment_features": "pos", "grammar": "none"}
+                       "augment_features": "pos", "grammar": "none",
+                       "decode_lag_s": 0.0}
 # A builder: (modality dims, class count) -> (network class, its default config for those inputs).
 Builder = Callable[[dict[str, int], int], tuple[Callable[[Any], Any], Any]]
 

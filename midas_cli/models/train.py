@@ -69,6 +69,7 @@ class TrainConfig:
     grammar: str = "none"  # weight of the training gesture order in the offline clean-up (postprocess.decode)
     curve_every: int = 0  # > 0: the test split scored every so many epochs into the history (learning curve)
     delay_s: float = 0.0  # causal: frame t labelled from the frames up to t + delay_s (models/mstcn.py look_ahead)
+    decode_lag_s: float = 0.0  # causal: the clean-up decides frame t this much later, as live (postprocess.decode_online)
     augment_shift: float | None = None  # training inputs' columns shifted by N(0, (this x their sd)^2) (models/augment.py)
     augment_features: str | None = None  # which columns the shift moves: pos, ori or pos,ori
 
@@ -76,6 +77,7 @@ class TrainConfig:
         model_entry(self.model)  # ConfigError for an unknown model
         postprocess.check(self.min_segment)
         postprocess.check_weight(self.grammar)
+        postprocess.check_lag(self.decode_lag_s, self.causal)
         if self.curve_every < 0:
             raise ConfigError(f"--curve-every must be >= 0 epochs, got {self.curve_every}")
         if self.curve_every and self.model == "ensemble":
@@ -178,14 +180,16 @@ def finish_run(out_dir: Path, dataset: GestureDataset, fold: PreparedFold, confi
                model: torch.nn.Module, model_cfg: dict, history: list[dict], device: torch.device) -> RunResult:
     """Evaluate the trained ``model`` on the test (and validation) units and write the run folder."""
     rate = dataset.trials[0].rate_hz
-    minimum = postprocess.min_frames(config.min_segment, fold.parts["train"].y, rate, config.causal)
-    weight = postprocess.grammar_weight(config.grammar, rate, config.causal)
+    minimum = postprocess.min_frames(config.min_segment, fold.parts["train"].y, rate)
+    weight = postprocess.grammar_weight(config.grammar, rate)
     switch = postprocess.switch_scores(fold.parts["train"].y, len(dataset.classes), weight)
-    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum, switch)}
+    lag = delay_frames(config.decode_lag_s, rate) if config.causal else None  # a causal run: decoded as live
+    result = {"test": _evaluate(model, fold.parts["test"], dataset.classes, device, minimum, switch, lag)}
     if fold.parts["val"].units:
-        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum, switch)
+        result["val"] = _evaluate(model, fold.parts["val"], dataset.classes, device, minimum, switch, lag)
     run = {**_run_record(dataset, fold.split, fold.normaliser, config, model_cfg, history), "min_segment_frames": minimum,
-           "grammar_weight": weight, "switch_scores": None if switch is None else switch.tolist()}
+           "grammar_weight": weight, "switch_scores": None if switch is None else switch.tolist(),
+           "decode_lag_frames": lag}
     write_run(out_dir, run, result, model, dataset, fold.parts["test"], device)
     return RunResult(out_dir, result, history)
 
@@ -215,11 +219,21 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     model.load_state_dict(saved["state_dict"])
     model.to(device)
     switch = postprocess.saved_switch_scores(saved.get("switch_scores"), len(dataset.classes))
-    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)), switch)}
+    result = {"test": _evaluate(model, test, dataset.classes, device, int(saved.get("min_segment_frames", 0)), switch,
+                                saved_decode_lag(saved))}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
     write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
     return RunResult(out_dir, result, saved.get("history", []))
+
+
+def saved_decode_lag(saved: dict) -> int | None:
+    """A saved run's ``decode_lag_frames`` (None: decoded over the whole sequence, as every run before it),
+    checked: a whole number of frames >= 0."""
+    lag = saved.get("decode_lag_frames")
+    if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int) or lag < 0):
+        raise SessionError(f"the run's decode_lag_frames must be a whole number of frames >= 0, got {lag!r}")
+    return lag
 
 
 def saved_structure(saved: dict) -> tuple[bool, int]:
@@ -334,15 +348,16 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], device: torch.device,
-              min_segment_frames: int = 0, switch: np.ndarray | None = None) -> dict:
-    """Metrics of the predictions after the clean-up (``raw``: before it, where there was one)."""
+              min_segment_frames: int = 0, switch: np.ndarray | None = None, lag: int | None = None) -> dict:
+    """Metrics of the predictions after the clean-up (``raw``: before it, where there was one; ``lag``:
+    decoded as live, ``postprocess.clean_up``)."""
     log_probs = predict_log_probs(model, seqs, device)
     raw = [lp.argmax(axis=0) for lp in log_probs]
     if not min_segment_frames and switch is None:
         return {**M.evaluate(raw, seqs.y, classes), "predictions": raw}
-    preds = postprocess.clean_up(log_probs, min_segment_frames, switch)
+    preds = postprocess.clean_up(log_probs, min_segment_frames, switch, lag)
     return {**M.evaluate(preds, seqs.y, classes), "min_segment_frames": min_segment_frames,
-            "grammar": switch is not None, "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
+            "grammar": switch is not None, "decode_lag_frames": lag, "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
 
 
 def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | None, config: TrainConfig,

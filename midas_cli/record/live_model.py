@@ -5,8 +5,12 @@ before anything is recorded, that the rig gives every stream and column the mode
 describes the session's ``gestures_live`` stream: one row per frame of the model's frame clock,
 ``seq`` (the frame's index on that clock: a gap is a frame the recognition skipped to catch up),
 ``t_host_ns`` (the frame's time, host clock), ``t_pred_ns`` (host clock when its prediction was made),
-``class`` (the label text) and ``probability``. A model trained with ``--delay`` labels each frame that
-much later (its ``t_pred_ns`` - ``t_host_ns`` includes it; the manifest's ``live_model`` says ``delay_s``).
+``class`` (the network's most probable class, label text) and ``probability``; ``decoded``,
+``decoded_probability`` (the run's clean-up run live: no segment shorter than its minimum, the training
+gesture order; what the screen shows) and ``t_decoded_ns`` (host clock when the row was handed over:
+the decoded class is decided ``--decode-lag`` after ``t_pred_ns``). A model trained with ``--delay``
+labels each frame that much later (its ``t_pred_ns`` - ``t_host_ns`` includes it; the manifest's
+``live_model`` says ``delay_s`` and, under ``decoding``, the decoding's minimum and lag).
 Its rows are written by the recognition process
 (record/recognition.py), a worker like the devices' (its own device ``recognition``), fed with the rows of
 the streams it needs by the device workers (record/feed.py) without ever making one of them wait.
@@ -26,8 +30,8 @@ GESTURES_STREAM = "gestures_live"
 RECOGNITION_DEVICE = "recognition"
 RECOGNITION_KIND = "gestures"
 MODEL_MODULE = "midas_cli.analysis.live_gestures"  # preloaded by the workers' fork server (torch: once)
-LATENCY_DEFINITION = ("the frame's time (t_host_ns) -> its prediction handed to the OS: the inputs' arrival, "
-                      "the feed's batching and the model, upper edge of 50 us bins")
+LATENCY_DEFINITION = ("the frame's time (t_host_ns) -> its row handed to the OS: the inputs' arrival, the feed's "
+                      "batching, the model and the decoding's lag, upper edge of 50 us bins")
 MAX_LAG_S = 1.0  # a frame older than this when it could be predicted is skipped (counted), not predicted
 
 
@@ -46,6 +50,7 @@ class LivePlan:
     max_lag_s: float = MAX_LAG_S
     nominal_rates_hz: dict[str, float | None] = field(default_factory=dict)  # the rig's, of ``streams``: staleness
     delay_frames: int = 0  # the model labels a frame this many frames late (train gestures --delay)
+    decoding: dict[str, Any] = field(default_factory=dict)  # live_features.Decoding.manifest()
 
     def manifest(self) -> dict[str, Any]:
         """The ``live_model`` entry of the ``gestures_live`` stream (counts are added at the stop)."""
@@ -53,7 +58,8 @@ class LivePlan:
                 "model": self.model, "rate_hz": self.rate_hz, "classes": list(self.classes),
                 "inputs": {name: list(columns) for name, columns in self.streams.items()},
                 "nominal_rates_hz": dict(self.nominal_rates_hz), "max_lag_s": self.max_lag_s,
-                "delay_frames": self.delay_frames, "delay_s": round(self.delay_frames / self.rate_hz, 6)}
+                "delay_frames": self.delay_frames, "delay_s": round(self.delay_frames / self.rate_hz, 6),
+                "decoding": dict(self.decoding)}
 
 
 def plan_live_model(run: Path) -> LivePlan:
@@ -64,7 +70,7 @@ def plan_live_model(run: Path) -> LivePlan:
     spec = feed.spec
     return LivePlan(str(Path(run).resolve()), spec.run_id, spec.checkpoint_sha256, spec.model, float(spec.rate_hz),
                     {name: tuple(columns) for name, columns in spec.streams.items()}, tuple(spec.classes),
-                    delay_frames=feed.delay)
+                    delay_frames=feed.delay, decoding=feed.live.decoding.manifest())
 
 
 def check_rig_streams(plan: LivePlan, specs: Mapping[str, StreamSpec], devices: Mapping[str, Any]) -> LivePlan:
@@ -109,6 +115,11 @@ def gestures_spec(plan: LivePlan) -> StreamSpec:
         Column("t_pred_ns", "int", "ns", clock="host", description="host clock when the frame was predicted"),
         Column("class", "text", description="the predicted gesture (label text)"),
         Column("probability", "float", "", 4, description="the model's probability of that class"),
+        Column("decoded", "text", description="the gesture the run's clean-up decided, run live (what the screen "
+                                              "shows)"),
+        Column("decoded_probability", "float", "", 4, description="the model's probability of the decoded class"),
+        Column("t_decoded_ns", "int", "ns", clock="host", description="host clock when the row was handed over "
+                                                                      "(decoded class decided)"),
     ), plan.rate_hz, f"gestures recognised live by run {plan.run_id} ({plan.model})")
 
 
@@ -125,11 +136,12 @@ class GestureTracker:
         self.since_ns = self.last_ns = self.t_pred_ns = 0
 
     def update(self, last_row: tuple) -> None:
-        """``last_row``: (seq, t_host_ns, t_pred_ns, class, probability) of the latest prediction."""
-        _, t_host_ns, t_pred_ns, label, probability = last_row
+        """``last_row``: a ``gestures_live`` row (seq, t_host_ns, t_pred_ns, class, probability, decoded,
+        decoded_probability, t_decoded_ns) of the latest prediction: the decoded class is shown."""
+        t_host_ns, label, probability, t_decoded_ns = last_row[1], last_row[5], last_row[6], last_row[7]
         if label != self.label:
             self.label, self.since_ns = label, int(t_host_ns)
-        self.last_ns, self.t_pred_ns, self.probability = int(t_host_ns), int(t_pred_ns), float(probability)
+        self.last_ns, self.t_pred_ns, self.probability = int(t_host_ns), int(t_decoded_ns), float(probability)
 
     def status(self, now_ns: int) -> GestureStatus | None:
         """What the screen and `midas ctl status` show (None before the first prediction)."""

@@ -22,7 +22,7 @@ import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from midas_cli.clock import HostClock
 from midas_cli.processes import process_alive
@@ -62,7 +62,7 @@ def recognition_main(job: RecognitionJob, sender: Connection, feeds: list[Connec
         if job.lsl_out:
             output.outlets = LiveOutlets(job.session, RECOGNITION_KIND, job.anchor_ns,
                                          lambda message: output.event("warning", message))
-        model = load_checked(job.plan)
+        model = load_checked(job.plan, output.clock.now_ns)
         output.event("opened", info={"run_id": model.spec.run_id, "model": model.spec.model})
         output.event("finished", info=Recognition(job, output).run(model, feeds))
     except StreamWriteFailed as exc:
@@ -77,12 +77,12 @@ def recognition_main(job: RecognitionJob, sender: Connection, feeds: list[Connec
         sys.exit(status)
 
 
-def load_checked(plan: LivePlan) -> Any:
-    """The run's ``LiveFeed`` (its modules are preloaded), refused if its checkpoint changed since the
-    recording was planned (the manifest would name the wrong one)."""
+def load_checked(plan: LivePlan, clock: Callable[[], int]) -> Any:
+    """The run's ``LiveFeed`` (its modules are preloaded; ``clock`` stamps its predictions), refused if its
+    checkpoint changed since the recording was planned (the manifest would name the wrong one)."""
     from midas_cli.analysis.live_gestures import load_live_model
 
-    model = load_live_model(Path(plan.run), plan.nominal_rates_hz)
+    model = load_live_model(Path(plan.run), plan.nominal_rates_hz, clock)
     if model.spec.checkpoint_sha256 != plan.checkpoint_sha256:
         raise RuntimeError(f"{plan.run}: the checkpoint changed since the recording was planned")
     return model
@@ -142,8 +142,9 @@ class Recognition:
 
     def _write(self, predictions: list) -> None:
         if predictions:
-            t_pred = self.output.clock.now_ns()
-            rows = [(p.seq, p.t_host_ns, t_pred, p.label, round(float(p.probability), 4)) for p in predictions]
+            t_decoded = self.output.clock.now_ns()
+            rows = [(p.seq, p.t_host_ns, p.t_pred_ns, p.label, round(float(p.probability), 4), p.decoded,
+                     round(float(p.decoded_probability), 4), t_decoded) for p in predictions]
             self.output.write(self.spec, rows, 0)
 
     def _warn_if_skipping(self, now_ns: int) -> None:

@@ -47,12 +47,12 @@ def test_a_live_stream_three_frames_late_detects_every_segment_100_ms_after_its_
     times = session.read_stream("video")["t_host_ns"].to_numpy(np.int64)
     truth = labels_at(session, times, "gestures")
     live = np.asarray(["G2"] * 3 + [c or "G2" for c in TRUTH[:-3]], dtype=object)  # 3 frames late, G2 in gaps
-    result = agreement("labels", live, truth, times)
+    result = agreement("labels", "class", live, truth, times)
     assert result.frames == 67 and result.segments == 3 and result.detected == 3
     assert result.accuracy == pytest.approx(1 - 9 / 67, abs=1e-4)  # the first 3 frames of each segment wrong
     assert result.delay_ms["p50"] == pytest.approx(3 * FRAME_NS / 1e6, abs=0.01)
     assert result.edit < 100.0  # the late G2 at each start is a segment of its own
-    assert agreement("labels", truth.copy(), truth, times).accuracy == 1.0
+    assert agreement("labels", "class", truth.copy(), truth, times).accuracy == 1.0
 
 
 def test_a_segment_never_predicted_in_its_span_is_missed() -> None:

@@ -37,11 +37,12 @@ def sessions(tmp_path_factory) -> list[Path]:
     return found
 
 
-def _train(sessions: list[Path], out: Path, model: str, causal: bool = True, delay_s: float = 0.0, **data) -> Path:
+def _train(sessions: list[Path], out: Path, model: str, causal: bool = True, delay_s: float = 0.0,
+           clean_up: dict | None = None, **data) -> Path:
     config = DatasetConfig(("emht",), ("pos", "ori", "vel"), **data)
     recipe = {"lr": 1e-2} if model == "mstcn" else {"lr": 3e-3, "batch_size": 1}
     train_run(sessions, config, TrainConfig(model=model, epochs=6, selection="last", causal=causal, delay_s=delay_s,
-                                            model_options=TINY[model], **recipe), out)
+                                            model_options=TINY[model], **recipe, **(clean_up or {})), out)
     return out
 
 
@@ -127,6 +128,35 @@ def test_a_delayed_model_labels_each_frame_late_and_the_flush_labels_the_last_on
     labelled = early.ready()
     assert labelled[0].seq == 0 and len(labelled) > 5
     assert labelled[-1].t_host_ns + 1_000_000_000 + feature_step_ns(10.0) < t[719]
+
+
+def test_the_decoded_class_is_the_runs_clean_up_decided_lag_frames_late_as_offline(sessions, tmp_path):
+    run = _train(sessions, tmp_path / "decoded", "mstcn", delay_s=0.3,
+                 clean_up={"min_segment": "1.5", "grammar": "auto", "decode_lag_s": 0.5})
+    record = json.loads((run / "run.json").read_text(encoding="utf-8"))
+    assert record["decode_lag_frames"] == 5 and record["min_segment_frames"] == 15 and record["switch_scores"]
+    session = sessions[2]
+    feed = load_live_model(run, _rates(session))
+    assert (feed.delay, feed.live.decoding.lag, feed.live.decoding.minimum) == (3, 5, 15)
+    streamed = _feed_in_random_chunks(feed, session, seed=5)
+    tail = feed.flush()
+    assert len(tail) == 3 + 5  # the network's delay, then the decoding's lag, decided as the input ends
+    live = streamed + tail
+    assert [p.seq for p in live] == list(range(len(live))) and all(p.decoded for p in live)
+    offline = offline_predictions(session, run, np.array([p.t_host_ns for p in live]), _rates(session))
+    assert [p.label for p in live] == [p.label for p in offline]
+    assert [p.decoded for p in live] == [p.decoded for p in offline]
+    assert np.allclose([p.decoded_probability for p in live], [p.decoded_probability for p in offline], atol=1e-4)
+    raw, decoded = [p.label for p in live], [p.decoded for p in live]
+    changes = lambda labels: sum(a != b for a, b in zip(labels, labels[1:]))  # noqa: E731
+    assert changes(decoded) < changes(raw)  # the decoding merged short segments away: the check means something
+    # a frame's decoded class waits for the frame 0.5 s after it: the first frames come only after 5 more
+    early = load_live_model(run, _rates(session))
+    data = Session.open(session).read_columns("emht")
+    t, values = np.asarray(data["t_host_ns"]), np.column_stack([data[c] for c in early.spec.streams["emht"]])
+    early.add("emht", t[:720], values[:720])
+    first = early.ready()
+    assert first and first[-1].t_host_ns + (3 + 5) * 100_000_000 + feature_step_ns(10.0) < t[719]
 
 
 def test_the_first_frame_waits_for_every_stream_and_drops_are_counted(sessions, runs):

@@ -33,10 +33,9 @@ def test_short_segments_go_to_their_longer_neighbour_shortest_first():
 def test_the_minimum_comes_from_the_training_labels_seconds_or_nothing():
     labels = [np.array([0] * 10 + [1] * 20 + [-1] * 3 + [2] * 40), np.array([1] * 30 + [0] * 50)]
     # gesture lengths 10, 20, 40, 30, 50 (unlabelled runs, -1, are no gesture): 2nd percentile 10.8 (the 5th: 12)
-    assert postprocess.min_frames("auto", labels, 10.0, causal=False) == 10
-    assert postprocess.min_frames("auto", labels, 10.0, causal=True) == 0  # a live model cannot look ahead
-    assert postprocess.min_frames("1.5", labels, 10.0, causal=False) == 15
-    assert postprocess.min_frames("none", labels, 10.0, causal=False) == 0
+    assert postprocess.min_frames("auto", labels, 10.0) == 10
+    assert postprocess.min_frames("1.5", labels, 10.0) == 15
+    assert postprocess.min_frames("none", labels, 10.0) == 0
     for bad in ("-1", "0", "fast", "nan"):
         with pytest.raises(ConfigError, match="--min-segment"):
             postprocess.check(bad)
@@ -139,10 +138,9 @@ def test_the_grammar_weight_sets_what_a_change_of_gesture_costs():
     assert postprocess.switch_scores(train, 4, 0.0) is None  # weight 0: no decoding, the merge
     assert postprocess.clean_up(log_probs, 3, None)[0].tolist() == \
         postprocess.merge_short_segments(log_probs[0].argmax(axis=0), 3).tolist()
-    assert postprocess.grammar_weight("auto", 10.0, causal=False) == pytest.approx(10 * postprocess.WEIGHT_PER_HZ)
-    assert postprocess.grammar_weight("auto", 10.0, causal=True) == 0  # a live model cannot look ahead
-    assert postprocess.grammar_weight("2.5", 30.0, causal=False) == 2.5
-    assert postprocess.grammar_weight("none", 30.0, causal=False) == 0
+    assert postprocess.grammar_weight("auto", 10.0) == pytest.approx(10 * postprocess.WEIGHT_PER_HZ)
+    assert postprocess.grammar_weight("2.5", 30.0) == 2.5
+    assert postprocess.grammar_weight("none", 30.0) == 0
     for bad in ("-1", "cheap", "nan", "inf"):
         with pytest.raises(ConfigError, match="--grammar"):
             postprocess.check_weight(bad)

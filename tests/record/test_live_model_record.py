@@ -94,14 +94,22 @@ def test_live_gestures_from_a_replay_equal_the_offline_causal_models(trained, tm
     agree = slice(None) if live["frames_skipped"] == 0 else slice(0, int(np.argmax(steps > 1)) + 1)
     assert [p.label for p in offline][agree] == rows["class"].tolist()[agree]
     assert [p.seq for p in offline][agree] == seq.tolist()[agree]
+    # the decoded class (the run's clean-up, decided at once: --decode-lag 0) is the offline decoding's too
+    decoding = live["decoding"]
+    assert decoding["min_segment_frames"] > 1 and decoding["gesture_order"] and decoding["lag_frames"] == 0
+    assert [p.decoded for p in offline][agree] == rows["decoded"].tolist()[agree]
+    assert (rows["t_decoded_ns"].to_numpy(np.int64) >= rows["t_pred_ns"].to_numpy(np.int64)).all()
 
     evaluated = json.loads(midas("eval", "live", str(session.path), "--run", str(run), "--json", check=True,
                                  timeout=300).stdout)[0]
-    offline_agreement = next(a for a in evaluated["agreements"] if a["reference"] == "offline")
-    assert evaluated["frames"] == len(rows) and offline_agreement["frames"] == len(rows)
-    if live["frames_skipped"] == 0:
-        assert offline_agreement["accuracy"] == 1.0 and offline_agreement["edit"] == 100.0
-        assert offline_agreement["detected"] == offline_agreement["segments"] and offline_agreement["delay_ms"]["max"] == 0
+    assert {(a["prediction"], a["reference"]) for a in evaluated["agreements"]} >= {("class", "offline"),
+                                                                                    ("decoded", "offline")}
+    for offline_agreement in (a for a in evaluated["agreements"] if a["reference"] == "offline"):
+        assert evaluated["frames"] == len(rows) and offline_agreement["frames"] == len(rows)
+        if live["frames_skipped"] == 0:
+            assert offline_agreement["accuracy"] == 1.0 and offline_agreement["edit"] == 100.0
+            assert offline_agreement["detected"] == offline_agreement["segments"]
+            assert offline_agreement["delay_ms"]["max"] == 0
 
     gesture = status[0]["gesture"]
     assert status[0]["ok"] and gesture["label"] in spec.classes and 0 <= gesture["probability"] <= 1

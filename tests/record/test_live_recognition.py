@@ -121,6 +121,9 @@ class _Prediction:
     class_index: int
     label: str
     probability: float
+    decoded: str = "G9"
+    decoded_probability: float = 0.25
+    t_pred_ns: int = 5
 
 
 class _Model:
@@ -182,12 +185,13 @@ def test_the_recognition_writes_a_row_per_frame_and_counts_what_it_skipped(tmp_p
     output.close()
     assert counts == {"frames_skipped": 2, "input_rows_dropped": 5}
     lines = path.read_text().splitlines()
-    assert lines[0] == "seq,t_host_ns,t_pred_ns,class,probability"
+    assert lines[0] == "seq,t_host_ns,t_pred_ns,class,probability,decoded,decoded_probability,t_decoded_ns"
     rows = [line.split(",") for line in lines[1:]]
     # what came before the first prediction is predicted (frames 0-2 of 249 ms of rows), never skipped; once
     # every feed has closed, the frame the model still held back (flush) is written last
     assert [int(r[0]) for r in rows] == [0, 1, 2, 5, 6, 7] and [int(r[1]) for r in rows][-1] == 700_000_000
-    assert all(int(r[2]) >= output.clock.anchor_ns for r in rows) and rows[1][3] == '"G2"'
+    assert all(int(r[2]) == 5 for r in rows) and rows[1][3] == '"G2"'  # the model's own t_pred_ns
+    assert all(r[5:7] == ['"G9"', "0.2500"] and int(r[7]) >= output.clock.anchor_ns for r in rows)
     batches = [m for m in _all(out) if isinstance(m, DataBatch)]
     assert batches and batches[-1].last_row[:4:3] == (7, "G1") and batches[-1].stream == "gestures_live"
 
@@ -200,11 +204,13 @@ def _all(out: queue.Queue) -> list:
 def test_the_tracker_reports_the_current_gesture_since_its_first_frame_and_the_latency() -> None:
     tracker = GestureTracker(10.0)
     assert tracker.status(0) is None
-    tracker.update((0, 1_000_000_000, 1_012_000_000, "G1", 0.9))
-    tracker.update((5, 1_500_000_000, 1_520_000_000, "G1", 0.8))
+    # rows: seq, t_host, t_pred, class, probability, decoded, decoded_probability, t_decoded: the decoded
+    # class is what the operator sees, with the latency of its decision
+    tracker.update((0, 1_000_000_000, 1_002_000_000, "G4", 0.5, "G1", 0.9, 1_012_000_000))
+    tracker.update((5, 1_500_000_000, 1_502_000_000, "G1", 0.8, "G1", 0.8, 1_520_000_000))
     status = tracker.status(1_600_000_000)
     assert status == GestureStatus("G1", 0.8, 0.6, 20.0, 0.08)
-    tracker.update((6, 1_600_000_000, 1_605_000_000, "G3", 0.7))
+    tracker.update((6, 1_600_000_000, 1_601_000_000, "G1", 0.6, "G3", 0.7, 1_605_000_000))
     assert tracker.status(1_700_000_000) == GestureStatus("G3", 0.7, 0.1, 5.0, 0.095)
 
 
