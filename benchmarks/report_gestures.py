@@ -300,5 +300,6 @@ def rescored_section(report: dict[str, Any]) -> list[str]:
             "no minimum and merges at S after, `sP-S` decodes with any order equally likely, each change costing P "
             "nats, `v-S` with no order at all; `oL-` before a decoding (`o5-g10-auto`): decoded as a live decoder "
             "lagging L frames would (`postprocess.decode_online`: each frame labelled L frames later from the best "
-            "path so far), for causal runs, whose own clean-up is none. acc in %.", "",
+            "path so far), for causal runs (their own clean-up until 2026-11-27 was none; since, it is this with L = "
+            "`--decode-lag`, default 0). acc in %.", "",
             *rescored_table(report["rows"]), ""]

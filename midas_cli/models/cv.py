@@ -214,6 +214,10 @@ def _clean_up(run: dict) -> str:
     if not minimum and not weight:
         return "none (the network's own predictions)"
     how = f"decoded with the training split's gesture order, weight {weight:g}" if weight else "short segments merged"
+    lag = run.get("decode_lag_frames")
+    if lag is not None:  # a causal run: decoded frame by frame, as live
+        how = (f"decoded frame by frame as live, each frame {lag} frame(s) after it, "
+               + (f"with the training split's gesture order, weight {weight:g}" if weight else "no gesture order"))
     return f"{how}, segments at least --min-segment {run['train_config']['min_segment']} long (raw figures: each " \
            "fold's metrics.json)"
 

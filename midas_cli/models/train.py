@@ -357,7 +357,8 @@ def _evaluate(model: torch.nn.Module, seqs: Sequences, classes: list[str], devic
         return {**M.evaluate(raw, seqs.y, classes), "predictions": raw}
     preds = postprocess.clean_up(log_probs, min_segment_frames, switch, lag)
     return {**M.evaluate(preds, seqs.y, classes), "min_segment_frames": min_segment_frames,
-            "grammar": switch is not None, "decode_lag_frames": lag, "raw": M.evaluate(raw, seqs.y, classes)["summary"], "predictions": preds}
+            "grammar": switch is not None, "decode_lag_frames": lag, "raw": M.evaluate(raw, seqs.y, classes)["summary"],
+            "predictions": preds}
 
 
 def _run_record(dataset: GestureDataset, split: Split, normaliser: Normaliser | None, config: TrainConfig,
