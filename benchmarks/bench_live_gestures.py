@@ -5,8 +5,10 @@ Simulates Raven-II trials (`midas simulate dataset`), aligns them, trains each c
 default size for --epochs (the weights do not change the cost; accuracy is not measured here), then
 replays one session's EmHT rows into `load_live_model(run)` in chunks of 10 ms of host time and times
 every `ready()` call. Per frame: the latency of the calls that produced exactly one frame (features +
-one incremental model step; p50 / p99 / max), the model step alone (`frame_stepper`, same features)
-and the state the stepper holds. One torch / BLAS thread, as a recorder's worker would run.
+one incremental model step + the run's decoding; p50 / p99 / max), the model step alone
+(`frame_stepper`, same features), the state the stepper holds, and the decoding step alone (the run's
+clean-up at `train gestures`' defaults, `--min-segment auto --grammar auto`, run live by
+`postprocess.OnlineDecoder`). One torch / BLAS thread, as a recorder's worker would run.
 
     .venv/bin/python benchmarks/bench_live_gestures.py [--seconds 60] [--models mstcn,transformer] \
         [--epochs 1]     # -> results/live_gestures.json
@@ -95,6 +97,19 @@ def model_step_only(run: Path, frames: int) -> dict:
     return {**percentiles(times), "state_floats": stepper.state_floats()}
 
 
+def decoding_step_only(run: Path, frames: int) -> dict:
+    """The run's live decoding alone (one ``OnlineDecoder.step`` a frame) on random log-probabilities."""
+    live = load_run(run)
+    decoder = live.decoding.decoder(len(live.classes))
+    log_probs = np.log(np.random.default_rng(1).dirichlet(np.ones(len(live.classes)), size=frames))
+    times = []
+    for row in log_probs:
+        began = time.perf_counter()
+        decoder.step(row)
+        times.append(time.perf_counter() - began)
+    return {**percentiles(times), **live.decoding.manifest(), "classes": len(live.classes)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0, help="length of each simulated trial")
@@ -109,11 +124,12 @@ def main() -> None:
         for model in args.models.split(","):
             run = Path(tmp) / model
             train_run(sessions, DatasetConfig(("emht",), ("pos", "ori", "vel")),
-                      TrainConfig(model=model, epochs=args.epochs, causal=True), run)
+                      TrainConfig(model=model, epochs=args.epochs, causal=True, min_segment="auto", grammar="auto"), run)
             rates = {s: Session.open(sessions[0]).stream_spec(s).nominal_rate_hz for s in ("emht",)}
             feed = load_live_model(run, rates)
             report["models"][model] = {"rate_hz": feed.spec.rate_hz, "live": replay(feed, sessions[0]),
-                                       "model_step": model_step_only(run, 1000)}
+                                       "model_step": model_step_only(run, 1000),
+                                       "decoding_step": decoding_step_only(run, 1000)}
     report["load_average_1min_after"] = load_average()
     write_result("live_gestures", report)
 
