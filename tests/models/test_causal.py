@@ -63,9 +63,14 @@ def data(tmp_path_factory) -> Path:
 
 def test_train_gestures_causal_records_it_and_re_evaluates_the_same(data, tmp_path):
     run = midas("train", "gestures", str(data), "--model", "mstcn", "--causal", "--modalities", "emht", "--features", "pos,vel",
-                "--epochs", "1", "--out", str(tmp_path / "run"), "--json", check=True)
+                "--epochs", "1", "--decode-lag", "0.5", "--out", str(tmp_path / "run"), "--json", check=True)
     record = json.loads((tmp_path / "run" / "run.json").read_text(encoding="utf-8"))
     assert record["train_config"]["causal"] is True and record["model_config"]["causal"] is True
+    # its clean-up (the defaults' minimum and gesture order) decoded as live, each frame 0.5 s after it
+    lag = round(0.5 * record["trials"][0]["rate_hz"])
+    assert record["decode_lag_frames"] == lag and record["min_segment_frames"] > 1 and record["switch_scores"]
+    test = json.loads((tmp_path / "run" / "metrics.json").read_text(encoding="utf-8"))["test"]
+    assert test["decode_lag_frames"] == lag and test["grammar"] and set(test["raw"]) == set(test["summary"])
     saved = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=True)
     assert saved["model_config"]["causal"] is True and saved["train_config"]["causal"] is True
     again = midas("train", "gestures", str(data), "--eval-only", str(tmp_path / "run" / "checkpoint.pt"),
@@ -87,6 +92,7 @@ def test_causal_cross_validation_batched_trains_causal_folds_and_per_frame_basel
         assert baseline["train_config"]["causal"] is True and "causal" not in baseline["model_config"]
         # as with causal: the training asked for is recorded, the per-frame network has no delay (frame t at t)
         assert baseline["train_config"]["delay_s"] == 0.3 and "delay" not in baseline["model_config"]
+    assert "decoded frame by frame as live, each frame 0 frame(s) after it" in (out / "cv.md").read_text(encoding="utf-8")
     # a fold written before --causal existed has no such key, which meant "not causal"
     _set_causal(out / "fold-0" / "run.json", None)
     with pytest.raises(ConfigError, match="trained differently"):

@@ -144,6 +144,10 @@ def test_the_grammar_weight_sets_what_a_change_of_gesture_costs():
     for bad in ("-1", "cheap", "nan", "inf"):
         with pytest.raises(ConfigError, match="--grammar"):
             postprocess.check_weight(bad)
+    assert postprocess.check_lag(0.0, causal=False) == 0.0 and postprocess.check_lag(1.5, causal=True) == 1.5
+    for seconds, causal in ((-0.1, True), (float("nan"), True), (float("inf"), True), (1.0, False)):
+        with pytest.raises(ConfigError, match="--decode-lag"):
+            postprocess.check_lag(seconds, causal)
 
 
 @pytest.fixture(scope="module")
@@ -190,3 +194,6 @@ def test_train_cleans_up_by_default_keeps_raw_and_re_evaluates_the_same(data, tm
     assert bad.returncode == 2 and "--min-segment" in bad.stderr and not (tmp_path / "bad" / "run.json").exists()
     bad = midas(*args, "--grammar", "lots", "--out", str(tmp_path / "bad"))
     assert bad.returncode == 2 and "--grammar" in bad.stderr and not (tmp_path / "bad" / "run.json").exists()
+    bad = midas(*args, "--decode-lag", "1", "--out", str(tmp_path / "bad"))  # a lag is for a causal model
+    assert bad.returncode == 2 and "--decode-lag is for --causal" in bad.stderr
+    assert not (tmp_path / "bad" / "run.json").exists()
