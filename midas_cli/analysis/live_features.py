@@ -27,7 +27,7 @@ from midas_cli.analysis.sync import associate
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.models.data import DatasetConfig, Normaliser, modality_features
 from midas_cli.models.postprocess import OnlineDecoder, saved_switch_scores
-from midas_cli.models.train import build_model, load_checkpoint, saved_decode_lag, saved_structure
+from midas_cli.models.train import build_model, load_checkpoint, saved_decode_lag, saved_min_segment, saved_structure
 from midas_cli.session.derived import AlignedTable
 
 FEATURE_CLOCK_HZ = 30.0  # the video frame clock training's features (velocities) were computed on
@@ -86,10 +86,8 @@ class LiveRun:
 
 def saved_decoding(saved: dict, n_classes: int) -> Decoding:
     """The ``Decoding`` a run recorded (SessionError for a damaged record)."""
-    minimum = saved.get("min_segment_frames", 0)
-    if isinstance(minimum, bool) or not isinstance(minimum, int) or minimum < 0:
-        raise SessionError(f"the run's min_segment_frames must be a whole number of frames >= 0, got {minimum!r}")
-    return Decoding(minimum, saved_switch_scores(saved.get("switch_scores"), n_classes), saved_decode_lag(saved) or 0)
+    return Decoding(saved_min_segment(saved), saved_switch_scores(saved.get("switch_scores"), n_classes),
+                    saved_decode_lag(saved) or 0)
 
 
 def load_run(run: Path) -> LiveRun:
@@ -128,9 +126,13 @@ def _live_run(path: Path, saved: dict) -> LiveRun:
         raise ConfigError(f"live model {path}: its features ({saved['feature_names']}) are not the ones this midas "
                           f"builds for {config.features} ({names})")
     normaliser = Normaliser.from_json(saved["normaliser"]) if config.normalise == "train" else None
+    rate = _model_rate(path, config, saved)
+    decoding = saved_decoding(saved, len(classes))
+    if max(decoding.minimum, decoding.lag) >= 3600 * rate:  # what --min-segment and --decode-lag allow
+        raise ConfigError(f"live model {path}: its decoding's minimum ({decoding.minimum}) and lag ({decoding.lag}) "
+                          f"must be under an hour of frames at {rate:g} Hz")
     return LiveRun(path.parent.name, hashlib.sha256(path.read_bytes()).hexdigest(), str(saved["model"]),
-                   model.eval(), classes, _model_rate(path, config, saved), config, normaliser, columns,
-                   saved_decoding(saved, len(classes)))
+                   model.eval(), classes, rate, config, normaliser, columns, decoding)
 
 
 def _refuse_offline_only(path: Path, config: DatasetConfig) -> None:

@@ -197,6 +197,13 @@ def test_what_cannot_run_live_is_refused_naming_why(sessions, runs, tmp_path):
         torch.save({**saved, "model_config": {**saved["model_config"], "delay": delay}}, tmp_path / "delay.pt")
         with pytest.raises(ConfigError, match="delay"):
             load_live_model(tmp_path / "delay.pt")
+    # a decoding that is not one (a damaged or hostile record): refused before a decoder allocates anything
+    for field, value, why in (("min_segment_frames", -1, "min_segment_frames"), ("min_segment_frames", 2.5, "min_segment"),
+                              ("min_segment_frames", 10**12, "under an hour"), ("decode_lag_frames", 10**9, "under an hour"),
+                              ("decode_lag_frames", "5", "decode_lag"), ("switch_scores", [[1.0]], "switch_scores")):
+        torch.save({**saved, field: value}, tmp_path / "decoding.pt")
+        with pytest.raises(ConfigError, match=why):
+            load_live_model(tmp_path / "decoding.pt")
     assert json.loads((runs["mstcn"] / "run.json").read_text())["train_config"]["causal"] is True
 
 
