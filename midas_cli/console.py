@@ -211,7 +211,7 @@ def _emht_positions(latest: dict[str, Any], labels: dict[str, str]) -> Table:
 
 def gesture_line(gesture: GestureStatus | None) -> Text:
     """`record --live-model`: the current gesture, its probability, how long it has lasted and the
-    recognition latency (prediction time - frame time of the last frame); dimmed once it is stale."""
+    recognition latency (decision time - frame time of the last frame); dimmed once it is stale."""
     if gesture is None:
         return Text("gesture: waiting for the first frame", "dim")
     stale = gesture.age_s > STALE_PANEL_S

@@ -133,7 +133,7 @@ class GestureTracker:
         self.period_s = 1.0 / rate_hz
         self.label: str | None = None
         self.probability = 0.0
-        self.since_ns = self.last_ns = self.t_pred_ns = 0
+        self.since_ns = self.last_ns = self.decided_ns = 0
 
     def update(self, last_row: tuple) -> None:
         """``last_row``: a ``gestures_live`` row (seq, t_host_ns, t_pred_ns, class, probability, decoded,
@@ -141,7 +141,7 @@ class GestureTracker:
         t_host_ns, label, probability, t_decoded_ns = last_row[1], last_row[5], last_row[6], last_row[7]
         if label != self.label:
             self.label, self.since_ns = label, int(t_host_ns)
-        self.last_ns, self.t_pred_ns, self.probability = int(t_host_ns), int(t_decoded_ns), float(probability)
+        self.last_ns, self.decided_ns, self.probability = int(t_host_ns), int(t_decoded_ns), float(probability)
 
     def status(self, now_ns: int) -> GestureStatus | None:
         """What the screen and `midas ctl status` show (None before the first prediction)."""
@@ -149,4 +149,4 @@ class GestureTracker:
             return None
         return GestureStatus(self.label, round(self.probability, 4),
                              round((self.last_ns - self.since_ns) / 1e9 + self.period_s, 3),
-                             round((self.t_pred_ns - self.last_ns) / 1e6, 1), round((now_ns - self.t_pred_ns) / 1e9, 3))
+                             round((self.decided_ns - self.last_ns) / 1e6, 1), round((now_ns - self.decided_ns) / 1e9, 3))

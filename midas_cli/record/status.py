@@ -44,9 +44,9 @@ class DeviceStatus:
 
 @dataclass(frozen=True)
 class GestureStatus:
-    """The live recognition (`record --live-model`): the current gesture and its probability, how long
-    it has lasted (s, on the frames' clock), the recognition latency of the last frame (ms, prediction
-    time - frame time) and how long ago that prediction was made (s)."""
+    """The live recognition (`record --live-model`): the current (decoded) gesture and its probability, how
+    long it has lasted (s, on the frames' clock), the recognition latency of the last frame (ms, time its
+    decoded class was decided - frame time) and how long ago that was (s)."""
 
     label: str
     probability: float
