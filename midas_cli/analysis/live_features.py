@@ -26,8 +26,8 @@ import torch
 from midas_cli.analysis.sync import associate
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.models.data import DatasetConfig, Normaliser, modality_features
-from midas_cli.models.postprocess import OnlineDecoder, saved_switch_scores
-from midas_cli.models.train import build_model, load_checkpoint, saved_decode_lag, saved_min_segment, saved_structure
+from midas_cli.models.postprocess import OnlineDecoder, saved_decode_lag, saved_min_segment, saved_switch_scores
+from midas_cli.models.train import build_model, load_checkpoint, saved_structure
 from midas_cli.session.derived import AlignedTable
 
 FEATURE_CLOCK_HZ = 30.0  # the video frame clock training's features (velocities) were computed on

@@ -107,6 +107,24 @@ def saved_switch_scores(value: object, n_classes: int) -> np.ndarray | None:
     return scores
 
 
+def saved_decode_lag(saved: dict) -> int | None:
+    """A saved run's ``decode_lag_frames`` (None: decoded over the whole sequence, as every run before it),
+    checked: a whole number of frames >= 0."""
+    lag = saved.get("decode_lag_frames")
+    return None if lag is None else _whole_frames(lag, "decode_lag_frames")
+
+
+def saved_min_segment(saved: dict) -> int:
+    """A saved run's ``min_segment_frames`` (0 where it has none), checked: a whole number of frames >= 0."""
+    return _whole_frames(saved.get("min_segment_frames", 0), "min_segment_frames")
+
+
+def _whole_frames(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise SessionError(f"the run's {name} must be a whole number of frames >= 0, got {value!r}")
+    return value
+
+
 def min_frames(setting: str, train_labels: Sequence[np.ndarray], rate_hz: float) -> int:
     """The minimum segment length in frames that ``setting`` gives (0: no clean-up)."""
     if setting == NONE:

@@ -219,30 +219,12 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     model.load_state_dict(saved["state_dict"])
     model.to(device)
     switch = postprocess.saved_switch_scores(saved.get("switch_scores"), len(dataset.classes))
-    result = {"test": _evaluate(model, test, dataset.classes, device, saved_min_segment(saved), switch,
-                                saved_decode_lag(saved))}
+    result = {"test": _evaluate(model, test, dataset.classes, device, postprocess.saved_min_segment(saved), switch,
+                                postprocess.saved_decode_lag(saved))}
     run = {**{k: v for k, v in saved.items() if k != "state_dict"}, "evaluated_checkpoint": str(checkpoint),
            "data_fingerprint_now": dataset.fingerprint(), "skipped_sessions_now": dataset.skipped_sessions}
     write_run(out_dir, run, result, model, dataset, test, device, save_checkpoint=False)
     return RunResult(out_dir, result, saved.get("history", []))
-
-
-def saved_decode_lag(saved: dict) -> int | None:
-    """A saved run's ``decode_lag_frames`` (None: decoded over the whole sequence, as every run before it),
-    checked: a whole number of frames >= 0."""
-    lag = saved.get("decode_lag_frames")
-    return None if lag is None else _whole_frames(lag, "decode_lag_frames")
-
-
-def saved_min_segment(saved: dict) -> int:
-    """A saved run's ``min_segment_frames`` (0 where it has none), checked: a whole number of frames >= 0."""
-    return _whole_frames(saved.get("min_segment_frames", 0), "min_segment_frames")
-
-
-def _whole_frames(value: object, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise SessionError(f"the run's {name} must be a whole number of frames >= 0, got {value!r}")
-    return value
 
 
 def saved_structure(saved: dict) -> tuple[bool, int]:

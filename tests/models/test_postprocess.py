@@ -126,8 +126,7 @@ def test_the_order_of_gestures_comes_from_training_and_can_forbid_a_change():
         with pytest.raises(SessionError, match="switch_scores"):
             postprocess.saved_switch_scores(bad, 3)
     assert postprocess.decode(np.log(probs)[:, :2], 3).tolist() == [0, 0]  # shorter than the minimum: one class
-    from midas_cli.models.train import saved_decode_lag, saved_min_segment
-
+    saved_min_segment, saved_decode_lag = postprocess.saved_min_segment, postprocess.saved_decode_lag
     assert (saved_min_segment({}), saved_decode_lag({})) == (0, None)  # a run from before either existed
     assert (saved_min_segment({"min_segment_frames": 12}), saved_decode_lag({"decode_lag_frames": 0})) == (12, 0)
     for bad in (-1, 2.5, True, "12", None):  # a damaged run.json: one clear error, never a decoder built on it
