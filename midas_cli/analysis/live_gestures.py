@@ -152,7 +152,7 @@ class LiveFeed:
         out = []
         while self._waiting:
             out.extend(self._labelled(self._stepper.step(np.zeros(self._dim))))
-        return out + self._decided(self._decoder.finish())
+        return out + (self._decided(self._decoder.finish()) if self._undecided else [])
 
     def drop_until(self, t_host_ns: int) -> int:
         """Skip frames older than ``t_host_ns`` (a slow model catching up); how many were skipped."""

@@ -141,6 +141,7 @@ def test_the_decoded_class_is_the_runs_clean_up_decided_lag_frames_late_as_offli
     streamed = _feed_in_random_chunks(feed, session, seed=5)
     tail = feed.flush()
     assert len(tail) == 3 + 5  # the network's delay, then the decoding's lag, decided as the input ends
+    assert feed.flush() == []  # nothing after the end
     live = streamed + tail
     assert [p.seq for p in live] == list(range(len(live))) and all(p.decoded for p in live)
     offline = offline_predictions(session, run, np.array([p.t_host_ns for p in live]), _rates(session))
