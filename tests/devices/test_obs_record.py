@@ -47,10 +47,11 @@ def recorded(obs: ObsServer, state_home: Path, tmp_path_factory) -> tuple[Path, 
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("MIDAS_OBS_PASSWORD", PASSWORD)
         patch.setenv("XDG_STATE_HOME", str(state_home))
-        # stopped (Ctrl-C) once three toggles of the marker are on disk: a busy host may start OBS late
+        # stopped (Ctrl-C) once four toggles of the marker are on disk (shown, hidden, shown, hidden): a busy
+        # host may start OBS late, and a marker shown just before the stop may not reach an encoded frame
         args = ["--device", f"video=obs://127.0.0.1:{obs.port}?fps={FPS}&marker={MARKER}&marker_at=1&marker_every=2",
                 "--subject", "1", "--task", "obs", "--trial", "1", "--no-tui"]
-        result = record_until(out, args, rows={"video": 1, "video_marker": 3}, timeout=240)
+        result = record_until(out, args, rows={"video": 1, "video_marker": 4}, timeout=240)
     assert result.returncode == 0, result.stderr
     return Path(result.stdout.strip().splitlines()[-1]), result
 
@@ -108,16 +109,20 @@ def test_manifest_reports_the_start_event_and_the_stop_check(recorded) -> None:
 def test_sync_marker_is_found_in_the_pixels_near_its_host_time(recorded) -> None:
     session, _ = recorded
     toggles = pd.read_csv(session / "streams" / "video_marker.csv")
-    enabled = toggles["enabled"].tolist()  # shown, hidden, shown, ... (the recording ran until three were on disk)
-    assert len(enabled) >= 3 and enabled == [1 - i % 2 for i in range(len(enabled))]
+    enabled = toggles["enabled"].tolist()  # shown, hidden, shown, hidden, ... (recorded until four were on disk)
+    assert len(enabled) >= 4 and enabled == [1 - i % 2 for i in range(len(enabled))]
     assert (toggles["t_ack_ns"] >= toggles["t_host_ns"]).all()
     video = next((session / "video").glob("*.mkv"))
     onsets = marker_onsets(region_brightness(video, MARKER_ROI))
     frames = pd.read_csv(session / "streams" / "video.csv")["t_host_ns"].to_numpy()
     shown = toggles.loc[toggles["enabled"] == 1, "t_host_ns"].to_numpy()
+    # every showing half a second or more before the last encoded frame is in the pixels (a busy OBS renders
+    # late: one shown just before the stop may never reach the file), and the video shows no marker not asked for
+    settled = int(np.sum(shown < frames[-1] - 500_000_000))
     offsets = marker_offsets_ms(frames, onsets, shown)
-    assert len(onsets) == len(shown) and not np.isnan(offsets).any()
-    assert np.all(np.abs(offsets) < 500), offsets  # found next to its own toggle, not a neighbour's
+    assert settled >= 2 and settled <= len(onsets) <= len(shown), (settled, onsets, shown)
+    assert not np.isnan(offsets[:settled]).any(), offsets
+    assert np.all(np.abs(offsets[~np.isnan(offsets)]) < 500), offsets  # next to its own toggle, not a neighbour's
 
 
 def test_the_password_never_reaches_outputs_and_obs_settings_are_restored(recorded, obs: ObsServer,
