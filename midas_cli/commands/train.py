@@ -33,7 +33,7 @@ app = typer.Typer(help="Train and evaluate gesture-recognition models.\n\n"
 MODALITIES_OPT = typer.Option("auto", "--modalities", help="Comma list of emht, handkp, mtm, psm, image; auto "
                                "(default): emht where every session has it (MiDAS), else mtm,psm (JIGSAWS-style).")
 FEATURES_OPT = typer.Option("auto", "--features", help="Comma list of pos, ori, vel, angvel, grasper, clutch; "
-                             "auto (default): pos,ori,vel for emht (the paper), pos,ori,vel,grasper for robot arms.")
+                             "auto (default): pos,ori,vel for emht (the paper), pos,vel,angvel,grasper for robot arms.")
 TRAINING_PANEL = "Training"  # the options of training_options (below), shared by gestures and ablation
 SPLIT_OPT = typer.Option("gesture", "--split", rich_help_panel=TRAINING_PANEL, help="gesture (stratified 60/20/20 "
                          "instances), loto, louo or loso (leave one trial / user / super-trial out).")

@@ -154,12 +154,13 @@ def test_transformer_attends_over_time_within_a_window():
 
 def test_auto_modalities_take_the_emht_where_every_session_has_it_else_the_robot_arms(sessions, monkeypatch):
     """`--modalities auto --features auto` (the defaults): MiDAS sessions train on the EmHT with the
-    paper's pos/ori/vel; sessions without it (JIGSAWS-style kinematics) on mtm + psm with the grasper."""
+    paper's pos/ori/vel; sessions without it (JIGSAWS-style kinematics) on mtm + psm with position, velocity,
+    angular velocity and the grasper (not the orientation: it carries each user's grip as an offset)."""
     import midas_cli.models.data as data
 
     midas_style = build_dataset(sessions, DatasetConfig(("auto",), ("auto",)))
     assert midas_style.config.modalities == ("emht",) and midas_style.config.features == ("pos", "ori", "vel")
-    assert data.resolve_auto(DatasetConfig(("mtm",), ("auto",)), sessions).features == ("pos", "ori", "vel",
+    assert data.resolve_auto(DatasetConfig(("mtm",), ("auto",)), sessions).features == ("pos", "vel", "angvel",
                                                                                          "grasper")
     real = data.read_aligned
 
@@ -169,7 +170,7 @@ def test_auto_modalities_take_the_emht_where_every_session_has_it_else_the_robot
 
     monkeypatch.setattr(data, "read_aligned", Jigsaws)
     jigsaws = data.resolve_auto(DatasetConfig(("auto",), ("auto",)), sessions)
-    assert jigsaws.modalities == ("mtm", "psm") and jigsaws.features == ("pos", "ori", "vel", "grasper")
+    assert jigsaws.modalities == ("mtm", "psm") and jigsaws.features == ("pos", "vel", "angvel", "grasper")
     monkeypatch.setattr(data, "read_aligned", lambda path: type("T", (), {"columns": ["video.seq", "mtm.left_x_mm"]})())
     assert data.resolve_auto(DatasetConfig(("auto",), ("auto",)), sessions).modalities == ("mtm",)
     monkeypatch.setattr(data, "read_aligned", lambda path: type("T", (), {"columns": ["video.seq"]})())
