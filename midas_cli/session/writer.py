@@ -24,6 +24,7 @@ from midas_cli.clock import HostClock
 from midas_cli.errors import ConfigError, SessionError
 from midas_cli.session import stop_facts
 from midas_cli.session.columnar import add_binary_copies
+from midas_cli.session.folder import make_session_folder
 from midas_cli.session.manifest import SCHEMA_VERSION, write_manifest
 from midas_cli.session.schema import StreamSpec
 from midas_cli.session.streamfile import summarize_stream
@@ -61,26 +62,6 @@ class SessionMetadata:
 
 def utc_iso(host_ns: int) -> str:
     return datetime.fromtimestamp(host_ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
-
-
-def make_session_folder(out_root: Path, stem: str, host_ns: int) -> Path:
-    """Create ``out_root/<stem>_<YYYYMMDDTHHMMSSZ>``; never reuse a folder (a clash gets _2, _3, ...)."""
-    stamp = datetime.fromtimestamp(host_ns / 1e9, tz=timezone.utc).strftime("%Y%m%dT%H%M%SZ")
-    try:
-        Path(out_root).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SessionError(f"cannot create output folder {out_root}: {exc.strerror}") from exc
-    base = f"{stem}_{stamp}"
-    for attempt in range(1, 1000):
-        folder = Path(out_root) / (base if attempt == 1 else f"{base}_{attempt}")
-        try:
-            folder.mkdir()
-        except FileExistsError:
-            continue
-        except OSError as exc:
-            raise SessionError(f"cannot create session folder {folder}: {exc.strerror}") from exc
-        return folder
-    raise SessionError(f"too many sessions named {base} in {out_root}")
 
 
 class StreamAppender:
@@ -149,35 +130,39 @@ class SessionWriter:
         offline writers (simulate, import) whose data carry their own times; live recording uses now.
         ``extra``: further top-level manifest keys (live recording: ``lsl_out``)."""
         start_ns = clock.now_ns() if start_ns is None else start_ns
-        folder = make_session_folder(out_root, metadata.folder_stem(), start_ns)
-        try:
-            manifest = {
-                "schema_version": SCHEMA_VERSION,
-                "session_id": folder.name,
-                "status": "recording",
-                "stop_reason": None,
-                "metadata": asdict(metadata),
-                "rig": rig or {},
-                "clock": {"kind": "CLOCK_MONOTONIC anchored to Unix epoch", "anchor_ns": clock.anchor_ns},
-                "start": {"utc": utc_iso(start_ns), "host_ns": start_ns},
-                "stop": None,
-                "software": software_info(),
-                "devices": devices,
-                "streams": {spec.name: spec.to_manifest() for spec in specs},
-                "files": {"log": LOG_FILE},
-                **(extra or {}),
-            }
-            write_manifest(folder, manifest)  # first: a kill from here on leaves a session `repair` understands
+        manifest = {
+            "schema_version": SCHEMA_VERSION,
+            "session_id": None,  # the folder's name, once it has one
+            "status": "recording",
+            "stop_reason": None,
+            "metadata": asdict(metadata),
+            "rig": rig or {},
+            "clock": {"kind": "CLOCK_MONOTONIC anchored to Unix epoch", "anchor_ns": clock.anchor_ns},
+            "start": {"utc": utc_iso(start_ns), "host_ns": start_ns},
+            "stop": None,
+            "software": software_info(),
+            "devices": devices,
+            "streams": {spec.name: spec.to_manifest() for spec in specs},
+            "files": {"log": LOG_FILE},
+            **(extra or {}),
+        }
+
+        def populate(folder: Path, name: str) -> None:
+            manifest["session_id"] = name
+            write_manifest(folder, manifest)
             for sub in SUBFOLDERS:
                 (folder / sub).mkdir(exist_ok=True)
             stop_facts.reserve(folder)  # room for how it ended, should the disk be full by then
+
+        try:  # the folder appears with its manifest (a kill leaves a session `repair` understands) or not at all
+            folder = make_session_folder(out_root, metadata.folder_stem(), start_ns, populate)
+        except OSError as exc:  # disk full, quota, permissions: nothing was recorded, nothing is left behind
+            raise SessionError(f"cannot create the session in {out_root}: {exc.strerror or exc}") from exc
+        try:
             return cls(folder, manifest, specs)
-        except OSError as exc:  # disk full, quota, permissions: nothing was recorded, leave nothing behind
+        except OSError as exc:
             shutil.rmtree(folder, ignore_errors=True)
             raise SessionError(f"cannot create the session in {out_root}: {exc.strerror or exc}") from exc
-        except SessionError:  # a name no manifest may hold (an imported file's sensor named "../x")
-            shutil.rmtree(folder, ignore_errors=True)
-            raise
 
     def append(self, stream: str, text: str) -> None:
         """Append whole CSV lines to a stream and hand them to the OS (survives a process kill).

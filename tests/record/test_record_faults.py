@@ -23,6 +23,7 @@ from rich.console import Console
 from midas_cli.console import dashboard
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
+from midas_cli.session.folder import STAGING_PREFIX
 from midas_cli.session.reader import Session
 from helpers.cli import midas, wait_for as _wait_for
 from helpers.net import free_port
@@ -51,7 +52,12 @@ def _status(manifest: Path) -> str | None:
 
 
 def _sessions(out: Path) -> list[Path]:
-    return [p for p in out.iterdir() if p.is_dir()] if out.exists() else []
+    """The session folders in ``out``: every folder but a session start's hidden staging folder."""
+    return [p for p in out.iterdir() if p.is_dir() and not p.name.startswith(STAGING_PREFIX)] if out.exists() else []
+
+
+def _staging_left(out: Path) -> list[Path]:
+    return [p for p in out.iterdir() if p.name.startswith(STAGING_PREFIX)] if out.exists() else []
 
 
 # Logs every named semaphore (multiprocessing's SemLock: a /dev/shm/sem.mp-* file) that a process creates.
@@ -188,7 +194,46 @@ def test_twenty_kills_of_the_process_group_leave_nothing_but_repairable_sessions
             verified = midas("session", "verify", str(path))
             assert verified.returncode == 0, (attempt, verified.stdout, verified.stderr)
             assert not list(path.rglob("*.tmp")), list(path.rglob("*.tmp"))
+        for staging in _staging_left(out):  # killed while the session folder was made: no data in it
+            assert not list(staging.glob("streams/*")), list(staging.rglob("*"))
+        if _staging_left(out):  # and the next start there removes it
+            midas("record", "--out", str(out), *META, "--simulate", "--duration", "0.5", "--no-tui", check=True)
+            assert not _staging_left(out)
     assert not semaphore_log.exists(), semaphore_log.read_text()  # pipes only: nothing a kill could leave in /dev/shm
+
+
+# Kills the process (SIGKILL, as a killed process group would) the moment it gives a new session folder its
+# name: its manifest and subfolders are written, the named folder does not exist yet.
+_KILL_AT_NAMING_HOOK = """import os
+import signal
+
+_real_rename = os.rename
+
+
+def _rename(src, dst, *args, **kwargs):
+    if os.path.basename(str(src)).startswith(".midas-new-"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return _real_rename(src, dst, *args, **kwargs)
+
+
+os.rename = _rename
+"""
+
+
+def test_a_kill_while_the_session_folder_is_made_leaves_no_session_and_the_next_start_cleans_up(
+        tmp_path: Path) -> None:
+    (tmp_path / "hook").mkdir()
+    (tmp_path / "hook" / "sitecustomize.py").write_text(_KILL_AT_NAMING_HOOK)
+    out = tmp_path / "out"
+    process = _spawn(out, "--simulate", "--duration", "1", "--no-tui", env_extra={"PYTHONPATH": str(tmp_path / "hook")})
+    process.communicate(timeout=120)
+    assert process.returncode == -signal.SIGKILL
+    assert _sessions(out) == [] and len(_staging_left(out)) == 1  # no half-made session under a session's name
+    assert json.loads(midas("session", "list", str(out), "--json").stdout or "[]") == []
+    result = midas("record", "--out", str(out), *META, "--simulate", "--duration", "1", "--no-tui", check=True)
+    (path,) = _sessions(out)
+    assert result.stdout.strip().splitlines()[-1] == str(path) and not _staging_left(out)
+    assert midas("session", "verify", str(path)).returncode == 0
 
 
 def test_a_killed_recorder_takes_its_workers_with_it(tmp_path: Path) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -12,7 +13,8 @@ from midas_cli.session.integrity import repair_session, verify_session
 from midas_cli.session.manifest import load_manifest, write_manifest
 from midas_cli.session.reader import Session, find_sessions
 from midas_cli.session.schema import StreamSpec
-from midas_cli.session.writer import make_session_folder
+from midas_cli.processes import process_start
+from midas_cli.session.folder import STAGING_PREFIX, make_session_folder
 from helpers.cli import SPEC, write_session
 
 
@@ -67,11 +69,54 @@ def test_reader_refuses_symlink_out_of_the_session(small_session: Path, tmp_path
         Session.open(small_session)
 
 
+def _note_name(folder: Path, name: str) -> None:
+    (folder / "name.txt").write_text(name)
+
+
 def test_sessions_are_never_overwritten(tmp_path: Path) -> None:
-    first = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000)
-    second = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000)
+    first = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
+    second = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
     assert first != second and first.name == "demo_S1_T1_20231114T221320Z"
     assert second.name == first.name + "_2"
+    assert (first / "name.txt").read_text() == first.name and (second / "name.txt").read_text() == second.name
+    assert sorted(p.name for p in tmp_path.iterdir()) == [first.name, second.name]  # no staging left
+
+
+def test_a_session_folder_appears_only_with_what_was_written_into_it(tmp_path: Path) -> None:
+    seen = []
+
+    def populate(folder: Path, name: str) -> None:
+        seen.append(sorted(p.name for p in tmp_path.iterdir()))  # the named folder is not there yet
+        (folder / "manifest.json").write_text("{}")
+
+    folder = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, populate)
+    (names,) = seen
+    assert len(names) == 1 and names[0].startswith(STAGING_PREFIX)
+    assert [p.name for p in tmp_path.iterdir()] == [folder.name] and (folder / "manifest.json").is_file()
+
+
+def test_a_failed_start_leaves_no_folder_at_all(tmp_path: Path) -> None:
+    def populate(folder: Path, name: str) -> None:
+        (folder / "manifest.json").write_text("{}")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, populate)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_staging_left_by_a_killed_start_is_skipped_and_then_removed(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = tmp_path / f"{STAGING_PREFIX}{int(ended.stdout)}-1-0123abcd"  # its process has ended
+    mine = tmp_path / f"{STAGING_PREFIX}{os.getpid()}-{process_start(os.getpid())}-89abcdef"  # still being made
+    reused = tmp_path / f"{STAGING_PREFIX}{os.getpid()}-1-00000000"  # this PID, another start time: ended
+    for staging in (dead, mine, reused):
+        write_session(staging)
+    assert list(find_sessions(tmp_path)) == []  # a session being made is no session yet
+    folder = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([folder.name, mine.name])
 
 
 def test_verify_accepts_a_good_session(small_session: Path) -> None:
