@@ -303,15 +303,15 @@ def train_louo_all_section(results: list[dict]) -> list[str]:
            "--no-baseline --jobs 2` at the defaults of the commit that ran (its default model, features and model rate) "
            "through the CLI, measured "
            "end to end. Issue 27's budget: <= 30 min on 2 CPU cores. The machine is shared: the load is beside each run.",
-           "", "| model | epochs | trials | frames at the model rate | wall | a fold | load 1 min | <= 30 min | run on | code |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "", "| model | epochs | trials | frames at the model rate | inputs a frame | wall | a fold | load 1 min | <= 30 min | run on | code |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         run, secs = r["run"], list(r["run"]["fold_seconds"].values())
         load = "–".join(f"{x:g}" for x in run["load_average_before_after"])
         span = f"{min(secs) / 60:.1f}–{max(secs) / 60:.1f} min" if secs else "—"
         quick = " (smoke run)" if r.get("quick") else ""
         out.append(f"| {run.get('model', 'mstcn')} | {run['epochs']} | {run['trials']} | "
-                   f"{run['frames_at_model_rate']:,} ({run['rate_hz']:g} Hz) | "
+                   f"{run['frames_at_model_rate']:,} ({run['rate_hz']:g} Hz) | {sum(run['inputs'].values())} | "
                    f"{run['wall_s'] / 60:.1f} min{quick} | {span} | {load} | {'yes' if run['wall_s'] <= 1800 else 'no'} | "
                    f"{r['machine']['date_utc'][:16]}, {r['machine']['affinity_cpus']} CPUs | "
                    f"{(run.get('git_commit') or '—')[:7]} |")
@@ -363,7 +363,8 @@ def main() -> None:
         lines += section(result) if result else [f"## {name}: no results yet (run its script)", ""]
         if name == "train" and load("train_louo"):
             lines += train_louo_section(load("train_louo"))
-        louo_all = [json.loads(p.read_text(encoding="utf-8")) for p in sorted(RESULTS.glob("train_louo_all*.json"))]
+        louo_all = sorted((json.loads(p.read_text(encoding="utf-8")) for p in RESULTS.glob("train_louo_all*.json")),
+                          key=lambda r: r["machine"]["date_utc"])  # oldest first
         if name == "train" and louo_all:
             lines += train_louo_all_section(louo_all)
         if name == "train" and load("mstcn_reference"):
