@@ -139,8 +139,7 @@ def _refuse_offline_only(path: Path, config: DatasetConfig) -> None:
     """ConfigError for what only works on a whole recorded session."""
     why = {"the image modality (features extracted from the finished video)": "image" in config.modalities,
            "--normalise trial (each trial scaled by its whole recording)": config.normalise == "trial",
-           "--exclude-clutch": config.exclude_clutch, "the clutch feature set": "clutch" in config.features,
-           "the orirel feature set (needs the recording so far, live has three rows)": "orirel" in config.features}
+           "--exclude-clutch": config.exclude_clutch, "the clutch feature set": "clutch" in config.features}
     found = [reason for reason, applies in why.items() if applies]
     if found:
         raise ConfigError(f"live model {path}: trained with {', '.join(found)}, which cannot run live")

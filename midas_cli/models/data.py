@@ -46,7 +46,7 @@ from midas_cli.session.reader import Session
 log = logging.getLogger(__name__)
 
 MODALITIES = ("emht", "handkp", "mtm", "psm", "image")
-FEATURE_SETS = ("pos", "ori", "orirel", "vel", "angvel", "grasper", "clutch")
+FEATURE_SETS = ("pos", "ori", "vel", "angvel", "grasper", "clutch")
 ROTATIONS = ("matrix", "quat")
 NORMALISATIONS = ("train", "trial", "none")
 # What a checkpoint written before these options existed was built with.

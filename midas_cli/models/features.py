@@ -51,17 +51,14 @@ def feature_block(table: AlignedTable, times_s: np.ndarray, modality: str, featu
             names = [f"{modality}.{s}_v{a}_mm_s" for s in sides for a in "xyz"]
             return _columns(table, names, path), names
         return _derivative(_columns(table, positions, path), times_s), [f"d/dt {n}" for n in positions]
-    if feature in ("ori", "orirel", "angvel"):
+    if feature in ("ori", "angvel"):
         rotations = _rotations(table, modality, path, sides)
         if rotations is None:
             return None
         if feature == "angvel":
             blocks = [angular_velocities(r, times_s) for r in rotations.values()]
             return np.concatenate(blocks, axis=1), [f"{n}_w{a}_rad_s" for n in rotations for a in "xyz"]
-        values, names = _orientation(table, modality, path, sides, rotation, rotations)
-        if feature == "orirel":
-            return values - running_mean(values), [f"{n} - mean so far" for n in names]
-        return values, names
+        return _orientation(table, modality, path, sides, rotation, rotations)
     return _grasper(table, modality, path, sides)
 
 
@@ -78,16 +75,6 @@ def is_orientation(name: str) -> bool:
         return True
     tail = name.rsplit("_", 1)[-1]
     return (len(tail) == 3 and tail[0] == "R" and tail[1:].isdigit()) or tail in ("qx", "qy", "qz", "qw")
-
-
-def running_mean(values: np.ndarray) -> np.ndarray:
-    """(N, D) -> (N, D): each column's mean over the rows up to and including each row (causal), NaN
-    rows left out; NaN until a column's first value."""
-    present = np.isfinite(values)
-    totals = np.cumsum(np.where(present, values, 0.0), axis=0)
-    counts = np.cumsum(present, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(counts > 0, totals / np.maximum(counts, 1), np.nan)
 
 
 def _emht_sensors(sides: Sequence[str]) -> list[int]:

@@ -167,21 +167,6 @@ def test_feature_options_angvel_rotation_and_sides(sessions):
     assert data_config("mtm", "pos", False, None, "both", "matrix", "train").sides == ("left", "right")
 
 
-def test_orirel_is_the_orientation_less_its_mean_so_far(sessions):
-    both = build_dataset(sessions, DatasetConfig(("emht",), ("ori", "orirel"), normalise="none"))
-    trial = both.trials[0]
-    ori, rel = trial.inputs["emht"][:, :24].astype(np.float64), trial.inputs["emht"][:, 24:].astype(np.float64)
-    assert both.feature_names["emht"][24] == both.feature_names["emht"][0] + " - mean so far"
-    assert np.abs(ori).max() > 0.1 and np.allclose(rel[0], 0.0, atol=1e-6)  # the first frame is its own mean
-    # at the model rate the frames are a subset of the 30-Hz feature frames: check the sign and causality
-    # on the features themselves, where every frame counts
-    from midas_cli.models.features import running_mean
-    x = np.array([[1.0, np.nan], [3.0, 2.0], [np.nan, 4.0], [5.0, 6.0]])
-    expected = np.array([[1.0, np.nan], [2.0, 2.0], [2.0, 3.0], [3.0, 4.0]])
-    assert np.allclose(running_mean(x), expected, equal_nan=True)
-    assert np.allclose(running_mean(x[:2]), expected[:2], equal_nan=True)  # later rows change nothing before
-
-
 @pytest.mark.parametrize("mode", ["train", "trial", "none"])
 def test_normalise_options(sessions, mode):
     ds = build_dataset(sessions, DatasetConfig(("mtm",), ("pos", "grasper"), normalise=mode))
