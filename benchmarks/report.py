@@ -303,7 +303,8 @@ def train_louo_all_section(results: list[dict]) -> list[str]:
            "--no-baseline --jobs 2` at the defaults of the commit that ran (its default model, features and model rate) "
            "through the CLI, measured "
            "end to end. Issue 27's budget: <= 30 min on 2 CPU cores. The machine is shared: the load is beside each run.",
-           "", "| model | epochs | trials | frames at the model rate | inputs a frame | wall | a fold | load 1 min | <= 30 min | run on | code |",
+           "", "| model | epochs | trials | frames at the model rate | inputs a frame | wall | a fold | load 1 min "
+           "| <= 30 min | run on | code |",
            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         run, secs = r["run"], list(r["run"]["fold_seconds"].values())
