@@ -1,12 +1,14 @@
 """A session folder appears whole or not at all.
 
-`make_session_folder` builds the new folder under a hidden staging name in the output folder (same file
-system), lets the caller write into it (the "recording" manifest first), and only then renames it to
-``<stem>_<YYYYMMDDTHHMMSSZ>``: a recorder killed at any instant of its start leaves either a session
-that `midas session repair` understands or no session at all. What such a kill can leave is the
-hidden staging folder (``.midas-new-<pid>-<start>-<random>``): it holds no recorded data (streams are
-written only once the folder has its name), readers and `session list` skip hidden folders, and the
-next session made in the same output folder removes the staging folders of processes that have ended.
+`make_session_folder` builds the new folder in the output folder's hidden staging folder
+(``<out>/.midas-new/<pid>-<start>-<random>/``, the same file system), lets the caller write into it (the
+"recording" manifest first), and only then renames it to ``<out>/<stem>_<YYYYMMDDTHHMMSSZ>``: a recorder
+killed at any instant of its start leaves either a session that `midas session repair` understands or no
+session at all, and whoever watches ``<out>/*/manifest.json`` never sees a manifest that is about to
+move. What such a kill can leave is its folder under ``.midas-new/``: it holds no recorded data
+(streams are written only once the folder has its name), readers and `session list` skip it, and the
+next session made in the same output folder removes the folders of processes that have ended (and
+``.midas-new`` itself once it is empty).
 """
 
 from __future__ import annotations
@@ -27,8 +29,8 @@ from midas_cli.session.manifest import fsync_dir
 
 log = logging.getLogger(__name__)
 
-STAGING_PREFIX = ".midas-new-"
-_STAGING = re.compile(re.escape(STAGING_PREFIX) + r"(\d+)-(\d*)-[0-9a-f]{8}")
+STAGING_DIR = ".midas-new"  # in the output folder: where session folders are made
+_STAGING = re.compile(r"(\d+)-(\d*)-[0-9a-f]{8}")  # a folder being made: its maker's PID and start time
 MAX_CLASHES = 1000
 
 
@@ -51,16 +53,23 @@ def make_session_folder(out_root: Path, stem: str, host_ns: int,
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    finally:
+        _remove_if_empty(out_root / STAGING_DIR)
 
 
 def _make_staging(out_root: Path) -> Path:
     pid = os.getpid()
-    staging = out_root / f"{STAGING_PREFIX}{pid}-{process_start(pid) or ''}-{secrets.token_hex(4)}"
-    try:
-        staging.mkdir()
-    except OSError as exc:
-        raise SessionError(f"cannot create a session folder in {out_root}: {exc.strerror}") from exc
-    return staging
+    name = f"{pid}-{process_start(pid) or ''}-{secrets.token_hex(4)}"
+    for _ in range(100):  # another start may remove the empty staging folder between the two mkdirs
+        try:
+            (out_root / STAGING_DIR).mkdir(exist_ok=True)
+            (out_root / STAGING_DIR / name).mkdir()
+            return out_root / STAGING_DIR / name
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            raise SessionError(f"cannot create a session folder in {out_root}: {exc.strerror}") from exc
+    raise SessionError(f"cannot create a session folder in {out_root}: its {STAGING_DIR} keeps vanishing")
 
 
 def _claim_name(staging: Path, out_root: Path, base: str, populate: Callable[[Path, str], None]) -> Path:
@@ -81,12 +90,19 @@ def _claim_name(staging: Path, out_root: Path, base: str, populate: Callable[[Pa
     raise SessionError(f"too many sessions named {base} in {out_root}")
 
 
+def _remove_if_empty(folder: Path) -> None:
+    try:
+        folder.rmdir()
+    except OSError:  # not empty (another start is making its session there), or gone already
+        pass
+
+
 def remove_stale_staging(out_root: Path) -> list[Path]:
-    """Remove the staging folders in ``out_root`` whose process has ended (killed while it created a
-    session: they hold no recorded data); return them. Another process's folder being made is kept."""
+    """Remove the folders in ``out_root``'s staging folder whose process has ended (killed while it made
+    a session: they hold no recorded data); return them. Another process's folder being made is kept."""
     removed: list[Path] = []
     try:
-        entries = list(os.scandir(out_root))
+        entries = list(os.scandir(Path(out_root) / STAGING_DIR))
     except OSError:
         return removed
     for entry in entries:

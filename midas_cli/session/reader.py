@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
 from midas_cli.errors import SessionError
-from midas_cli.session.folder import STAGING_PREFIX
+from midas_cli.session.folder import STAGING_DIR
 from midas_cli.session.manifest import MANIFEST_NAME, check_inside, load_manifest
 from midas_cli.session.schema import StreamSpec
 
@@ -177,7 +177,7 @@ def find_sessions(root: Path | str, max_depth: int = 3) -> Iterator[Path]:
 def _walk(folder: Path, depth: int) -> Iterator[Path]:
     if depth <= 0:
         return
-    children = (p for p in folder.iterdir() if not p.name.startswith(STAGING_PREFIX))  # a session being made
+    children = (p for p in folder.iterdir() if p.name != STAGING_DIR)  # sessions being made
     for child in sorted(p for p in children if p.is_dir() and not p.is_symlink()):
         if (child / MANIFEST_NAME).is_file():
             yield child

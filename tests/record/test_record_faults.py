@@ -23,7 +23,7 @@ from rich.console import Console
 from midas_cli.console import dashboard
 from midas_cli.devices.fps.emulator import FpsEmulator, FpsEmulatorConfig
 from midas_cli.record.status import DeviceStatus, RecorderSnapshot, StreamStatus
-from midas_cli.session.folder import STAGING_PREFIX
+from midas_cli.session.folder import STAGING_DIR
 from midas_cli.session.reader import Session
 from helpers.cli import midas, wait_for as _wait_for
 from helpers.net import free_port
@@ -52,12 +52,13 @@ def _status(manifest: Path) -> str | None:
 
 
 def _sessions(out: Path) -> list[Path]:
-    """The session folders in ``out``: every folder but a session start's hidden staging folder."""
-    return [p for p in out.iterdir() if p.is_dir() and not p.name.startswith(STAGING_PREFIX)] if out.exists() else []
+    """The session folders in ``out``: every folder but the hidden one where sessions are made."""
+    return [p for p in out.iterdir() if p.is_dir() and p.name != STAGING_DIR] if out.exists() else []
 
 
 def _staging_left(out: Path) -> list[Path]:
-    return [p for p in out.iterdir() if p.name.startswith(STAGING_PREFIX)] if out.exists() else []
+    """Session folders a killed start left half made (in ``out/.midas-new``)."""
+    return list((out / STAGING_DIR).iterdir()) if (out / STAGING_DIR).is_dir() else []
 
 
 # Logs every named semaphore (multiprocessing's SemLock: a /dev/shm/sem.mp-* file) that a process creates.
@@ -198,7 +199,7 @@ def test_twenty_kills_of_the_process_group_leave_nothing_but_repairable_sessions
             assert not list(staging.glob("streams/*")), list(staging.rglob("*"))
         if _staging_left(out):  # and the next start there removes it
             midas("record", "--out", str(out), *META, "--simulate", "--duration", "0.5", "--no-tui", check=True)
-            assert not _staging_left(out)
+            assert not _staging_left(out) and not (out / STAGING_DIR).exists()
     assert not semaphore_log.exists(), semaphore_log.read_text()  # pipes only: nothing a kill could leave in /dev/shm
 
 
@@ -211,7 +212,7 @@ _real_rename = os.rename
 
 
 def _rename(src, dst, *args, **kwargs):
-    if os.path.basename(str(src)).startswith(".midas-new-"):
+    if os.path.basename(os.path.dirname(str(src))) == ".midas-new":
         os.kill(os.getpid(), signal.SIGKILL)
     return _real_rename(src, dst, *args, **kwargs)
 
@@ -232,7 +233,7 @@ def test_a_kill_while_the_session_folder_is_made_leaves_no_session_and_the_next_
     assert json.loads(midas("session", "list", str(out), "--json").stdout or "[]") == []
     result = midas("record", "--out", str(out), *META, "--simulate", "--duration", "1", "--no-tui", check=True)
     (path,) = _sessions(out)
-    assert result.stdout.strip().splitlines()[-1] == str(path) and not _staging_left(out)
+    assert result.stdout.strip().splitlines()[-1] == str(path) and not (out / STAGING_DIR).exists()
     assert midas("session", "verify", str(path)).returncode == 0
 
 

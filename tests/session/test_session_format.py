@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -14,7 +15,7 @@ from midas_cli.session.manifest import load_manifest, write_manifest
 from midas_cli.session.reader import Session, find_sessions
 from midas_cli.session.schema import StreamSpec
 from midas_cli.processes import process_start
-from midas_cli.session.folder import STAGING_PREFIX, make_session_folder
+from midas_cli.session.folder import STAGING_DIR, make_session_folder
 from helpers.cli import SPEC, write_session
 
 
@@ -86,12 +87,12 @@ def test_a_session_folder_appears_only_with_what_was_written_into_it(tmp_path: P
     seen = []
 
     def populate(folder: Path, name: str) -> None:
-        seen.append(sorted(p.name for p in tmp_path.iterdir()))  # the named folder is not there yet
         (folder / "manifest.json").write_text("{}")
+        # not under its name yet, and not where a script watching <out>/*/manifest.json would find it
+        seen.append((sorted(p.name for p in tmp_path.iterdir()), folder.parent.name, list(tmp_path.glob("*/manifest.json"))))
 
     folder = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, populate)
-    (names,) = seen
-    assert len(names) == 1 and names[0].startswith(STAGING_PREFIX)
+    assert seen == [([STAGING_DIR], STAGING_DIR, [])]
     assert [p.name for p in tmp_path.iterdir()] == [folder.name] and (folder / "manifest.json").is_file()
 
 
@@ -109,14 +110,19 @@ def test_staging_left_by_a_killed_start_is_skipped_and_then_removed(tmp_path: Pa
     import subprocess
     import sys
     ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    dead = tmp_path / f"{STAGING_PREFIX}{int(ended.stdout)}-1-0123abcd"  # its process has ended
-    mine = tmp_path / f"{STAGING_PREFIX}{os.getpid()}-{process_start(os.getpid())}-89abcdef"  # still being made
-    reused = tmp_path / f"{STAGING_PREFIX}{os.getpid()}-1-00000000"  # this PID, another start time: ended
-    for staging in (dead, mine, reused):
-        write_session(staging)
+    staging = tmp_path / STAGING_DIR
+    dead = staging / f"{int(ended.stdout)}-1-0123abcd"  # its process has ended
+    mine = staging / f"{os.getpid()}-{process_start(os.getpid())}-89abcdef"  # still being made
+    reused = staging / f"{os.getpid()}-1-00000000"  # this PID, another start time: ended
+    for folder in (dead, mine, reused):
+        write_session(folder)
     assert list(find_sessions(tmp_path)) == []  # a session being made is no session yet
     folder = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([folder.name, mine.name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([folder.name, STAGING_DIR])
+    assert [p.name for p in staging.iterdir()] == [mine.name]
+    shutil.rmtree(mine)
+    second = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([folder.name, second.name])  # the empty one goes
 
 
 def test_verify_accepts_a_good_session(small_session: Path) -> None:
