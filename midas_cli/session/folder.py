@@ -62,7 +62,7 @@ def _make_staging(out_root: Path) -> Path:
     name = f"{pid}-{process_start(pid) or ''}-{secrets.token_hex(4)}"
     for _ in range(100):  # another start may remove the empty staging folder between the two mkdirs
         try:
-            (out_root / STAGING_DIR).mkdir(exist_ok=True)
+            _staging_root(out_root).mkdir(exist_ok=True)
             (out_root / STAGING_DIR / name).mkdir()
             return out_root / STAGING_DIR / name
         except FileNotFoundError:
@@ -70,6 +70,15 @@ def _make_staging(out_root: Path) -> Path:
         except OSError as exc:
             raise SessionError(f"cannot create a session folder in {out_root}: {exc.strerror}") from exc
     raise SessionError(f"cannot create a session folder in {out_root}: its {STAGING_DIR} keeps vanishing")
+
+
+def _staging_root(out_root: Path) -> Path:
+    """``out_root/.midas-new``; SessionError if it is a link (folders found there get removed: never
+    follow one out of the output folder)."""
+    root = out_root / STAGING_DIR
+    if root.is_symlink():
+        raise SessionError(f"{root} is a link; midas makes session folders there: remove it")
+    return root
 
 
 def _claim_name(staging: Path, out_root: Path, base: str, populate: Callable[[Path, str], None]) -> Path:
@@ -102,7 +111,7 @@ def remove_stale_staging(out_root: Path) -> list[Path]:
     a session: they hold no recorded data); return them. Another process's folder being made is kept."""
     removed: list[Path] = []
     try:
-        entries = list(os.scandir(Path(out_root) / STAGING_DIR))
+        entries = list(os.scandir(_staging_root(Path(out_root))))
     except OSError:
         return removed
     for entry in entries:

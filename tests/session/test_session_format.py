@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -107,8 +109,6 @@ def test_a_failed_start_leaves_no_folder_at_all(tmp_path: Path) -> None:
 
 
 def test_staging_left_by_a_killed_start_is_skipped_and_then_removed(tmp_path: Path) -> None:
-    import subprocess
-    import sys
     ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     staging = tmp_path / STAGING_DIR
     dead = staging / f"{int(ended.stdout)}-1-0123abcd"  # its process has ended
@@ -123,6 +123,17 @@ def test_staging_left_by_a_killed_start_is_skipped_and_then_removed(tmp_path: Pa
     shutil.rmtree(mine)
     second = make_session_folder(tmp_path, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([folder.name, second.name])  # the empty one goes
+
+
+def test_a_linked_staging_folder_is_refused_and_nothing_behind_it_is_touched(tmp_path: Path) -> None:
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "1-1-0123abcd").mkdir(parents=True)  # named like a killed start's folder
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / STAGING_DIR).symlink_to(elsewhere)
+    with pytest.raises(SessionError, match="is a link"):
+        make_session_folder(out, "demo_S1_T1", 1_700_000_000_000_000_000, _note_name)
+    assert (elsewhere / "1-1-0123abcd").is_dir() and sorted(p.name for p in out.iterdir()) == [STAGING_DIR]
 
 
 def test_verify_accepts_a_good_session(small_session: Path) -> None:
