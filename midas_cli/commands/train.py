@@ -76,6 +76,10 @@ AUGMENT_SHIFT_OPT = typer.Option(None, "--augment-shift", rich_help_panel=TRAINI
 AUGMENT_FEATURES_OPT = typer.Option(None, "--augment-features", rich_help_panel=TRAINING_PANEL, help="The columns "
                                     "--augment-shift moves: pos, ori (orientations) or pos,ori. Default: the model's "
                                     "recipe.")
+WEIGHTS_OPT = typer.Option(None, "--weights", rich_help_panel=TRAINING_PANEL, help="The weights a run keeps: last "
+                           "(the last epoch's), average (the mean of the weights after each epoch of the second half) "
+                           "or best-val (the best validation epoch's; without --val inner, the last). Default: the "
+                           "model's recipe; an ensemble's members each their own.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)
@@ -109,6 +113,7 @@ class Training:
     decode_lag: float = 0.0
     augment_shift: Optional[float] = None
     augment_features: Optional[str] = None
+    weights: Optional[str] = None
 
     def config(self, **fields: Any) -> TrainConfig:
         """A TrainConfig with these choices and ``fields`` (model, fold, device, ...)."""
@@ -118,7 +123,7 @@ class Training:
                            causal=self.causal, min_segment=self.min_segment, grammar=self.grammar,
                            curve_every=self.curve_every,
                            delay_s=self.delay, decode_lag_s=self.decode_lag, augment_shift=self.augment_shift,
-                           augment_features=self.augment_features, **fields)
+                           augment_features=self.augment_features, selection=self.weights, **fields)
 
 
 # The "Training" panel of both commands' help, declared once.
@@ -128,7 +133,8 @@ training_options = option_group("training", Training, keyword_options(
     ("min_segment", MIN_SEGMENT_OPT, str), ("grammar", GRAMMAR_OPT, str),
     ("curve_every", CURVE_EVERY_OPT, int), ("delay", DELAY_OPT, float),
     ("decode_lag", DECODE_LAG_OPT, float),
-    ("augment_shift", AUGMENT_SHIFT_OPT, Optional[float]), ("augment_features", AUGMENT_FEATURES_OPT, Optional[str])))
+    ("augment_shift", AUGMENT_SHIFT_OPT, Optional[float]), ("augment_features", AUGMENT_FEATURES_OPT, Optional[str]),
+    ("weights", WEIGHTS_OPT, Optional[str])))
 
 
 def training_command(command: Callable[..., None]) -> Callable[..., None]:

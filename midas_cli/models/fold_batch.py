@@ -12,7 +12,7 @@ models/augment.py). At each step every fold takes its next
 batch; the batches are padded to a common length (the models mask every padding frame, so a real
 frame's output does not change) and stacked. A fold whose epoch has fewer batches than another's has
 no batch at the last steps: its loss is left out and its step is masked (weights, Adam moments and
-step count unchanged). Selection ("last" or "best-val") and the run folders (``fold-<k>/``) are per
+step count unchanged). Selection ("last", "best-val" or "average") and the run folders (``fold-<k>/``) are per
 fold, as ``train_run`` writes them. On CUDA the forward pass runs in autocast float16 with a loss
 scale per fold (GradScaler's rule: a step with inf/nan gradients is skipped and halves that fold's
 scale; 2000 good steps double it). Bit-equality with separate runs is not kept where dropout is on
@@ -34,6 +34,7 @@ from midas_cli.errors import ConfigError
 from midas_cli.models.data import DatasetConfig, build_dataset
 from midas_cli.models.run_files import new_run_dir
 from midas_cli.models.augment import ColumnShift
+from midas_cli.models.averaging import WeightAverage
 from midas_cli.models.ensemble import Ensemble, each_member, member_records
 from midas_cli.models.predict import frame_accuracy
 from midas_cli.models.sequences import Sequences, epoch_inputs, padded_batches
@@ -113,6 +114,7 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
     augments = list(augments) if augments is not None else [None] * len(models)
     histories = [[] for _ in models]
     best: list[tuple[float, dict | None]] = [(-1.0, None) for _ in models]
+    averages = [WeightAverage(config.epochs) for _ in models] if config.selection == "average" else []
     for epoch in range(1, config.epochs + 1):
         batches = [list(padded_batches(epoch_inputs(t, a), r.permutation(len(t.x)), config.batch_size))
                    for t, r, a in zip(trains, rngs, augments)]
@@ -131,11 +133,15 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
             histories[k].append({"epoch": epoch, "loss": float(loss_sum[k]) / len(batches[k]), "val_accuracy": val_acc})
             if config.selection == "best-val" and val_acc is not None and val_acc > best[k][0]:
                 best[k] = (val_acc, {n: v.detach().clone() for n, v in model.state_dict().items()})
+        for model, average in zip(models, averages):
+            average.after_epoch(model, epoch)
         if progress:
             progress(epoch, config.epochs, histories[0][-1])
     for model, (_, weights) in zip(models, best):
         if weights is not None:
             model.load_state_dict(weights)
+    for model, average in zip(models, averages):
+        average.apply(model)
     return histories
 
 

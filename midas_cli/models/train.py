@@ -32,6 +32,7 @@ from midas_cli.errors import ConfigError, SessionError
 from midas_cli.models import metrics as M
 from midas_cli.models import postprocess
 from midas_cli.models.augment import ColumnShift, check_sets, input_shift
+from midas_cli.models.averaging import WeightAverage
 from midas_cli.models.data import DatasetConfig, GestureDataset, Normaliser, build_dataset
 from midas_cli.models.ensemble import Ensemble, each_member, member_configs, member_records
 from midas_cli.models.predict import frame_accuracy, predict, predict_log_probs
@@ -45,7 +46,7 @@ from midas_cli.models.torch_io import load_weights_only
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "midas-gesture-run/1"
-SELECTIONS = ("last", "best-val")
+SELECTIONS = ("last", "best-val", "average")  # average: models/averaging.py
 RECIPES = {name: asdict(entry.recipe) for name, entry in MODELS.items()}  # each model's recipe, as run.json has it
 
 
@@ -58,7 +59,7 @@ class TrainConfig:
     epochs: int | None = None  # None (here and below) = the model's recipe (models/registry.py)
     batch_size: int | None = None
     lr: float | None = None
-    selection: str | None = None  # "last" epoch's weights or the "best-val" epoch's
+    selection: str | None = None  # "last" epoch's weights, the "best-val" epoch's, or the second half's "average"
     weight_decay: float = 0.0
     seed: int = 0
     device: str = "cpu"
@@ -94,7 +95,7 @@ class TrainConfig:
         if (self.epochs is not None and self.epochs < 0) or (self.batch_size is not None and self.batch_size < 1):
             raise ConfigError(f"epochs must be >= 0 and batch size >= 1, got {self.epochs}, {self.batch_size}")
         if self.selection is not None and self.selection not in SELECTIONS:
-            raise ConfigError(f"selection must be one of {', '.join(SELECTIONS)}, got {self.selection!r}")
+            raise ConfigError(f"--weights must be one of {', '.join(SELECTIONS)}, got {self.selection!r}")
         if self.device not in ("cpu", "cuda"):
             raise ConfigError(f"--device must be cpu or cuda, got {self.device!r}")
 
@@ -258,7 +259,8 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
         progress: ProgressFn | None = None, curve: Sequences | None = None,
         augment: ColumnShift | None = None) -> list[dict]:
     """Adam on the training units for ``config.epochs`` (None fields: the model's recipe); keeps the
-    last epoch's weights, or with selection "best-val" restores the best validation epoch's. On CUDA
+    last epoch's weights, or with selection "best-val" restores the best validation epoch's, with "average"
+    the mean of the second half's (models/averaging.py; the learning curve scores each epoch's own). On CUDA
     the forward pass and loss run in mixed precision (autocast float16, the loss scaled by GradScaler);
     on the CPU everything stays float32. With ``config.curve_every`` > 0, ``curve`` (the test split) is
     scored every that many epochs and after the last (``learning_curve_point``): a learning curve for
@@ -275,6 +277,7 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
     history, best = [], (-1.0, None)
     mixed = device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=mixed)
+    average = WeightAverage(config.epochs) if config.selection == "average" else None
     for epoch in range(1, config.epochs + 1):
         model.train()
         losses = []
@@ -293,10 +296,14 @@ def fit(model: torch.nn.Module, train: Sequences, val: Sequences, config: TrainC
             history[-1]["test_curve"] = learning_curve_point(model, curve, device)
         if config.selection == "best-val" and val_acc is not None and val_acc > best[0]:
             best = (val_acc, {k: v.detach().clone() for k, v in model.state_dict().items()})
+        if average is not None:
+            average.after_epoch(model, epoch)
         if progress:
             progress(epoch, config.epochs, history[-1])
     if best[1] is not None:
         model.load_state_dict(best[1])
+    if average is not None:
+        average.apply(model)
     return history
 
 
