@@ -56,7 +56,8 @@ def _shifts(trains: list[Sequences], augment: bool) -> list:
 
 @pytest.mark.parametrize("name,batch_size,selection,decay,augment", [("mstcn", 1, "last", 0.0, False),
                                                                      ("transformer", 2, "best-val", 1e-3, False),
-                                                                     ("mstcn", 1, "last", 0.0, True)])
+                                                                     ("mstcn", 1, "last", 0.0, True),
+                                                                     ("mstcn", 1, "average", 0.0, True)])
 def test_batched_folds_end_where_separate_runs_end(name, batch_size, selection, decay, augment):
     config = TrainConfig(model=name, epochs=3, batch_size=batch_size, lr=3e-3, selection=selection,
                          weight_decay=decay, seed=4)
