@@ -70,7 +70,7 @@ def test_mstcn_default_is_the_published_network_and_recipe_with_20_epochs_and_sh
     off = TrainConfig(model="mstcn", augment_shift=0.0).resolved()  # the official recipe's inputs: 0 is not "unset"
     assert off.augment_shift == 0.0 and TrainConfig(model="transformer").resolved().augment_shift == 1.0
     assert TrainConfig(model="baseline").resolved().augment_shift == 0.0  # a frame alone: nothing to fall back on
-    with pytest.raises(ConfigError, match="selection"):
+    with pytest.raises(ConfigError, match="--weights"):
         TrainConfig(selection="best")
 
 
