@@ -69,8 +69,11 @@ def test_members_train_with_their_own_recipe_and_seed_as_runs_of_their_own():
 def test_member_configs_take_each_members_recipe_unless_the_run_sets_a_field():
     members = ("mstcn", "transformer", "mstcn")
     recipe = member_configs(TrainConfig(model="ensemble", seed=5).resolved(), members)
-    assert [(c.model, c.epochs, c.batch_size, c.lr, c.selection, c.seed) for c in recipe] == [
-        ("mstcn", 20, 1, 5e-4, "last", 5), ("transformer", 10, 4, 1e-3, "best-val", 6), ("mstcn", 20, 1, 5e-4, "last", 7)]
+    assert [(c.model, c.epochs, c.batch_size, c.lr, c.selection, c.seed) for c in recipe] == [  # the ensemble's weights
+        ("mstcn", 20, 1, 5e-4, "average", 5), ("transformer", 10, 4, 1e-3, "average", 6), ("mstcn", 20, 1, 5e-4, "average", 7)]
+    alone = member_configs(TrainConfig(model="ensemble", selection="last").resolved(), members)
+    assert {c.selection for c in alone} == {"last"}
+    assert TrainConfig(model="mstcn").resolved().selection == "last"  # a network alone keeps its own recipe
     assert {(c.augment_shift, c.augment_features) for c in recipe} == {(1.0, "pos,ori")}  # the ensemble's
     given = member_configs(TrainConfig(model="ensemble", epochs=3, lr=1e-2, augment_shift=0.0).resolved(), members)
     assert {(c.epochs, c.lr, c.augment_shift) for c in given} == {(3, 1e-2, 0.0)}
