@@ -62,10 +62,11 @@ def test_every_model_builds_and_has_a_recipe_and_a_title(entry) -> None:
 
 def _trained_recipes(entry, config: dict) -> list:
     """(model, recipe) of the networks the entry trains: its own, or an ensemble's members' (its own
-    leaves epochs, batch size, lr and selection to them)."""
+    leaves epochs, batch size and lr to them; its selection, where it has one, applies to every member)."""
     if "members" not in config:
         return [(entry.name, entry.recipe)]
-    assert (entry.recipe.epochs, entry.recipe.batch_size, entry.recipe.lr, entry.recipe.selection) == (None,) * 4
+    assert (entry.recipe.epochs, entry.recipe.batch_size, entry.recipe.lr) == (None,) * 3
+    assert entry.recipe.selection is None or entry.recipe.selection in SELECTIONS
     return [(m, MODELS[m].recipe) for m in config["members"]]
 
 
