@@ -79,7 +79,8 @@ AUGMENT_FEATURES_OPT = typer.Option(None, "--augment-features", rich_help_panel=
 WEIGHTS_OPT = typer.Option(None, "--weights", rich_help_panel=TRAINING_PANEL, help="The weights a run keeps: last "
                            "(the last epoch's), average (the mean of the weights after each epoch of the second half) "
                            "or best-val (the best validation epoch's; without --val inner, the last). Default: the "
-                           "model's recipe; an ensemble's members each their own.")
+                           "model's recipe: " + ", ".join(f"{e.name} {e.recipe.selection}" for e in ENTRIES
+                                                           if e.recipe.selection) + "; an ensemble's applies to every member.")
 SEED_OPT = typer.Option(0, "--seed", rich_help_panel=TRAINING_PANEL, help="Seed of the split, the weights, batch "
                         "order and dropout.")
 FOLD_BATCH_MODES = ("auto", "on", "off")  # models/fold_batch.py MODES (that module imports torch)

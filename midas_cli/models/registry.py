@@ -25,8 +25,9 @@ Builder = Callable[[dict[str, int], int], tuple[Callable[[Any], Any], Any]]
 @dataclass(frozen=True)
 class Recipe:
     """How a model is trained where TrainConfig leaves a field None: epochs, batch size, Adam learning
-    rate, which epoch's weights are kept (``last``, or ``best-val``: the best validation frame
-    accuracy's; without a validation set "best-val" falls back to the last epoch), and the training
+    rate, which epoch's weights are kept (``last``; ``best-val``: the best validation frame
+    accuracy's, without a validation set the last epoch's; ``average``: the mean of the second half's,
+    models/averaging.py), and the training
     inputs' shift augmentation (``augment_shift`` standard deviations of the ``augment_features`` columns,
     models/augment.py; 0: none). An ensemble's epochs, batch size and lr are None: each member trains with
     its own recipe's; its selection ("average") and shift apply to every member."""
