@@ -108,7 +108,8 @@ def live_stream_extra(plan: LivePlan, info: Mapping[str, Any], extra: dict[str, 
 
 
 def gestures_spec(plan: LivePlan) -> StreamSpec:
-    """The ``gestures_live`` stream's layout (a regular stream at the model's frame rate)."""
+    """The ``gestures_live`` stream's layout (a regular stream at the model's frame rate); as a marker
+    stream (``--lsl-out``, an XDF export) it is the decoded gesture, what the live screen shows."""
     return StreamSpec(GESTURES_STREAM, RECOGNITION_DEVICE, (
         Column(SEQ.name, "int", "count", description="frame index on the model's frame clock (gaps: frames skipped)"),
         Column(T_HOST.name, "int", "ns", clock="host", description="the frame's time on the model's frame clock"),
@@ -120,7 +121,7 @@ def gestures_spec(plan: LivePlan) -> StreamSpec:
         Column("decoded_probability", "float", "", 4, description="the model's probability of the decoded class"),
         Column("t_decoded_ns", "int", "ns", clock="host", description="host clock when the row was handed over "
                                                                       "(decoded class decided)"),
-    ), plan.rate_hz, f"gestures recognised live by run {plan.run_id} ({plan.model})")
+    ), plan.rate_hz, f"gestures recognised live by run {plan.run_id} ({plan.model})", marker="decoded")
 
 
 class GestureTracker:

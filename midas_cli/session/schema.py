@@ -55,13 +55,17 @@ class StreamSpec:
     """A stream: its name (file ``streams/<name>.csv``), producing device, columns and nominal rate.
 
     ``nominal_rate_hz`` is None for an event stream (sync-marker toggles, irregular LSL markers): its
-    rows come when something happens, so it has no rate to fall short of and never goes stale."""
+    rows come when something happens, so it has no rate to fall short of and never goes stale.
+
+    ``marker`` names the text column that stands for a row where one value must (an LSL or XDF marker
+    stream's one string channel, devices/lsl/outlet.py); "" for the first text column."""
 
     name: str
     device: str
     columns: tuple[Column, ...]
     nominal_rate_hz: float | None
     description: str = ""
+    marker: str = ""
     _formatters: tuple = field(default=(), compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -73,6 +77,8 @@ class StreamSpec:
         if self.nominal_rate_hz is not None and not self.nominal_rate_hz > 0:
             raise SessionError(f"stream {self.name!r}: nominal rate must be positive Hz or None (events), "
                                f"got {self.nominal_rate_hz}")
+        if self.marker and self.marker not in [c.name for c in self.columns if c.dtype == "text"]:
+            raise SessionError(f"stream {self.name!r}: marker {self.marker!r} is not one of its text columns")
         object.__setattr__(self, "_formatters", tuple(_formatter(c) for c in self.columns))
 
     @property
@@ -84,6 +90,12 @@ class StreamSpec:
     def has_text(self) -> bool:
         """True when a column holds text (parsed line by line, not by the vectorised number checks)."""
         return any(c.dtype == "text" for c in self.columns)
+
+    @property
+    def marker_column(self) -> Column | None:
+        """The text column that stands for a row (``marker``, else the first text column); None without one."""
+        texts = [c for c in self.columns if c.dtype == "text"]
+        return next((c for c in texts if c.name == self.marker), texts[0] if texts else None)
 
     @property
     def file(self) -> str:
@@ -108,7 +120,7 @@ class StreamSpec:
         return "\n".join(lines) + "\n" if lines else ""
 
     def to_manifest(self) -> dict[str, Any]:
-        return {
+        entry = {
             "device": self.device,
             "file": self.file,
             "nominal_rate_hz": self.nominal_rate_hz,
@@ -116,14 +128,17 @@ class StreamSpec:
             "description": self.description,
             "columns": [c.to_manifest() for c in self.columns],
         }
+        return {**entry, "marker": self.marker} if self.marker else entry
 
     @classmethod
     def from_manifest(cls, name: str, entry: dict[str, Any]) -> "StreamSpec":
         try:
             columns = tuple(Column.from_manifest(c) for c in entry["columns"])
-            rate = entry["nominal_rate_hz"]
+            rate, marker = entry["nominal_rate_hz"], entry.get("marker", "")
+            if not isinstance(marker, str):
+                raise TypeError(f"marker must be a column name, got {marker!r}")
             return cls(name, entry["device"], columns, None if rate is None else float(rate),
-                       entry.get("description", ""))
+                       entry.get("description", ""), marker)
         except (KeyError, TypeError, ValueError) as exc:
             raise SessionError(f"malformed stream {name!r} in manifest: {exc}") from exc
 

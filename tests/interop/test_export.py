@@ -403,3 +403,48 @@ def test_mcap_with_video_has_the_console_recording_as_h264_foxglove_plays(tmp_pa
     ok, image = capture.read()
     capture.release()
     assert ok and image.shape == (48, 64, 3) and np.abs(image.mean(axis=(0, 1)) - colours[0]).max() < 12
+
+
+def _session_with_gestures(root: Path, marker: str) -> Path:
+    """A session with a gestures_live-shaped stream: two text columns, the flickering class and the
+    decoded one; ``marker`` names the one a marker stream sends."""
+    from midas_cli.clock import HostClock
+    from midas_cli.session.schema import SEQ, T_HOST, Column, StreamSpec
+    from midas_cli.session.writer import SessionMetadata, SessionWriter
+
+    spec = StreamSpec("gestures_live", "recognition", (SEQ, T_HOST, Column("class", "text"), Column("probability", "float"),
+                                                       Column("decoded", "text")), 10.0, marker=marker)
+    clock = HostClock.anchored_now()
+    writer = SessionWriter.create(root, SessionMetadata("7", "knot", 1), clock, {}, [spec])
+    t0 = clock.now_ns()
+    flicker = ["G1", "G2", "G1", "G2", "G2", "G3"]
+    writer.append("gestures_live", spec.format_rows([(k, t0 + k * 100_000_000, c, 0.5, "G1" if k < 4 else "G2")
+                                                     for k, c in enumerate(flicker)]))
+    writer.finalize("complete", "test", t0 + 1_000_000_000, {})
+    return writer.folder
+
+
+def test_a_marker_stream_sends_its_marker_column_as_pyxdf_reads_it(tmp_path: Path) -> None:
+    """gestures_live's one string channel is the decoded gesture (its manifest's marker), not the first
+    text column (the raw class, which flickers); a manifest naming a non-text marker is refused."""
+    import pyxdf
+
+    session = _session_with_gestures(tmp_path / "in", "decoded")
+    assert midas("export", str(session), "--format", "xdf", "--out", str(tmp_path / "out")).returncode == 0
+    (path,) = (tmp_path / "out").glob("*.xdf")
+    streams, _ = pyxdf.load_xdf(str(path))
+    (stream,) = [s for s in streams if s["info"]["name"] == ["gestures_live"]]
+    assert stream["info"]["type"] == ["Markers"] and stream["info"]["channel_format"] == ["string"]
+    assert [c["label"][0] for c in stream["info"]["desc"][0]["channels"][0]["channel"]] == ["decoded"]
+    assert [row[0] for row in stream["time_series"]] == ["G1"] * 4 + ["G2"] * 2
+
+    manifest_path = session / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    assert manifest["streams"]["gestures_live"]["marker"] == "decoded"
+    for bad in ("probability", "nothing", ["decoded"]):
+        manifest["streams"]["gestures_live"]["marker"] = bad
+        manifest_path.write_text(json.dumps(manifest))
+        result = midas("export", str(session), "--format", "xdf", "--out", str(tmp_path / f"bad-{len(str(bad))}"))
+        errors = [line for line in result.stderr.splitlines() if line.startswith("midas: error:")]
+        assert result.returncode != 0 and len(errors) == 1 and "marker" in errors[0], result.stderr
+        assert not any(p.is_file() for p in (tmp_path / f"bad-{len(str(bad))}").rglob("*"))  # no file, no torn one

@@ -20,6 +20,7 @@ from rich.console import Console
 
 from midas_cli.clock import HostClock
 from midas_cli.console import dashboard, gesture_line, status_line
+from midas_cli.devices.lsl.outlet import channel_columns
 from midas_cli.devices.rigconfig import parse_rig
 from midas_cli.errors import ConfigError
 from midas_cli.record.feed import RowFeed
@@ -168,6 +169,9 @@ class _Model:
 
 def test_the_recognition_writes_a_row_per_frame_and_counts_what_it_skipped(tmp_path: Path) -> None:
     spec = gestures_spec(PLAN)
+    # as a marker stream (--lsl-out, replay, XDF) its one string channel is what the screen shows
+    assert [c.name for c in channel_columns(spec)] == ["decoded"]
+    assert StreamSpec.from_manifest(spec.name, spec.to_manifest()) == spec
     path = tmp_path / "gestures_live.csv"
     StreamAppender(path, create=True).append(spec.header_line())
     out: queue.Queue = queue.Queue()

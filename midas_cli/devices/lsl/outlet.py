@@ -13,8 +13,9 @@ gets what the XDF export holds. The field's conventions (the XDF meta-data speci
   NaN), one channel per column but ``t_host_ns`` (the time is the sample's timestamp): ``seq`` first,
   the device's own counter (the video's frame index, gaps = lost samples), then the data columns;
 * marker streams: ONE ``string`` channel, the marker's text (marker-aware readers skip marker streams
-  with more channels); its ``seq`` is the sample order and its ``source`` (key / mark / ctl) stays in
-  the session's files, as ``<desc><midas><not_sent>`` says;
+  with more channels): the stream's ``marker`` column (``gestures_live``: ``decoded``, the cleaned-up
+  gesture), else its first text column; the other columns (the operator's markers: ``seq``, the sample
+  order, and ``source``, key / mark / ctl) stay in the session's files, as ``<desc><midas><not_sent>`` says;
 * ``nominal_srate`` = the manifest's nominal rate, 0 (irregular) for an event stream;
 * ``<desc><channels><channel><label/><unit/><type/><description/></channel>...`` from the columns,
   ``<acquisition><manufacturer>midas</manufacturer>``, ``<midas><session/><stream/></midas>``.
@@ -65,8 +66,9 @@ def stream_type(spec: StreamSpec, kind: str) -> str:
 
 def channel_columns(spec: StreamSpec) -> tuple[Column, ...]:
     """The columns sent as channels, in order (see the module docstring)."""
-    if spec.has_text:
-        return (next(c for c in spec.columns if c.dtype == "text"),)
+    marker = spec.marker_column
+    if marker is not None:
+        return (marker,)
     return tuple(c for c in spec.columns if c.name != T_HOST.name)
 
 
