@@ -7,7 +7,7 @@ import json
 from typing import Any
 
 TITLES = {"baseline": "baseline (per-frame logistic regression)", "mstcn": "MS-TCN++", "transformer": "transformer",
-          "ensemble": "ensemble (2 MS-TCN++ + 2 transformers)"}
+          "ensemble": "ensemble (MS-TCN++ and transformers: *epochs* lists its members)"}
 ORDER = ("baseline", "mstcn", "transformer", "ensemble")
 
 

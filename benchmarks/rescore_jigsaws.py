@@ -6,13 +6,17 @@ Each fold's raw predictions come from its checkpoint (the saved network on the f
 ``train gestures --eval-only`` runs it, before any clean-up), so runs trained with a clean-up rescore
 too. ``RUN+RUN+...`` scores the ensemble of those runs: per fold, the frame probabilities of every run's
 network averaged (what ``--model ensemble`` predicts from its members), on folds every run has; the runs
-must have split the same trials. Each fold's minimum segment comes from that fold's own training split
-exactly as ``train gestures`` computes it (``models.postprocess``); ``pN`` is the N-th percentile of the
-training gestures' lengths (``auto`` is the default's percentile). Scores: pooled over all test videos
+must have split the same trials. ``RUN@0,2`` takes members 0 and 2 of an ensemble run (``--model ensemble``:
+its members in training order), their probabilities averaged. Each member trains alone, seeded by the run's
+seed + its index (models/ensemble.py), so ``@0,1,2`` is what an ensemble of the first three members would
+have trained and predicted; other subsets differ from one trained afresh only in their members' seeds.
+Each fold's minimum segment comes from that fold's own training split exactly as ``train gestures``
+computes it (``models.postprocess``); ``pN`` is the N-th percentile of the training gestures' lengths
+(``auto`` is the default's percentile). Scores: pooled over all test videos
 (the MS-TCN way) and averaged per video. Rows accumulate in the results file (a row of the same task, runs
 and setting is replaced).
 
-    .venv/bin/python benchmarks/rescore_jigsaws.py RUN_DIR[+RUN_DIR...]:SESSIONS_DIR:TASK ... \
+    .venv/bin/python benchmarks/rescore_jigsaws.py RUN_DIR[@MEMBERS][+RUN_DIR...]:SESSIONS_DIR:TASK ... \
         [--settings none,auto,p1,p5,1.0,g10-auto,s5-auto,o5-g10-auto]   # -> results/gestures_jigsaws_rescored.json
 """
 
@@ -38,17 +42,29 @@ from midas_cli.models import postprocess  # noqa: E402
 from midas_cli.models.data import DatasetConfig, Normaliser, build_dataset  # noqa: E402
 from midas_cli.models.sequences import sequences  # noqa: E402
 from midas_cli.models.splits import Split  # noqa: E402
-from midas_cli.models.train import build_model, load_checkpoint, saved_structure  # noqa: E402
+from midas_cli.models.train import build_model, load_checkpoint, saved_config, saved_structure  # noqa: E402
 
 KEYS = ("accuracy", "edit", "f1@10", "f1@25", "f1@50")
 
 
-def fold_data(folds: list[Path], cache: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray],
-                                                                float, list[str]]:
+def run_spec(text: str) -> tuple[Path, list[int] | None]:
+    """``RUN_DIR`` or ``RUN_DIR@0,2`` (those members of an ensemble run) -> (run folder, member indices)."""
+    run, at, members = text.partition("@")
+    if not at:
+        return Path(run), None
+    try:
+        indices = sorted({int(m) for m in members.split(",")})
+    except ValueError:
+        raise SystemExit(f"{text}: @ takes member indices, e.g. {run}@0,1,2") from None
+    return Path(run), indices
+
+
+def fold_data(folds: list[Path], cache: dict[str, Any], members: list[list[int] | None] | None = None,
+              ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], float, list[str]]:
     """One fold of one or more runs: the test frame probabilities (C, T) per trial (several runs: their
-    mean), truths, the training labels and the model rate."""
+    mean; ``members[i]``: those members of run i's ensemble), truths, the training labels and the model rate."""
     probs, first = [], None
-    for fold in folds:
+    for fold, chosen in zip(folds, members or [None] * len(folds)):
         saved = load_checkpoint(fold / "checkpoint.pt")
         key = json.dumps(saved["dataset_config"], sort_keys=True)
         if key not in cache:
@@ -60,7 +76,7 @@ def fold_data(folds: list[Path], cache: dict[str, Any]) -> tuple[list[np.ndarray
             first = (saved, dataset, split)
         elif split.units["test"] != first[2].units["test"] or saved["classes"] != first[0]["classes"]:
             raise SystemExit(f"{fold}: other test trials or classes than {folds[0]}: not an ensemble of one split")
-        probs.append(test_probabilities(saved, dataset, split))
+        probs.append(test_probabilities(saved, dataset, split, chosen))
     saved, dataset, split = first  # type: ignore[misc]
     test = sequences(dataset, split.units["test"], None, list(dataset.config.modalities))
     train = [dataset.trials[dataset.trial_index(name)].labels[a:b] for name, a, b in split.units["train"]]
@@ -68,18 +84,27 @@ def fold_data(folds: list[Path], cache: dict[str, Any]) -> tuple[list[np.ndarray
     return mean, test.y, train, dataset.trials[0].rate_hz, list(saved["classes"])
 
 
-def test_probabilities(saved: dict, dataset: Any, split: Split) -> list[np.ndarray]:
-    """The saved network's class probabilities (C, T) on each test trial of its split, in eval mode."""
+def test_probabilities(saved: dict, dataset: Any, split: Split, members: list[int] | None = None) -> list[np.ndarray]:
+    """The saved network's class probabilities (C, T) on each test trial of its split, in eval mode
+    (``members``: the mean of those members' probabilities, the network an ensemble)."""
     normaliser = Normaliser.from_json(saved["normaliser"]) if saved["dataset_config"]["normalise"] == "train" else None
     test = sequences(dataset, split.units["test"], normaliser, list(dataset.config.modalities))
     model, _ = build_model(saved["model"], dataset.modality_dims, len(dataset.classes), saved["model_options"],
-                           *saved_structure(saved))
+                           *saved_structure(saved), recorded=saved_config(saved))
     model.load_state_dict(saved["state_dict"])
     model.eval()
+    nets: list[Any] = [model]
+    if members is not None:
+        every: list[Any] = list(getattr(model, "members", []))
+        if saved["model"] != "ensemble" or not set(members) <= set(range(len(every))):
+            raise SystemExit(f"members {members}: not members of this {saved['model']} run")
+        nets = [every[i] for i in members]
     with torch.no_grad():
-        return [torch.softmax(model.frame_logits(model(torch.from_numpy(x.T[None]),
-                                                       torch.ones(1, len(x), dtype=torch.bool)))[0], dim=0).numpy()
-                for x in test.x]
+        out = []
+        for x in test.x:
+            xt, mask = torch.from_numpy(x.T[None]), torch.ones(1, len(x), dtype=torch.bool)
+            out.append(np.mean([torch.softmax(net.frame_logits(net(xt, mask))[0], dim=0).numpy() for net in nets], axis=0))
+        return out
 
 
 def min_frames(setting: str, train: list[np.ndarray], rate: float) -> int:
@@ -124,12 +149,16 @@ def clean_up(setting: str, probs: list[np.ndarray], train: list[np.ndarray], rat
     return [postprocess.merge_short_segments(d, minimum) for d in decoded] if then_merge else decoded
 
 
-def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> list[dict[str, Any]]:
-    """One row per setting: pooled and per-video figures over the folds every run finished."""
+def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str],
+            members: list[list[int] | None] | None = None) -> list[dict[str, Any]]:
+    """One row per setting: pooled and per-video figures over the folds every run finished (``members``:
+    per run, the ensemble members taken, None for the whole network)."""
     cache: dict[str, Any] = {"sessions": sessions}
     names = sorted(f.name for f in run_dirs[0].glob("fold-*") if (f / "metrics.json").is_file())
     names = [n for n in names if all((r / n / "metrics.json").is_file() for r in run_dirs)]
-    folds = [fold_data([r / n for r in run_dirs], cache) for n in names]
+    folds = [fold_data([r / n for r in run_dirs], cache, members) for n in names]
+    labels = [str(r) + (f"@{','.join(map(str, m))}" if m is not None else "")
+              for r, m in zip(run_dirs, members or [None] * len(run_dirs))]
     rows = []
     for setting in settings:
         preds, truths, minima = [], [], []
@@ -139,7 +168,7 @@ def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> 
         classes = folds[0][4]
         pooled = M.evaluate(preds, truths, classes)["summary"]
         videos = [M.evaluate([p], [t], classes)["summary"] for p, t in zip(preds, truths)]
-        rows.append({"run_dir": " + ".join(str(r) for r in run_dirs), "setting": setting, "folds": len(folds),
+        rows.append({"run_dir": " + ".join(labels), "setting": setting, "folds": len(folds),
                      "videos": len(preds), "min_segment_frames": minima, "pooled": {k: pooled[k] for k in KEYS},
                      "per_video": {k: float(np.mean([v[k] for v in videos])) for k in KEYS}})
     return rows
@@ -147,10 +176,11 @@ def rescore(run_dirs: list[Path], sessions: list[Path], settings: list[str]) -> 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", help="RUN_DIR[+RUN_DIR...]:SESSIONS_DIR:TASK (the sessions the runs "
-                        "trained on; several runs: their ensemble)")
+    parser.add_argument("runs", nargs="+", help="RUN_DIR[@MEMBERS][+RUN_DIR...]:SESSIONS_DIR:TASK (the sessions the "
+                        "runs trained on; several runs: their ensemble; @0,2: those members of an ensemble run)")
     parser.add_argument("--settings", default="none,auto,p5,1.0,1.5,2.0")
     args = parser.parse_args()
+    torch.set_num_threads(1)  # a shared machine: many threads waiting on each other cost far more than they give
     for setting in args.settings.split(","):
         try:
             _, decoding = split_lag(setting)
@@ -162,9 +192,9 @@ def main() -> None:
     for spec in args.runs:
         run_dirs, sessions_dir, task = spec.split(":")
         sessions = sorted(p for p in Path(sessions_dir).iterdir() if (p / "manifest.json").is_file())
-        runs = [Path(r) for r in run_dirs.split("+")]
-        rows += [{"task": task, **row} for row in rescore(runs, sessions, args.settings.split(","))]
-        print(f"rescore: {task} {' + '.join(r.name for r in runs)} done", file=sys.stderr, flush=True)
+        runs, members = zip(*[run_spec(r) for r in run_dirs.split("+")])
+        rows += [{"task": task, **row} for row in rescore(list(runs), sessions, args.settings.split(","), list(members))]
+        print(f"rescore: {task} {run_dirs} done", file=sys.stderr, flush=True)
     RESULTS.mkdir(exist_ok=True)
     path = RESULTS / "gestures_jigsaws_rescored.json"
     key = lambda row: (row["task"], row["run_dir"], row["setting"])  # noqa: E731

@@ -27,7 +27,7 @@ from midas_cli.analysis.sync import associate
 from midas_cli.errors import ConfigError, MidasError, SessionError
 from midas_cli.models.data import DatasetConfig, Normaliser, modality_features
 from midas_cli.models.postprocess import OnlineDecoder, saved_decode_lag, saved_min_segment, saved_switch_scores
-from midas_cli.models.train import build_model, load_checkpoint, saved_structure
+from midas_cli.models.train import build_model, load_checkpoint, saved_config, saved_structure
 from midas_cli.session.derived import AlignedTable
 
 FEATURE_CLOCK_HZ = 30.0  # the video frame clock training's features (velocities) were computed on
@@ -116,7 +116,7 @@ def _live_run(path: Path, saved: dict) -> LiveRun:
     classes = tuple(str(c) for c in saved["classes"])
     dims = {m: len(saved["feature_names"][m]) for m in config.modalities}
     model, model_config = build_model(saved["model"], dims, len(classes), dict(saved["model_options"]),
-                                      *saved_structure(saved))
+                                      *saved_structure(saved), recorded=saved_config(saved))
     if "causal" in model_config and not model_config["causal"]:
         raise ConfigError(f"live model {path}: {saved['model']} was not trained with --causal (it looks at frames "
                           "after t); train it with `midas train gestures --causal`")

@@ -223,7 +223,7 @@ def _clean_up(run: dict) -> str:
 
 
 def _epochs(run: dict) -> int | str | None:
-    """The epochs a fold trained: its own, or an ensemble's members' joined by + (e.g. "20+10+20+10")."""
+    """The epochs a fold trained: its own, or an ensemble's members' joined by + (e.g. "20+10+20")."""
     members = run.get("recipe", {}).get("members")
     if run["train_config"]["epochs"] is None and members:
         return "+".join(str(m["epochs"]) for m in members)

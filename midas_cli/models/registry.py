@@ -117,7 +117,7 @@ ENTRIES = (
                Recipe(10, 4, 1e-3, "best-val", 1.0, "pos,ori"), _transformer(refined=True)),
     ModelEntry("transformer-plain", "MTRSAP (plain)", "without", Recipe(50, 4, 1e-3, "best-val"),
                _transformer(refined=False)),
-    ModelEntry("ensemble", "Ensemble (2 MS-TCN++ + 2 MTRSAP)", "two MS-TCN++ and two transformers averaged",
+    ModelEntry("ensemble", "Ensemble (2 MS-TCN++ + MTRSAP)", "two MS-TCN++ and a transformer averaged",
                Recipe(None, None, None, "average", 1.0, "pos,ori"), _ensemble),
     ModelEntry("baseline", "Baseline (LR)", "per-frame logistic regression", Recipe(50, 4, 1e-2, "best-val"),
                _baseline(hidden=0)),

@@ -10,12 +10,11 @@
   ``predictions/<trial>.csv``  frame, truth, prediction of every test frame
   ``plots/confusion.png``, ``plots/<trial>.png``  (truth / prediction ribbons)
 
-The loop: build arrays (models/data.py) -> split (models/splits.py) -> normalise (default: fitted on
-the training units) -> train with the model's recipe (models/registry.py: epochs, batch size, lr, and which
-epoch's weights are kept: the last, or with "best-val" the best validation frame accuracy's; the
-resolved recipe is in ``run.json`` ``recipe``) -> predict the test units -> metrics.
-Deterministic on CPU for a given ``seed`` (weights, batch order and dropout come from seeded
-generators).
+The loop: build arrays (models/data.py) -> split (models/splits.py) -> normalise (default: fitted on the
+training units) -> train with the model's recipe (models/registry.py: epochs, batch size, lr, which weights
+are kept; resolved in ``run.json`` ``recipe``) -> predict the test units -> metrics. Deterministic on CPU
+for a given ``seed`` (weights, batch order and dropout come from seeded generators). A checkpoint rebuilds
+the network it trained from its recorded config (``build_model`` ``recorded``), whatever the defaults now.
 """
 
 from __future__ import annotations
@@ -216,7 +215,7 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     if name == "transformer" and "refinement_stages" not in saved.get("model_config", {}):
         name = "transformer-plain"  # a checkpoint from before the refinement stages existed
     model, _ = build_model(name, dataset.modality_dims, len(dataset.classes), saved["model_options"],
-                           *saved_structure(saved))
+                           *saved_structure(saved), recorded=saved_config(saved))
     model.load_state_dict(saved["state_dict"])
     model.to(device)
     switch = postprocess.saved_switch_scores(saved.get("switch_scores"), len(dataset.classes))
@@ -228,25 +227,34 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     return RunResult(out_dir, result, saved.get("history", []))
 
 
+DATA_SIZED = ("modality_dims", "n_classes", "in_features")  # config fields a builder takes from the data
+
+
+def saved_config(saved: dict) -> dict:
+    """A saved run's recorded network config (``model_config``; {} for a run from before it was kept)."""
+    if isinstance(recorded := saved.get("model_config", {}), dict):
+        return recorded
+    raise SessionError(f"the checkpoint's model_config must be a mapping, got {type(recorded).__name__}")
+
+
 def saved_structure(saved: dict) -> tuple[bool, int]:
     """``causal`` and ``delay`` (frames) of a saved run's network (False, 0 for one from before them)."""
-    model_config = saved.get("model_config", {})
-    delay = model_config.get("delay", 0)
+    delay = saved_config(saved).get("delay", 0)
     if isinstance(delay, bool) or not isinstance(delay, int) or delay < 0:
         raise SessionError(f"the checkpoint's delay must be a whole number of frames >= 0, got {delay!r}")
-    return bool(model_config.get("causal", False)), delay
+    return bool(saved_config(saved).get("causal", False)), delay
 
 
 def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict,
-                causal: bool = False, delay: int = 0) -> tuple[torch.nn.Module, dict]:
+                causal: bool = False, delay: int = 0, recorded: dict | None = None) -> tuple[torch.nn.Module, dict]:
     """The network and its config as a plain dict; ``options`` override config fields; ``causal`` sets the
     config's ``causal`` where the model has one (a per-frame model has none: it is causal as it is), and
-    ``delay`` (frames) its ``delay`` (a per-frame model has none either: it labels frame t at t)."""
+    ``delay`` (frames) its ``delay`` (a per-frame model has none either: it labels frame t at t).
+    ``recorded``: a saved run's config (``saved_config``; the data-sized fields aside): the network as trained."""
     model_cls, cfg = model_entry(name).build(modality_dims, n_classes)
-    if causal and "causal" in asdict(cfg):
-        options = {**options, "causal": True}
-    if delay and "delay" in asdict(cfg):
-        options = {**options, "delay": int(delay)}
+    options = {**{k: v for k, v in (recorded or {}).items() if k in asdict(cfg) and k not in DATA_SIZED}, **options}
+    options = {**options, **({"causal": True} if causal and "causal" in asdict(cfg) else {}),
+               **({"delay": int(delay)} if delay and "delay" in asdict(cfg) else {})}
     unknown = set(options) - set(asdict(cfg))
     if unknown:
         raise ConfigError(f"model options {', '.join(sorted(unknown))} do not exist for {name} "

@@ -84,7 +84,7 @@ def test_cli_records_the_choice_for_every_member_and_refuses_a_bad_one(tmp_path)
     assert result.returncode == 0, result.stderr
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["train_config"]["selection"] == "average"
-    assert [m["selection"] for m in run["recipe"]["members"]] == ["average"] * 4
+    assert [m["selection"] for m in run["recipe"]["members"]] == ["average"] * 3
     bad = midas(*args, "--weights", "best", "--out", str(tmp_path / "bad"))
     assert bad.returncode != 0 and not (tmp_path / "bad").exists()
     assert "--weights" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
