@@ -319,8 +319,25 @@ def train_louo_all_section(results: list[dict]) -> list[str]:
     return out + ["", "*epochs*: the defaults of the commit that ran (*code*) unless `--epochs` was given; MS-TCN++'s "
                   "default fell from 100 to 50 in 6169ad0 and to 20 (with shifted inputs) in 2fba614; since 79f463f the "
                   "default model is the ensemble (two MS-TCN++ at 20 epochs and two transformers at 10, trained one "
-                  "after another: 20+10+20+10; README, \"Defaults and why\"); *code* also sets the speed of a step "
+                  "after another: 20+10+20+10; since 945d0a5 one transformer: 20+10+20; README, \"Defaults and why\"); "
+                  "*code* also sets the speed of a step "
                   "(193b339: ~0.7x the time of the published layout, the reference comparison below).", ""]
+
+
+def members_section(r: dict) -> list[str]:
+    """bench_members.py: what each member of the default ensemble costs to train (CPU time, not wall)."""
+    epoch, member = r["epoch_median_cpu_s"], r["member_cpu_s"]
+    return ["### The ensemble's members: training cost (`bench_members.py`)", "",
+            f"One epoch of each network through the real loop on {r['task'].replace('_', ' ').title()} LOUO fold "
+            f"{r['fold']} ({r['train_frames']:,} training frames at 10 Hz, each model's recipe), the two alternating "
+            f"{len(r['epoch_cpu_s']['mstcn'])} times, CPU seconds of the process (one torch thread), median; "
+            f"{r['machine']['cpu_model']}, {r['machine']['date_utc'][:16]}, torch {r['torch']}. CPU time, not wall: "
+            "a wall time on the shared host moves with its load by more than a member's share.", "",
+            "| network | epoch CPU s (each) | median | epochs (recipe) | a member, CPU s |", "|---|---|---|---|---|",
+            *[f"| {name} | {', '.join(f'{v:.2f}' for v in r['epoch_cpu_s'][name])} | {epoch[name]:.2f} | "
+              f"{round(member[name] / epoch[name])} | {member[name]:.0f} |" for name in epoch], "",
+            f"* **The default ensemble ({' + '.join(r['members'])}): {r['ensemble_cpu_s']:.0f} CPU s a fold, "
+            f"{r['ratio_to_four']:.2f}x the four-member ensemble of before ({r['four_members_cpu_s']:.0f} s).**", ""]
 
 
 def startup_section(s: dict) -> list[str]:
@@ -368,6 +385,8 @@ def main() -> None:
                           key=lambda r: r["machine"]["date_utc"])  # oldest first
         if name == "train" and louo_all:
             lines += train_louo_all_section(louo_all)
+        if name == "train" and load("ensemble_members"):
+            lines += members_section(load("ensemble_members"))
         if name == "train" and load("mstcn_reference"):
             lines += reference_section(load("mstcn_reference"))
         if name == "train" and load("gestures_jigsaws"):

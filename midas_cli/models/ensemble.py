@@ -4,10 +4,10 @@ Networks of different families make different mistakes: on the JIGSAWS developme
 folds, BENCHMARKS.md) MS-TCN++ breaks its segments in other places than the MTRSAP-style transformer,
 and two draws of either (other initial weights, batch orders, dropout) disagree on the hard users. The
 average of their probabilities is right more often than any one of them. ``--model ensemble`` is
-two MS-TCN++ and one transformer (two of each until 2026-11-28): the second transformer took about a
-sixth of the training time and moved accuracy by under half a point on the development tasks (the
-four-member runs re-scored without it, three seeds each: Knot Tying mean 81.0 either way, Needle
-Passing 76.6 against 76.8; BENCHMARKS.md, ``@0,1,2`` rows).
+two MS-TCN++ and one transformer (two of each until 2026-11-28): the second transformer took 11 % of
+the training CPU time (benchmarks/bench_members.py) and moved accuracy by under half a point on the
+development tasks (the four-member runs re-scored without it, three seeds each: Knot Tying mean 81.0
+either way, Needle Passing 76.6 against 76.8; BENCHMARKS.md, ``@0,1,2`` rows).
 
 Each member trains alone, one after another, with its own recipe (models/registry.py: epochs, batch
 size, learning rate, which epoch's weights are kept) unless the run overrides a field for all of them
