@@ -109,8 +109,8 @@ def _baseline(hidden: int) -> Builder:
 # ensemble (the default model, models/ensemble.py) has no recipe of its own but the shift and the weights: each
 # member trains with its own epochs, batch size and lr, and keeps the mean of its weights over the second half
 # of its epochs (models/averaging.py; README, "--weights average"; all folds, pooled, with the --grammar
-# clean-up, seed 0: Knot Tying 80.6 / 89.4 against 78.6 / 87.8 with the last epoch's weights). The order is
-# the help's.
+# clean-up, seed 0: Knot Tying 80.6 / 89.4 against 78.6 / 87.8 with the last epoch's weights, four members
+# then; its members now: models/ensemble.py MEMBERS). The order is the help's.
 ENTRIES = (
     ModelEntry("mstcn", "MS-TCN++", "MS-TCN++", Recipe(20, 1, 5e-4, "last", 1.0, "pos,ori"), _mstcn),
     ModelEntry("transformer", "MTRSAP", "MTRSAP-style with MS-TCN++ refinement stages",
