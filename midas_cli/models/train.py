@@ -212,7 +212,7 @@ def _evaluate_checkpoint(sessions: Sequence[Path], checkpoint: Path, out_dir: Pa
     normaliser = Normaliser.from_json(saved["normaliser"]) if data_config.normalise == "train" else None
     test = sequences(dataset, split.units["test"], normaliser, list(data_config.modalities))
     name = saved["model"]
-    if name == "transformer" and "refinement_stages" not in saved.get("model_config", {}):
+    if name == "transformer" and "refinement_stages" not in saved_config(saved):
         name = "transformer-plain"  # a checkpoint from before the refinement stages existed
     model, _ = build_model(name, dataset.modality_dims, len(dataset.classes), saved["model_options"],
                            *saved_structure(saved), recorded=saved_config(saved))
@@ -239,10 +239,10 @@ def saved_config(saved: dict) -> dict:
 
 def saved_structure(saved: dict) -> tuple[bool, int]:
     """``causal`` and ``delay`` (frames) of a saved run's network (False, 0 for one from before them)."""
-    delay = saved_config(saved).get("delay", 0)
+    delay = (recorded := saved_config(saved)).get("delay", 0)
     if isinstance(delay, bool) or not isinstance(delay, int) or delay < 0:
         raise SessionError(f"the checkpoint's delay must be a whole number of frames >= 0, got {delay!r}")
-    return bool(saved_config(saved).get("causal", False)), delay
+    return bool(recorded.get("causal", False)), delay
 
 
 def build_model(name: str, modality_dims: dict[str, int], n_classes: int, options: dict,
