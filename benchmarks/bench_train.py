@@ -61,28 +61,31 @@ LOUO_MODALITIES, LOUO_RATE_HZ, LOUO_MAX_SECONDS = ("mtm", "psm"), 30.0, 100.0
 LOUO_FEATURES = ("pos", "ori", "vel", "angvel", "grasper")  # with rotation matrices: JIGSAWS's 19 per arm
 
 
-def prepare_dataset(folder: Path, trials: int, max_seconds: float | None, subjects: int = 1) -> dict:
-    """Simulate and align ``trials`` sessions into ``folder`` through the CLI; wall times and sizes."""
+def prepare_dataset(folder: Path, trials: int, max_seconds: float | None, subjects: int = 1, jobs: int = 2) -> dict:
+    """Simulate and align ``trials`` sessions into ``folder`` through the CLI (``jobs`` processes); wall times and sizes."""
     limit = ["--max-seconds", str(max_seconds)] if max_seconds else []
     t0 = time.monotonic()
     made = _cli("simulate", "dataset", "--platform", PLATFORM, "--trials", str(trials), "--seed", str(SEED),
-                "--subjects", str(subjects), "--out", str(folder), "--jobs", "2", "--json", *limit)
+                "--subjects", str(subjects), "--out", str(folder), "--jobs", str(jobs), "--json", *limit)
     simulate_s = time.monotonic() - t0
     sessions = [r["path"] for r in json.loads(made)]
     t0 = time.monotonic()
-    aligned = json.loads(_cli("align", *sessions, "--jobs", "2", "--json"))
+    aligned = json.loads(_cli("align", *sessions, "--jobs", str(jobs), "--json"))
     align_s = time.monotonic() - t0
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     return {"platform": PLATFORM, "seed": SEED, "trials": trials, "subjects": subjects,
             "max_seconds_per_trial": max_seconds,
-            "simulate_s": round(simulate_s, 2), "align_s": round(align_s, 2), "jobs": 2,
+            "simulate_s": round(simulate_s, 2), "align_s": round(align_s, 2), "jobs": jobs,
             "video_frames_total": int(sum(a["frames"] for a in aligned)), "dataset_mb": round(size / 1e6, 1)}
 
 
-def _cli(*args: str) -> str:
-    proc = subprocess.run([sys.executable, "-m", "midas_cli", *args], capture_output=True, text=True)
+def _cli(*args: str, show: bool = False) -> str:
+    """midas ARGS' stdout; ``show``: its stderr (the progress lines) passes through to ours as it runs."""
+    proc = subprocess.run([sys.executable, "-m", "midas_cli", *args], stdout=subprocess.PIPE,
+                          stderr=None if show else subprocess.PIPE, text=True)
     if proc.returncode != 0:
-        raise RuntimeError(f"midas {' '.join(args[:2])} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+        said = "see its stderr above" if show else proc.stderr[-2000:]
+        raise RuntimeError(f"midas {' '.join(args[:2])} failed ({proc.returncode}): {said}")
     return proc.stdout
 
 
@@ -210,23 +213,26 @@ def louo_case(folder: Path, device_name: str) -> dict:
 LOUO_ALL_TRIALS = 38  # JIGSAWS Suturing's labelled trials
 
 
-def run_louo_all(epochs: int | None, quick: bool) -> None:
-    """Simulate a Suturing-shaped dataset and time a whole LOUO cross-validation at the defaults (module docs)."""
-    from gestures_jigsaws import fold_seconds
+def run_louo_all(epochs: int | None, quick: bool, accelerator: str = "cpu", prep_jobs: int = 2) -> None:
+    """Simulate a Suturing-shaped dataset and time a whole LOUO cross-validation at the defaults (module docs);
+    ``accelerator`` cuda: ``--accelerator cuda`` (the folds batched in one process, ``--fold-batch auto``)."""
+    from gestures_jigsaws import fold_seconds, torch_facts
 
     trials, seconds = (LOUO_SUBJECTS * 2, 15.0) if quick else (LOUO_ALL_TRIALS, LOUO_MAX_SECONDS)
     with tempfile.TemporaryDirectory(prefix="midas-bench-louo-all-") as tmp:
         sessions, out = Path(tmp) / "sessions", Path(tmp) / "run"
         print(f"train: simulating and aligning {trials} {PLATFORM} trials ({LOUO_SUBJECTS} subjects) ...", file=sys.stderr)
         load = load_average()
-        data = {**prepare_dataset(sessions, trials, seconds, LOUO_SUBJECTS), "load_average_before_after": [load, load_average()]}
+        data = {**prepare_dataset(sessions, trials, seconds, LOUO_SUBJECTS, prep_jobs),
+                "load_average_before_after": [load, load_average()]}
         args = ["train", "gestures", str(sessions), "--modalities", ",".join(LOUO_MODALITIES), "--split", "louo",
-                "--fold", "all", "--no-baseline", "--jobs", "2", "--out", str(out), "--json"]
+                "--fold", "all", "--no-baseline", "--out", str(out), "--json"]
+        args += ["--jobs", "2"] if accelerator == "cpu" else ["--accelerator", accelerator]
         args += ["--epochs", str(epochs)] if epochs is not None else []
         print(f"train: {' '.join(args[:2])} --split louo --fold all (the default model and recipe"
               f"{f', {epochs} epochs' if epochs is not None else ''}) ...", file=sys.stderr)
         load, t0 = load_average(), time.monotonic()
-        _cli(*args)
+        _cli(*args, show=True)
         wall = time.monotonic() - t0
         first = json.loads((out / "fold-0" / "run.json").read_text(encoding="utf-8"))
         cv = json.loads((out / "cv.json").read_text(encoding="utf-8"))
@@ -242,7 +248,9 @@ def run_louo_all(epochs: int | None, quick: bool) -> None:
                "git_commit": first.get("code", {}).get("git_commit")}
     # one file per model and epochs (MS-TCN++'s runs, from before the ensemble was the default, keep their names)
     name = "train_louo_all" + (f"-{run['model']}" if run["model"] != "mstcn" else "") + (f"-e{epochs}" if epochs else "")
-    write_result(name, {"machine": machine_info(), "quick": quick, "data": data, "run": run})
+    name += f"-{accelerator}" if accelerator != "cpu" else ""
+    facts = torch_facts(2 if accelerator == "cpu" else 1)
+    write_result(name, {"machine": {**machine_info(), **facts}, "quick": quick, "data": data, "run": run})
 
 
 def run_louo() -> None:
@@ -276,6 +284,9 @@ def main() -> None:
     parser.add_argument("--louo-all", action="store_true",
                         help="Suturing-sized whole LOUO cross-validation at the defaults -> results/train_louo_all.json")
     parser.add_argument("--epochs", type=int, default=None, help="--louo-all: override the recipe's epochs")
+    parser.add_argument("--accelerator", choices=("cpu", "cuda"), default="cpu",
+                        help="--louo-all: train on this (cuda: the folds batched in one process; result name -cuda)")
+    parser.add_argument("--prep-jobs", type=int, default=2, help="--louo-all: processes to simulate and align with")
     parser.add_argument("--case", nargs=4, help=argparse.SUPPRESS)
     parser.add_argument("--louo-case", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -286,7 +297,7 @@ def main() -> None:
         run_louo()
         return
     if args.louo_all:
-        run_louo_all(args.epochs, args.quick)
+        run_louo_all(args.epochs, args.quick, args.accelerator, args.prep_jobs)
         return
     if args.case:
         result = case(args.case[0], Path(args.case[1]), int(args.case[2]), int(args.case[3]))

@@ -337,13 +337,14 @@ def run_task(data: Path, name: str, models: list[str], args: argparse.Namespace)
 
 
 def torch_facts(jobs: int) -> dict[str, Any]:
-    """torch version and the threads each training worker gets (the local executor's OMP_NUM_THREADS)."""
+    """torch version, the threads each training worker gets (the local executor's OMP_NUM_THREADS), the GPU if any."""
     import torch
 
     env = os.environ.get("OMP_NUM_THREADS")
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {"torch": torch.__version__, "jobs": jobs,
             "threads_per_worker": int(env) if env else max(1, (os.cpu_count() or 1) // jobs),
-            "niceness": os.nice(0)}
+            "niceness": os.nice(0), **({"gpu": gpu} if gpu else {})}
 
 
 def merge(old: list[dict[str, Any]], new: list[dict[str, Any]]) -> list[dict[str, Any]]:
