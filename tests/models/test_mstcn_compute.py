@@ -1,7 +1,7 @@
 """MS-TCN++'s faster computation is the same network: a dual-dilated layer computed as one product over
 its distinct taps equals its two dilated convolutions and 1x1 fusion as written (outputs and every
-gradient), offline and causal, for dilations below and beyond the sequence; the uniform-draw dropout
-drops and scales as ``nn.Dropout`` does."""
+gradient), offline and causal, for dilations below and beyond the sequence; so does a dilated convolution
+computed as one product over its shifted input; the uniform-draw dropout drops and scales as ``nn.Dropout`` does."""
 
 from __future__ import annotations
 
@@ -9,13 +9,37 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from midas_cli.models.mstcn import DualDilatedLayer, Dropout
+from midas_cli.models.mstcn import DilatedConv, DualDilatedLayer, Dropout
+
+
+def _torch_conv(conv: DilatedConv, x: torch.Tensor) -> torch.Tensor:
+    """The dilated convolution as torch computes it (zero padding: both sides, or the left only if causal)."""
+    d = conv.dilation[0]
+    if conv.causal:
+        return F.conv1d(F.pad(x, (2 * d, 0)), conv.weight, conv.bias, dilation=d)
+    return F.conv1d(x, conv.weight, conv.bias, padding=d, dilation=d)
 
 
 def _as_written(layer: DualDilatedLayer, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """The layer as published: each dilated convolution (torch's own), concatenated, fused by the 1x1."""
-    fused = layer.fusion(torch.cat([layer.conv_large(x), layer.conv_small(x)], dim=1))
+    fused = layer.fusion(torch.cat([_torch_conv(layer.conv_large, x), _torch_conv(layer.conv_small, x)], dim=1))
     return (x + F.relu(fused)) * mask
+
+
+@pytest.mark.parametrize("causal", [False, True])
+@pytest.mark.parametrize("dilation, length", [(1, 50), (8, 50), (20, 50), (30, 50), (50, 50), (512, 50), (2, 3)])
+def test_dilated_convolution_is_torchs(causal, dilation, length):
+    """Outputs and every gradient, with the taps that reach past the sequence (2d >= T > d) and all but one."""
+    torch.manual_seed(dilation + length)
+    conv = DilatedConv(6, dilation, causal)
+    x = torch.randn(2, 6, length, requires_grad=True)
+    ours, reference = conv(x), _torch_conv(conv, x)
+    assert ours.shape == reference.shape
+    assert torch.allclose(ours, reference, atol=1e-5, rtol=1e-5)
+    params = [x, conv.weight, conv.bias]
+    probe = torch.randn_like(ours)
+    for a, b in zip(torch.autograd.grad((ours * probe).sum(), params), torch.autograd.grad((reference * probe).sum(), params)):
+        assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
 
 
 @pytest.mark.parametrize("causal", [False, True])
