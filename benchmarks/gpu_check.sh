@@ -31,14 +31,16 @@ trap 'kill $smi 2>/dev/null' EXIT
 echo "== Suturing-sized LOUO, --accelerator cuda (limit $(( $(left) * 6 / 10 )) s)"
 timeout $(( $(left) * 6 / 10 )) python3 benchmarks/bench_train.py --louo-all --accelerator cuda --prep-jobs 16 2>&1 \
     | stamp | tee "$out/louo_all.log" | tail -n 60
-echo "== louo-all exit: ${PIPESTATUS[0]}, $(left) s left"
+rc=${PIPESTATUS[0]}
+echo "== louo-all exit: $rc, $(left) s left"
 
 if [ -n "$data" ] && [ "$(left)" -gt 60 ]; then
     echo "== Knot Tying, Needle Passing LOUO on the GPU (limit $(left) s)"
     timeout "$(left)" python3 benchmarks/gestures_jigsaws.py "$data" --work /tmp/midas-jigsaws-dev --tasks knot_tying,needle_passing \
         --models ensemble --variant cuda --train-args "--accelerator cuda" --jobs 8 \
         --note "ensemble --accelerator cuda: one process, the 8 folds batched (gpu_check.sh)" 2>&1 | stamp | tee "$out/jigsaws.log" | tail -n 30
-    echo "== jigsaws exit: ${PIPESTATUS[0]}, $(left) s left"
+    rc=${PIPESTATUS[0]}
+    echo "== jigsaws exit: $rc, $(left) s left"
     for task in knot_tying needle_passing; do
         cp /tmp/midas-jigsaws-dev/runs/$task/ensemble--cuda/cv.json "$out/${task}_cuda_cv.json" 2>/dev/null
     done
