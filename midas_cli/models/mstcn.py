@@ -104,9 +104,7 @@ class DilatedConv(nn.Conv1d):
         taps = [(tap, offset) for tap, offset in enumerate(tap_offsets(self)) if abs(offset) < length]
         if len(taps) == 1:  # only the tap at frame t sees the sequence
             return F.conv1d(x, self.weight[:, :, taps[0][0]:taps[0][0] + 1], self.bias)
-        left, right = max(0, -taps[0][1]), max(0, taps[-1][1])
-        padded = F.pad(x, (left, right))  # (B, M, left + T + right)
-        shifted = torch.cat([padded[..., left + o:left + o + length] for _, o in taps], dim=1)  # (B, nM, T)
+        shifted = shifted_input(x, [offset for _, offset in taps])  # (B, nM, T)
         kept = self.weight if len(taps) == 3 else self.weight[:, :, [tap for tap, _ in taps]]
         weight = kept.transpose(1, 2).reshape(kept.shape[0], -1)  # (M, nM), tap-major as ``shifted``
         return torch.matmul(weight, shifted) + self.bias[:, None]
@@ -125,6 +123,15 @@ class Dropout(nn.Dropout):
         keep = 1.0 - self.p
         scaled = (torch.rand_like(x) < keep).to(x.dtype).mul_(1.0 / keep)  # 0 or 1/keep, in x's dtype (fp16 too)
         return x * scaled  # one product forward and one backward (a bool mask is converted in each)
+
+
+def shifted_input(x: torch.Tensor, offsets: list[int]) -> torch.Tensor:
+    """``x`` (B, M, T) shifted by each of the sorted frame ``offsets`` (zeros outside the sequence), stacked
+    offset-major along the maps: (B, len(offsets) * M, T), the input of a convolution as one product."""
+    length = x.shape[-1]
+    left, right = max(0, -offsets[0]), max(0, offsets[-1])
+    padded = F.pad(x, (left, right))  # (B, M, left + T + right)
+    return torch.cat([padded[..., left + o:left + o + length] for o in offsets], dim=1)
 
 
 def tap_offsets(conv: DilatedConv) -> list[int]:
@@ -160,9 +167,7 @@ class DualDilatedLayer(nn.Module):
                     weights[offset] = weights[offset] + w if offset in weights else w
         bias = fusion[:, :maps] @ self.conv_large.bias + fusion[:, maps:] @ self.conv_small.bias + self.fusion.bias
         offsets = sorted(weights)
-        left, right = max(0, -offsets[0]), max(0, offsets[-1])
-        padded = F.pad(x, (left, right))  # (B, M, left + T + right)
-        shifted = torch.cat([padded[..., left + o:left + o + length] for o in offsets], dim=1)  # (B, nM, T)
+        shifted = shifted_input(x, offsets)  # (B, nM, T)
         fused = torch.matmul(torch.cat([weights[o] for o in offsets], dim=1), shifted) + bias[:, None]
         return (x + self.dropout(F.relu(fused))) * mask
 
