@@ -13,6 +13,7 @@ from report_align import align_section  # noqa: E402
 from report_reference import reference_section  # noqa: E402
 from report_batch import batch_section, export_section, foxglove_live_section  # noqa: E402
 from report_executor import executor_section  # noqa: E402
+from report_fold_batch import fold_batch_section  # noqa: E402
 from report_gestures import gestures_jigsaws_section, rescored_section  # noqa: E402
 from report_live import live_section  # noqa: E402
 from report_soak import soak_section  # noqa: E402
@@ -392,6 +393,8 @@ def main() -> None:
             lines += train_louo_all_section(louo_all)
         if name == "train" and load("ensemble_members"):
             lines += members_section(load("ensemble_members"))
+        if name == "train" and load("fold_batch"):
+            lines += fold_batch_section(load("fold_batch"))
         if name == "train" and load("mstcn_reference"):
             lines += reference_section(load("mstcn_reference"))
         if name == "train" and load("gestures_jigsaws"):
