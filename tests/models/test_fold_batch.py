@@ -5,12 +5,14 @@ its idle steps; ``--fold all --fold-batch on`` writes the ordinary fold folders 
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from helpers.cli import midas
 from helpers.gesture_sessions import write_louo_dataset
@@ -96,6 +98,46 @@ def test_an_idle_fold_keeps_its_weights_and_adam_state():
                            torch.device("cpu"))
     for key, value in alone.state_dict().items():
         torch.testing.assert_close(models[1].state_dict()[key], value, rtol=1e-5, atol=1e-6)
+
+
+class _Operators(TorchDispatchMode):
+    """Counts the aten operators (views apart: no kernel) dispatched while active, after vmap's batching."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += not func.is_view
+        return func(*args, **(kwargs or {}))
+
+
+def _stacked_step_operators(name: str, k: int) -> int:
+    """Operators of one training step of ``k`` folds batched (fit_stacked's step: forward and loss under
+    vmap, backward, the stacked Adam step), dropout on; the second step, after Adam's state exists."""
+    options = {key: value for key, value in SMALL[name].items() if "dropout" not in key}
+    models = [_model(name, options) for _ in range(k)]
+    params, buffers = torch.func.stack_module_state(models)
+    for p in params.values():
+        p.requires_grad_(True)
+    state = fold_batch.new_state(list(params.values()), k, torch.device("cpu"), mixed=False)
+    loss = fold_batch._stacked_loss(models[0], False, torch.device("cpu"))
+    x, y = torch.randn(k, 2, DIMS["emht"], 40), torch.randint(0, CLASSES, (k, 2, 40))
+    mask = torch.ones(k, 2, 40, dtype=torch.bool)
+    counter = _Operators()
+    for counting in (False, True):
+        with counter if counting else contextlib.nullcontext():
+            loss(params, buffers, x, y, mask).sum().backward()
+            fold_batch.adam_step(list(params.values()), state, torch.ones(k, dtype=torch.bool), TrainConfig(lr=1e-3))
+    return counter.count
+
+
+@pytest.mark.parametrize("name", ["mstcn", "transformer"])
+def test_a_batched_step_issues_as_many_operators_for_eight_folds_as_for_two(name):
+    """The point of batching on a GPU: one stream of operators (kernels) whatever the number of folds. An
+    operator vmap has no batching rule for runs once per fold and grows the count."""
+    two, eight = _stacked_step_operators(name, 2), _stacked_step_operators(name, 8)
+    assert two > 100 and eight == two
 
 
 def test_mixed_precision_skips_the_step_of_a_fold_with_inf_gradients_and_halves_its_scale():
