@@ -55,7 +55,7 @@ def fold_batch_section(r: dict[str, Any]) -> list[str]:
     grows = {name: m["operators_growing_with_k"] for name, m in r["members"].items() if m["operators_growing_with_k"]}
     growth = "; ".join(f"{name}: {', '.join(f'{op} ' + ' / '.join(str(v) for v in counts.values()) for op, counts in g.items())}"
                        for name, g in grows.items())
-    steps = ", ".join(f"{name} {m['steps_per_fold']} a fold x {m['count_in_ensemble']}" for name, m in r["members"].items())
+    steps = ", ".join(f"{m['count_in_ensemble']} x {name}, {m['steps_per_fold']} steps a fold" for name, m in r["members"].items())
     fewer = w["separate"] / w["batched"]
     vmap = " and ".join(f"{m['floor']['batched_us_per_operator'] / m['floor']['alone_us_per_operator']:.1f}x ({name})"
                         for name, m in r["members"].items())
@@ -65,7 +65,7 @@ def fold_batch_section(r: dict[str, Any]) -> list[str]:
         f"issues (plus the stacked Adam step's few), where {FOLDS} processes issue {FOLDS} times as many and "
         f"time-slice the device. " + (f"Operators that grow from K = 1 to K = 2 and then stay ({growth}): vmap's "
                                       "layout copies, not a loop over folds." if grows else ""),
-        f"* **The whole run** (the default ensemble, {steps} steps): {w['separate'] / 1e6:.1f} M operators from "
+        f"* **The whole run** (the default ensemble: {steps}): {w['separate'] / 1e6:.1f} M operators from "
         f"{FOLDS} processes against **{w['batched'] / 1e6:.2f} M from one batched process**; the arithmetic is "
         f"{w['tflop']:.0f} TFLOP, {w['tflop'] / H100_DENSE_FP16_TFLOPS:.2f} s of an H100's dense float16 peak "
         f"({H100_DENSE_FP16_TFLOPS} TFLOP/s): a few seconds even at a tenth of it.",
