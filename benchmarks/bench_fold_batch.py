@@ -30,7 +30,7 @@ model's 10 Hz, 40 inputs: mtm + psm pos, vel, angvel, grasper; 8 folds; ~33 trai
 Trials are given one length (the padding a batch of uneven folds adds is not counted). On CUDA the forward
 runs under autocast (float16 casts add operators to both sides alike); the CPU stays float32.
 
-    .venv/bin/python benchmarks/bench_fold_batch.py [--frames 1085] [--ks 1,2,4,8]   # -> results/fold_batch.json
+    .venv/bin/python benchmarks/bench_fold_batch.py [--frames 1085] [--ks 1,2,4,8] [--quick]   # -> results/fold_batch.json
 """
 
 from __future__ import annotations
@@ -165,7 +165,10 @@ def main() -> None:
     parser.add_argument("--ks", default="1,2,4,8", help="fold counts batched")
     parser.add_argument("--floor-frames", type=int, default=16, help="frames a trial for the host's floor")
     parser.add_argument("--reps", type=int, default=3, help="timed steps (median)")
+    parser.add_argument("--quick", action="store_true", help="smoke run: 200 frames, K = 1 and 2, one timed step")
     args = parser.parse_args()
+    if args.quick:
+        args.frames, args.ks, args.reps = 200, "1,2", 1
     torch.set_num_threads(1)
     ks = [int(k) for k in args.ks.split(",")]
     load_before = load_average()
@@ -198,7 +201,7 @@ def main() -> None:
         "machine": machine_info(), "torch": torch.__version__, "threads": 1, "frames": args.frames,
         "floor_frames": args.floor_frames, "inputs": sum(DIMS.values()), "classes": CLASSES, "train_trials": TRAIN_TRIALS, "ks": ks,
         "members": members, "ensemble": list(MEMBERS), "load_1min": [load_before, load_average()],
-        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")})
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "quick": args.quick})
 
 
 if __name__ == "__main__":

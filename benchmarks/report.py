@@ -49,6 +49,7 @@ def header() -> list[str]:
             ".venv/bin/python benchmarks/bench_train.py --louo   # one JIGSAWS-sized LOUO fold of MS-TCN++",
             "nice -n 19 .venv/bin/python benchmarks/bench_train.py --louo-all   # a whole Suturing-sized LOUO at the defaults",
             ".venv/bin/python benchmarks/bench_mstcn_reference.py --threads 1   # MS-TCN++ vs a reference loop",
+            ".venv/bin/python benchmarks/bench_fold_batch.py   # batched folds without a GPU: operators a step",
             "nice -n 19 .venv/bin/python benchmarks/gestures_jigsaws.py --jobs 2   # LOUO on real JIGSAWS kinematics",
             ".venv/bin/python benchmarks/bench_startup.py    # start-up of light commands vs a bare python",
             ".venv/bin/python benchmarks/bench_batch.py      # align / verify over 400 sessions: one call vs 400",
@@ -378,7 +379,7 @@ def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     lines = header()
     quick = [name for name in ("startup", "record", "align", "train", "executor", "soak", "soak-short",
-                               "mstcn_reference", "batch", "export") if (load(name) or {}).get("quick")]
+                               "mstcn_reference", "batch", "export", "fold_batch") if (load(name) or {}).get("quick")]
     if quick:
         lines += [f"**Smoke run** (`--quick`) for {', '.join(quick)}: short sizes, not for comparison.", ""]
     for name, section in (("record", record_section), ("align", align_section), ("pedal_gt", pedal_section),

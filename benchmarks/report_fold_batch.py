@@ -28,7 +28,8 @@ def whole_run(r: dict[str, Any]) -> dict[str, float]:
 def fold_batch_section(r: dict[str, Any]) -> list[str]:
     ks = [str(k) for k in r["ks"]]
     widest = ks[-1]
-    out = ["### Folds batched in one process, measured without a GPU (`bench_fold_batch.py`)", "",
+    smoke = " (smoke run: short trials, not for reading)" if r.get("quick") else ""
+    out = [f"### Folds batched in one process, measured without a GPU (`bench_fold_batch.py`){smoke}", "",
            f"Issue 27: on one GPU, all the folds of a cross-validation are trained by one process, batched "
            f"(`--accelerator cuda`: `--fold-batch auto` turns it on; `models/fold_batch.py`, K copies of a network "
            f"under `torch.vmap`). No GPU was lent when this was written, so this measures the design on the CPU: "

@@ -23,6 +23,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_train.py $(_BENCH_FLAG) > /dev/null
 	$(if $(BENCH_QUICK),,$(BIN)/python benchmarks/bench_train.py --louo > /dev/null)
 	$(BIN)/python benchmarks/bench_mstcn_reference.py --threads 1 $(_BENCH_FLAG) > /dev/null
+	$(BIN)/python benchmarks/bench_fold_batch.py $(_BENCH_FLAG) > /dev/null
 	$(BIN)/python benchmarks/bench_timestamp_error.py $(_BENCH_FLAG) > /dev/null
 	if [ -x /usr/sbin/slurmctld ] || command -v slurmctld > /dev/null; then \
 		$(BIN)/python benchmarks/bench_executor.py $(_BENCH_FLAG) > /dev/null; \
