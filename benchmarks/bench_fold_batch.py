@@ -31,6 +31,7 @@ Trials are given one length (the padding a batch of uneven folds adds is not cou
 runs under autocast (float16 casts add operators to both sides alike); the CPU stays float32.
 
     .venv/bin/python benchmarks/bench_fold_batch.py [--frames 1085] [--ks 1,2,4,8] [--quick]   # -> results/fold_batch.json
+    python3 benchmarks/bench_fold_batch.py --device cuda   # on a GPU (gpu_check.sh) -> results/fold_batch-cuda.json
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ from midas_cli.models.train import RECIPES, TrainConfig, build_model  # noqa: E4
 DIMS = {"mtm": 20, "psm": 20}  # the CLI's robot inputs: pos 3, vel 3, angvel 3, grasper 1, per side
 CLASSES = 10  # JIGSAWS Suturing's gestures
 TRAIN_TRIALS = 33  # 38 trials, 8 users: a LOUO fold trains on ~33
+DEVICE = torch.device("cpu")  # --device
 
 
 class OperatorCount(TorchDispatchMode):
@@ -78,7 +80,7 @@ class OperatorCount(TorchDispatchMode):
 
 def _model(name: str) -> torch.nn.Module:
     torch.manual_seed(0)
-    return build_model(name, DIMS, CLASSES, {})[0]
+    return build_model(name, DIMS, CLASSES, {})[0].to(DEVICE)
 
 
 def _batch(k: int | None, batch: int, frames: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -86,7 +88,7 @@ def _batch(k: int | None, batch: int, frames: int) -> tuple[torch.Tensor, torch.
     lead = (k,) if k else ()
     x = torch.randn(*lead, batch, sum(DIMS.values()), frames)
     y = torch.randint(0, CLASSES, (*lead, batch, frames))
-    return x, y, torch.ones(*lead, batch, frames, dtype=torch.bool)
+    return x.to(DEVICE), y.to(DEVICE), torch.ones(*lead, batch, frames, dtype=torch.bool, device=DEVICE)
 
 
 def _alone(name: str, config: TrainConfig, frames: int, update: bool = True):  # noqa: ANN202
@@ -95,14 +97,18 @@ def _alone(name: str, config: TrainConfig, frames: int, update: bool = True):  #
     model = _model(name)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay, fused=True)
     x, y, mask = _batch(None, config.batch_size, frames)
+    mixed = DEVICE.type == "cuda"  # as fit: autocast float16 and a loss scale on CUDA
+    scaler = torch.amp.GradScaler("cuda", enabled=mixed)
 
     def step() -> None:
         model.train()
-        loss = model.loss(model(x, mask), y, mask)
+        with torch.autocast(device_type=DEVICE.type, dtype=torch.float16, enabled=mixed):
+            loss = model.loss(model(x, mask), y, mask)
         optimiser.zero_grad()
-        loss.backward()
+        scaler.scale(loss).backward()
         if update:
-            optimiser.step()
+            scaler.step(optimiser)
+            scaler.update()
 
     return step
 
@@ -115,15 +121,15 @@ def _batched(name: str, config: TrainConfig, frames: int, k: int, update: bool =
     names = list(params)
     for p in params.values():
         p.requires_grad_(True)
-    device = torch.device("cpu")
-    state = fold_batch.new_state([params[n] for n in names], k, device, mixed=False)
-    loss_fn = fold_batch._stacked_loss(models[0], False, device)
+    mixed = DEVICE.type == "cuda"  # as fit_stacked
+    state = fold_batch.new_state([params[n] for n in names], k, DEVICE, mixed=mixed)
+    loss_fn = fold_batch._stacked_loss(models[0], mixed, DEVICE)
     x, y, mask = _batch(k, config.batch_size, frames)
-    active = torch.ones(k, dtype=torch.bool)
+    active = torch.ones(k, dtype=torch.bool, device=DEVICE)
 
     def step() -> None:
         losses = loss_fn(params, buffers, x, y, mask)
-        losses.sum().backward()
+        (losses * state.scale).sum().backward()
         if update:
             fold_batch.adam_step([params[n] for n in names], state, active, config)
         else:
@@ -133,14 +139,22 @@ def _batched(name: str, config: TrainConfig, frames: int, k: int, update: bool =
     return step
 
 
+def _clock() -> float:
+    """The process's CPU seconds; on CUDA the wall clock once the device has finished its work."""
+    if DEVICE.type == "cuda":
+        torch.cuda.synchronize()
+        return time.perf_counter()
+    return time.process_time()
+
+
 def _seconds(step, reps: int, least: bool = False) -> float:  # noqa: ANN001
-    """Median CPU seconds of ``reps`` steps (the least, for a floor: what the host's other work added is
-    never negative)."""
+    """Median seconds (``_clock``) of ``reps`` steps (the least, for a floor: what the host's other work
+    added is never negative)."""
     seconds = []
     for _ in range(reps):
-        start = time.process_time()
+        start = _clock()
         step()
-        seconds.append(time.process_time() - start)
+        seconds.append(_clock() - start)
     return round(min(seconds) if least else sorted(seconds)[len(seconds) // 2], 5)
 
 
@@ -166,7 +180,12 @@ def main() -> None:
     parser.add_argument("--floor-frames", type=int, default=16, help="frames a trial for the host's floor")
     parser.add_argument("--reps", type=int, default=3, help="timed steps (median)")
     parser.add_argument("--quick", action="store_true", help="smoke run: 200 frames, K = 1 and 2, one timed step")
+    parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                        help="cuda: mixed precision as training runs there, wall seconds of the synchronised device "
+                             "(results/fold_batch-cuda.json)")
     args = parser.parse_args()
+    global DEVICE
+    DEVICE = torch.device(args.device)
     if args.quick:
         args.frames, args.ks, args.reps = 200, "1,2", 1
     torch.set_num_threads(1)
@@ -197,11 +216,13 @@ def main() -> None:
         members[name] = {"batch_size": config.batch_size, "epochs": RECIPES[name]["epochs"], "steps_per_fold": steps,
                          "count_in_ensemble": MEMBERS.count(name), "alone": alone, "batched": batched, "floor": floor,
                          "operators_growing_with_k": grows}
-    write_result("fold_batch", {
+    write_result("fold_batch" + ("-cuda" if DEVICE.type == "cuda" else ""), {
         "machine": machine_info(), "torch": torch.__version__, "threads": 1, "frames": args.frames,
         "floor_frames": args.floor_frames, "inputs": sum(DIMS.values()), "classes": CLASSES, "train_trials": TRAIN_TRIALS, "ks": ks,
         "members": members, "ensemble": list(MEMBERS), "load_1min": [load_before, load_average()],
-        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "quick": args.quick})
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "quick": args.quick, "device": args.device,
+        "clock": "wall, CUDA synchronised" if DEVICE.type == "cuda" else "process CPU",
+        "gpu": torch.cuda.get_device_name(0) if DEVICE.type == "cuda" else None})
 
 
 if __name__ == "__main__":
