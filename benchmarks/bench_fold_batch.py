@@ -9,8 +9,8 @@ time-slice the device, while batched folds (``models/fold_batch.py``: K copies u
 one stream whose operators are K times larger. What this measures, on the CPU, exactly as the code runs:
 
 * one fold alone: ``fit``'s step (forward, loss, backward, fused Adam; ``models/train.py``);
-* K folds batched, K = 1, 2, 4, 8: ``fold_batch``'s stacked step (vmap'd forward and loss, backward, the
-  stacked Adam step), counted with a ``TorchDispatchMode`` below vmap (after batching rules: an operator
+* K folds batched, K = 1, 2, 4, 8: ``fit_stacked``'s step itself (``fold_batch.StackedStep``: vmap'd
+  forward and loss, backward, the stacked Adam step), counted with a ``TorchDispatchMode`` below vmap (after batching rules: an operator
   with no batching rule runs once per fold and shows as growth with K). Views (``is_view``: no kernel)
   are counted apart. The second step is counted (the first creates Adam's state).
 * FLOPs of one fold's step (``torch.utils.flop_counter``: matrix products and convolutions; K folds do K
@@ -59,7 +59,6 @@ from midas_cli.models.train import RECIPES, TrainConfig, build_model  # noqa: E4
 DIMS = {"mtm": 20, "psm": 20}  # the CLI's robot inputs: pos 3, vel 3, angvel 3, grasper 1, per side
 CLASSES = 10  # JIGSAWS Suturing's gestures
 TRAIN_TRIALS = 33  # 38 trials, 8 users: a LOUO fold trains on ~33
-DEVICE = torch.device("cpu")  # --device
 
 
 class OperatorCount(TorchDispatchMode):
@@ -78,31 +77,31 @@ class OperatorCount(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def _model(name: str) -> torch.nn.Module:
+def _model(name: str, device: torch.device) -> torch.nn.Module:
     torch.manual_seed(0)
-    return build_model(name, DIMS, CLASSES, {})[0].to(DEVICE)
+    return build_model(name, DIMS, CLASSES, {})[0].to(device)
 
 
-def _batch(k: int | None, batch: int, frames: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _batch(k: int | None, batch: int, frames: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """x (B, D, T), y, mask; with a leading fold dimension K when ``k`` is given."""
     lead = (k,) if k else ()
     x = torch.randn(*lead, batch, sum(DIMS.values()), frames)
     y = torch.randint(0, CLASSES, (*lead, batch, frames))
-    return x.to(DEVICE), y.to(DEVICE), torch.ones(*lead, batch, frames, dtype=torch.bool, device=DEVICE)
+    return x.to(device), y.to(device), torch.ones(*lead, batch, frames, dtype=torch.bool, device=device)
 
 
-def _alone(name: str, config: TrainConfig, frames: int, update: bool = True):  # noqa: ANN202
-    """fit's training step for one fold (models/train.py), as a callable; without the optimiser's
-    update if not ``update``."""
-    model = _model(name)
+def _alone(name: str, config: TrainConfig, frames: int, device: torch.device, update: bool = True):  # noqa: ANN202
+    """fit's training step for one fold (models/train.py, its loop's body), as a callable; without the
+    optimiser's update if not ``update``."""
+    model = _model(name, device)
     optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay, fused=True)
-    x, y, mask = _batch(None, config.batch_size, frames)
-    mixed = DEVICE.type == "cuda"  # as fit: autocast float16 and a loss scale on CUDA
+    x, y, mask = _batch(None, config.batch_size, frames, device)
+    mixed = device.type == "cuda"  # as fit: autocast float16 and a loss scale on CUDA
     scaler = torch.amp.GradScaler("cuda", enabled=mixed)
 
     def step() -> None:
         model.train()
-        with torch.autocast(device_type=DEVICE.type, dtype=torch.float16, enabled=mixed):
+        with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=mixed):
             loss = model.loss(model(x, mask), y, mask)
         optimiser.zero_grad()
         scaler.scale(loss).backward()
@@ -113,35 +112,27 @@ def _alone(name: str, config: TrainConfig, frames: int, update: bool = True):  #
     return step
 
 
-def _batched(name: str, config: TrainConfig, frames: int, k: int, update: bool = True):  # noqa: ANN202
-    """fold_batch's stacked training step for ``k`` folds, as a callable; without the Adam step (the
-    gradients dropped) if not ``update``."""
-    models = [_model(name) for _ in range(k)]
-    params, buffers = torch.func.stack_module_state(models)
-    names = list(params)
-    for p in params.values():
-        p.requires_grad_(True)
-    mixed = DEVICE.type == "cuda"  # as fit_stacked
-    state = fold_batch.new_state([params[n] for n in names], k, DEVICE, mixed=mixed)
-    loss_fn = fold_batch._stacked_loss(models[0], mixed, DEVICE)
-    x, y, mask = _batch(k, config.batch_size, frames)
-    active = torch.ones(k, dtype=torch.bool, device=DEVICE)
+def _batched(name: str, config: TrainConfig, frames: int, k: int, device: torch.device, update: bool = True):  # noqa: ANN202
+    """fit_stacked's training step for ``k`` folds (``fold_batch.StackedStep``), as a callable; without
+    the Adam step (the gradients dropped) if not ``update``."""
+    step = fold_batch.StackedStep([_model(name, device) for _ in range(k)], device)
+    x, y, mask = _batch(k, config.batch_size, frames, device)
+    active = torch.ones(k, dtype=torch.bool, device=device)
 
-    def step() -> None:
-        losses = loss_fn(params, buffers, x, y, mask)
-        (losses * state.scale).sum().backward()
+    def run() -> None:
         if update:
-            fold_batch.adam_step([params[n] for n in names], state, active, config)
-        else:
-            for p in params.values():
-                p.grad = None
+            step(x, y, mask, active, config)
+            return
+        step.backward(x, y, mask, active)
+        for p in step.params.values():
+            p.grad = None
 
-    return step
+    return run
 
 
 def _clock() -> float:
-    """The process's CPU seconds; on CUDA the wall clock once the device has finished its work."""
-    if DEVICE.type == "cuda":
+    """The process's CPU seconds; with CUDA in use, the wall clock once the device has finished its work."""
+    if torch.cuda.is_initialized():
         torch.cuda.synchronize()
         return time.perf_counter()
     return time.process_time()
@@ -184,8 +175,7 @@ def main() -> None:
                         help="cuda: mixed precision as training runs there, wall seconds of the synchronised device "
                              "(results/fold_batch-cuda.json)")
     args = parser.parse_args()
-    global DEVICE
-    DEVICE = torch.device(args.device)
+    device = torch.device(args.device)
     if args.quick:
         args.frames, args.ks, args.reps = 200, "1,2", 1
     torch.set_num_threads(1)
@@ -195,18 +185,18 @@ def main() -> None:
     for name in dict.fromkeys(MEMBERS):
         config = TrainConfig(model=name, split="louo", seed=0).resolved()
         print(f"fold batch: {name} alone", file=sys.stderr, flush=True)
-        alone = _measure(_alone(name, config, args.frames), args.reps, flops=True)
+        alone = _measure(_alone(name, config, args.frames, device), args.reps, flops=True)
         batched = {}
         for k in ks:
             print(f"fold batch: {name}, {k} folds batched", file=sys.stderr, flush=True)
-            batched[str(k)] = _measure(_batched(name, config, args.frames, k), args.reps)
+            batched[str(k)] = _measure(_batched(name, config, args.frames, k, device), args.reps)
         one = batched[str(ks[0])]["by_operator"]
         grows = {op: {k: b["by_operator"].get(op, 0) for k, b in batched.items()}
                  for op in batched[str(ks[-1])]["by_operator"] if batched[str(ks[-1])]["by_operator"][op] > one.get(op, 0)}
         print(f"fold batch: {name}, the host's floor", file=sys.stderr, flush=True)
         floor = {"frames": args.floor_frames}
-        for side, step in (("alone", _alone(name, config, args.floor_frames, update=False)),
-                           ("batched", _batched(name, config, args.floor_frames, 1, update=False))):
+        for side, step in (("alone", _alone(name, config, args.floor_frames, device, update=False)),
+                           ("batched", _batched(name, config, args.floor_frames, 1, device, update=False))):
             _warm(step)
             with OperatorCount() as ops:
                 step()
@@ -216,13 +206,13 @@ def main() -> None:
         members[name] = {"batch_size": config.batch_size, "epochs": RECIPES[name]["epochs"], "steps_per_fold": steps,
                          "count_in_ensemble": MEMBERS.count(name), "alone": alone, "batched": batched, "floor": floor,
                          "operators_growing_with_k": grows}
-    write_result("fold_batch" + ("-cuda" if DEVICE.type == "cuda" else ""), {
+    cuda = device.type == "cuda"
+    write_result("fold_batch" + ("-cuda" if cuda else ""), {
         "machine": machine_info(), "torch": torch.__version__, "threads": 1, "frames": args.frames,
         "floor_frames": args.floor_frames, "inputs": sum(DIMS.values()), "classes": CLASSES, "train_trials": TRAIN_TRIALS, "ks": ks,
         "members": members, "ensemble": list(MEMBERS), "load_1min": [load_before, load_average()],
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "quick": args.quick, "device": args.device,
-        "clock": "wall, CUDA synchronised" if DEVICE.type == "cuda" else "process CPU",
-        "gpu": torch.cuda.get_device_name(0) if DEVICE.type == "cuda" else None})
+        "clock": "wall, CUDA synchronised" if cuda else "process CPU", "gpu": torch.cuda.get_device_name(0) if cuda else None})
 
 
 if __name__ == "__main__":

@@ -32,10 +32,10 @@ def fold_batch_section(r: dict[str, Any]) -> list[str]:
     out = [f"### Folds batched in one process, measured without a GPU (`bench_fold_batch.py`){smoke}", "",
            f"Issue 27: on one GPU, all the folds of a cross-validation are trained by one process, batched "
            f"(`--accelerator cuda`: `--fold-batch auto` turns it on; `models/fold_batch.py`, K copies of a network "
-           f"under `torch.vmap`). No GPU was lent when this was written, so this measures the design on the CPU: "
+           f"under `torch.vmap`). This measures the design without a GPU (none was lent when it was written): "
            f"per training step of each ensemble member at its recipe, the operators torch dispatches (each a kernel "
            f"launch on a GPU, whatever its size; views apart), for one fold trained alone (`fit`'s step) and for K "
-           f"folds batched (`fold_batch`'s step), the arithmetic of one fold's step, and the CPU time. Shapes of "
+           f"folds batched (`fit_stacked`'s step, `StackedStep`), the arithmetic of one fold's step, and the CPU time. Shapes of "
            f"the Suturing-sized LOUO ({r['frames']:,} frames a trial at 10 Hz, {r['inputs']} inputs, "
            f"{r['classes']} classes, ~{r['train_trials']} training trials a fold). {r['machine']['cpu_model']}, "
            f"one torch thread, torch {r['torch']}, {r['machine']['date_utc'][:16]}, load "
@@ -77,8 +77,8 @@ def fold_batch_section(r: dict[str, Any]) -> list[str]:
         f"120 s, before building the dataset and evaluating. {FOLDS} processes would issue theirs side by side "
         f"from {FOLDS} cores at the cost alone (~{w['floor_alone_s']:.0f} s each), but their kernels time-slice "
         f"the one GPU (the issue's {FOLDS} contexts: no fold finished in 240 s); batched, {fewer:.0f}x fewer "
-        f"operators, each costing {vmap} as much under vmap. The GPU run itself is "
-        f"`benchmarks/gpu_check.sh` (benchmarks/README.md): not measured here, no GPU lent.",
+        f"operators, each costing {vmap} as much under vmap. The GPU run itself is measured by "
+        f"`benchmarks/gpu_check.sh` on a lent GPU (benchmarks/README.md; the louo-all table's GPU rows).",
         "* On the CPU batching gains nothing (the CPU time of K folds batched is about K folds alone: the CPU is "
         "busy with arithmetic, not with issuing operators), which is why `--fold-batch auto` is off there.",
         "* Not built: capturing a step as a CUDA graph would take the host's share away (the shapes change from "

@@ -103,13 +103,7 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
             for history, records in zip(histories, fitted):
                 history += member_records(i, member_config, records)
         return histories
-    params, buffers = stack_module_state(models)  # type: ignore[arg-type]
-    names = list(params)
-    for p in params.values():
-        p.requires_grad_(True)
-    mixed = device.type == "cuda"
-    state = new_state([params[n] for n in names], len(models), device, mixed)
-    step = _stacked_loss(models[0], mixed, device)
+    step = StackedStep(models, device)
     rngs = [np.random.default_rng(config.seed) for _ in models]
     augments = list(augments) if augments is not None else [None] * len(models)
     histories = [[] for _ in models]
@@ -122,12 +116,8 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
         for i in range(max(map(len, batches))):
             active = torch.tensor([i < len(b) for b in batches], device=device)
             x, y, mask = _stack([b[i] if i < len(b) else b[0] for b in batches], device)
-            losses = step(params, buffers, x, y, mask)
-            losses = torch.where(active, losses, torch.zeros_like(losses))  # an idle fold: no gradient
-            (losses * state.scale).sum().backward()
-            adam_step([params[n] for n in names], state, active, config)
-            loss_sum += losses.detach().float()
-        _copy_into(models, params)
+            loss_sum += step(x, y, mask, active, config).float()
+        _copy_into(models, step.params)
         for k, model in enumerate(models):
             val_acc = frame_accuracy(model, vals[k], device) if vals[k].units else None
             histories[k].append({"epoch": epoch, "loss": float(loss_sum[k]) / len(batches[k]), "val_accuracy": val_acc})
@@ -143,6 +133,35 @@ def fit_stacked(models: list[torch.nn.Module], trains: list[Sequences], vals: li
     for model, average in zip(models, averages):
         average.apply(model)
     return histories
+
+
+class StackedStep:
+    """K models of one architecture as one stacked computation (``stack_module_state``, the forward and
+    loss under vmap, ``_stacked_loss``) with each fold's Adam state (``StepState``); a call is one training
+    step of every fold, ``fit_stacked``'s (``benchmarks/bench_fold_batch.py`` measures this same step)."""
+
+    def __init__(self, models: Sequence[torch.nn.Module], device: torch.device) -> None:
+        self.params, self.buffers = stack_module_state(list(models))  # type: ignore[arg-type]
+        for p in self.params.values():
+            p.requires_grad_(True)
+        mixed = device.type == "cuda"
+        self.state = new_state(list(self.params.values()), len(models), device, mixed)
+        self._loss = _stacked_loss(models[0], mixed, device)
+
+    def backward(self, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """The K losses of a stacked batch (``_stack``) and their gradients, scaled by each fold's loss scale;
+        a fold not ``active`` (K,) bool has no batch this step: its loss is 0 and gives no gradient."""
+        losses = self._loss(self.params, self.buffers, x, y, mask)
+        losses = torch.where(active, losses, torch.zeros_like(losses))
+        (losses * self.state.scale).sum().backward()
+        return losses.detach()
+
+    def __call__(self, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, active: torch.Tensor,
+                 config: TrainConfig) -> torch.Tensor:
+        """``backward``, then the Adam step of the ``active`` folds; the K losses."""
+        losses = self.backward(x, y, mask, active)
+        adam_step(list(self.params.values()), self.state, active, config)
+        return losses
 
 
 def _stacked_loss(base: torch.nn.Module, mixed: bool, device: torch.device) -> Callable[..., torch.Tensor]:

@@ -113,22 +113,16 @@ class _Operators(TorchDispatchMode):
 
 
 def _stacked_step_operators(name: str, k: int) -> int:
-    """Operators of one training step of ``k`` folds batched (fit_stacked's step: forward and loss under
-    vmap, backward, the stacked Adam step), dropout on; the second step, after Adam's state exists."""
+    """Operators of one training step of ``k`` folds batched (fit_stacked's ``StackedStep``: forward and
+    loss under vmap, backward, the stacked Adam step), dropout on; the second step, after Adam's state exists."""
     options = {key: value for key, value in SMALL[name].items() if "dropout" not in key}
-    models = [_model(name, options) for _ in range(k)]
-    params, buffers = torch.func.stack_module_state(models)
-    for p in params.values():
-        p.requires_grad_(True)
-    state = fold_batch.new_state(list(params.values()), k, torch.device("cpu"), mixed=False)
-    loss = fold_batch._stacked_loss(models[0], False, torch.device("cpu"))
+    step = fold_batch.StackedStep([_model(name, options) for _ in range(k)], torch.device("cpu"))
     x, y = torch.randn(k, 2, DIMS["emht"], 40), torch.randint(0, CLASSES, (k, 2, 40))
-    mask = torch.ones(k, 2, 40, dtype=torch.bool)
+    mask, active = torch.ones(k, 2, 40, dtype=torch.bool), torch.ones(k, dtype=torch.bool)
     counter = _Operators()
     for counting in (False, True):
         with counter if counting else contextlib.nullcontext():
-            loss(params, buffers, x, y, mask).sum().backward()
-            fold_batch.adam_step(list(params.values()), state, torch.ones(k, dtype=torch.bool), TrainConfig(lr=1e-3))
+            step(x, y, mask, active, TrainConfig(lr=1e-3))
     return counter.count
 
 
